@@ -1,0 +1,300 @@
+"""zenpilot: fly missions and run the stack's services.
+
+  zenpilot fly [--mission M] [--lockstep] [--seed N] [--out DIR]   fly a whole mission, then report
+  zenpilot up [--machine NAME] [-d]     start the router and a machine's services, show live status
+  zenpilot status                        liveliness and health of a running stack
+  zenpilot down                          stop what `zenpilot up -d` started
+  zenpilot report DIR                    redraw a flight's plots and print its metrics
+  zenpilot missions                      list the shipped missions
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+
+import schemas
+from deploy.flightlog import LOG_NAME, read_log
+from deploy.launcher import Launcher, alive_services, client_session, free_port
+from deploy.stack import LOCKSTEP_PARTICIPANTS, StackError, load_stack
+from flight.mission import MissionError, available_missions, load_mission
+
+DEFAULT_MISSION = "steps"
+STATE_DIR = Path(os.environ.get("ZENPILOT_STATE_DIR", Path.home() / ".zenpilot"))
+
+
+def _param_overrides(items: list[str] | None) -> dict[str, list[str]]:
+    out: dict[str, list[str]] = {}
+    for item in items or []:
+        service, sep, rest = item.partition(".")
+        if not sep or "=" not in rest:
+            raise StackError(f"--set {item!r}: expected SERVICE.KEY=VALUE, e.g. attitude.k=[12,12,12]")
+        out.setdefault(service, []).append(rest)
+    return out
+
+
+# ---------------------------------------------------------------- fly
+def cmd_fly(args) -> int:
+    stack = load_stack(args.stack)
+    mission = load_mission(args.mission or DEFAULT_MISSION)
+    out = Path(args.out or f"runs/{mission.name}-{'lockstep' if args.lockstep else 'realtime'}-seed{args.seed}")
+    out.mkdir(parents=True, exist_ok=True)
+    router = f"tcp/127.0.0.1:{args.port or free_port()}"
+    launcher = Launcher(stack, out, router, lockstep=args.lockstep, seed=args.seed,
+                        vehicle=mission.vehicle, mission=mission.path, params=_param_overrides(args.set))
+    names = list(stack.services)
+    print(f"zenpilot: flying {mission.name} ({mission.vehicle}, "
+          f"{'lockstep' if args.lockstep else 'real time'}, seed {args.seed}) -> {out}", flush=True)
+    wall0 = time.monotonic()
+    completed_run = False
+    try:
+        launcher.start_router()
+        launcher.start_services(names)
+        missing = launcher.wait_alive(names)
+        if missing:
+            raise StackError(f"no liveliness token from {', '.join(sorted(missing))} after 30 s "
+                             f"(logs in {out / 'logs'})")
+        limit = mission.timeout_s * (20.0 if args.lockstep else 1.5) + 30.0
+        deadline = time.monotonic() + limit
+        while launcher.procs["sim"].poll() is None:
+            bad = {n: c for n, c in launcher.failed().items() if n != "sim"}
+            if bad:
+                raise StackError("service(s) failed during the flight: " + ", ".join(
+                    f"{n} (status {c}, see {out / 'logs' / (n + '.log')})" for n, c in bad.items()))
+            if time.monotonic() > deadline:
+                raise StackError(f"the flight did not finish within {limit:.0f} s of wall time")
+            time.sleep(0.1)
+        completed_run = launcher.procs["sim"].returncode == 0
+    finally:
+        # services first, then the recorder (it writes the log on exit), then the router
+        launcher.stop([n for n in names if n != "recorder"])
+        time.sleep(0.3)
+        launcher.stop(["recorder"], grace_s=60.0)
+        launcher.stop(["router"])
+    wall = time.monotonic() - wall0
+    if not completed_run:
+        print(f"zenpilot: the simulator stopped with an error (see {out / 'logs' / 'sim.log'})", file=sys.stderr)
+    metrics = analyse(out, {"mission": mission.name, "mode": "lockstep" if args.lockstep else "realtime",
+                            "seed": args.seed, "vehicle": mission.vehicle})
+    print(f"zenpilot: {metrics['duration_s']:.1f} s flown in {wall:.1f} s of wall time; "
+          f"log, plots and metrics.json in {out}")
+    return 0 if metrics.get("completed") else 1
+
+
+def analyse(out: Path, info: dict) -> dict:
+    from deploy.metrics import compute_metrics, format_table
+    from deploy.plots import make_plots
+
+    log = read_log(out / LOG_NAME)
+    metrics = compute_metrics(log, info)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
+    make_plots(log, out)
+    print(format_table(metrics))
+    return metrics
+
+
+def cmd_report(args) -> int:
+    out = Path(args.dir)
+    if not (out / LOG_NAME).exists():
+        raise StackError(f"{out}: no {LOG_NAME} here (give the --out directory of a flight)")
+    info = {}
+    if (out / "metrics.json").exists():
+        old = json.loads((out / "metrics.json").read_text())
+        info = {k: old.get(k) for k in ("mission", "mode", "seed", "vehicle")}
+    analyse(out, info)
+    return 0
+
+
+# ---------------------------------------------------------------- up / status / down
+def _machine_services(stack, machine: str | None) -> tuple[str, list[str], bool]:
+    if machine is None:
+        machine = next((m.name for m in stack.machines.values() if m.runs_router), next(iter(stack.machines)))
+        names = list(stack.services)  # no --machine: the whole stack here
+        return machine, names, True
+    if machine not in stack.machines:
+        raise StackError(f"{stack.path}: no machine {machine!r} (machines: {', '.join(stack.machines)})")
+    names = [n for n, s in stack.services.items() if s.machine == machine]
+    return machine, names, stack.machines[machine].runs_router
+
+
+def _status_lines(session, stack) -> list[str]:
+    alive = alive_services(session, stack.vehicle_id)
+    health: dict[str, dict] = {}
+
+    lines = [f"{'service':<10} {'alive':<6} {'state':<9} {'rate Hz':>8} {'target':>7} {'overruns':>8}  rejected"]
+    replies = {}
+
+    def on_health(sample):
+        try:
+            msg = schemas.HEALTH.decode(sample.payload.to_bytes())
+            replies[msg["header"]["source"]] = msg
+        except schemas.SchemaError:
+            pass
+
+    sub = session.declare_subscriber(f"zp/{stack.vehicle_id}/*/health", on_health)
+    time.sleep(1.2)  # health is published at 1 Hz
+    sub.undeclare()
+    health.update(replies)
+    for name in stack.services:
+        h = health.get(name)
+        if h:
+            rej = ", ".join(f"{k}={v}" for k, v in h["rejected"].items()) or "-"
+            lines.append(f"{name:<10} {'yes' if name in alive else 'NO':<6} {h['state']:<9} "
+                         f"{h['rate_hz']:>8.1f} {h['target_rate_hz']:>7.0f} {h['overruns']:>8}  {rej}")
+        else:
+            lines.append(f"{name:<10} {'yes' if name in alive else 'NO':<6} {'-':<9}")
+    return lines
+
+
+def cmd_status(args) -> int:
+    stack = load_stack(args.stack)
+    router = args.router or _state().get("router") or next(iter(stack.machines.values())).router
+    session = client_session(router)
+    try:
+        print("\n".join(_status_lines(session, stack)))
+    finally:
+        session.close()
+    return 0
+
+
+def _state() -> dict:
+    f = STATE_DIR / "up.json"
+    return json.loads(f.read_text()) if f.exists() else {}
+
+
+def cmd_up(args) -> int:
+    stack = load_stack(args.stack)
+    machine, names, runs_router = _machine_services(stack, args.machine)
+    router = args.router or stack.machines[machine].router
+    run_dir = Path(args.out or STATE_DIR / "run")
+    launcher = Launcher(stack, run_dir, router, lockstep=args.lockstep, seed=args.seed,
+                        mission=args.mission, params=_param_overrides(args.set))
+    if runs_router:
+        launcher.start_router()
+    launcher.start_services(names)
+    missing = launcher.wait_alive(names)
+    if missing:
+        launcher.stop()
+        raise StackError(f"no liveliness token from {', '.join(sorted(missing))} (logs in {run_dir / 'logs'})")
+    print(f"zenpilot: machine {machine!r} up: router {router}, services {', '.join(names)}; logs in {run_dir / 'logs'}")
+    if args.detach:
+        STATE_DIR.mkdir(parents=True, exist_ok=True)
+        (STATE_DIR / "up.json").write_text(json.dumps(
+            {"router": router, "stack": str(stack.path), "pids": {n: p.pid for n, p in launcher.procs.items()}}))
+        return 0
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    session = client_session(router)
+    try:
+        while not stop.is_set():
+            lines = _status_lines(session, stack)
+            print("\033[2J\033[H" + f"zenpilot up ({machine}) - Ctrl-C stops\n" + "\n".join(lines), flush=True)
+            for n, code in launcher.failed().items():
+                print(f"  {n} exited with status {code} (see {run_dir / 'logs' / (n + '.log')})")
+            stop.wait(1.0)
+    finally:
+        session.close()
+        launcher.stop([n for n in launcher.procs if n not in ("recorder", "router")])
+        launcher.stop(["recorder"], grace_s=60.0)
+        launcher.stop(["router"])
+    return 0
+
+
+def cmd_down(args) -> int:
+    state = _state()
+    if not state:
+        print("zenpilot: nothing to stop (no stack started with `zenpilot up -d`)")
+        return 0
+    pids = state["pids"]
+    order = [n for n in pids if n not in ("recorder", "router")] + [n for n in ("recorder", "router") if n in pids]
+    for name in order:
+        try:
+            os.kill(pids[name], signal.SIGINT)
+        except ProcessLookupError:
+            continue
+        for _ in range(100):
+            try:
+                os.kill(pids[name], 0)
+                time.sleep(0.05)
+            except ProcessLookupError:
+                break
+        else:
+            os.kill(pids[name], signal.SIGKILL)
+    (STATE_DIR / "up.json").unlink()
+    print(f"zenpilot: stopped {', '.join(order)}")
+    return 0
+
+
+def cmd_missions(args) -> int:
+    for name in available_missions():
+        m = load_mission(name)
+        print(f"{name:<16} {m.vehicle:<6} {m.description}")
+    return 0
+
+
+# ---------------------------------------------------------------- main
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="zenpilot", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="command", required=True)
+
+    def common(sp):
+        sp.add_argument("--stack", help="stack file (default: deploy/stacks/default.toml)")
+        sp.add_argument("--set", action="append", metavar="SERVICE.KEY=VALUE",
+                        help="override a service parameter, e.g. sim.camera_drop_rate=0.2 (repeatable)")
+        sp.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+        sp.add_argument("--lockstep", action="store_true", help="deterministic: services run on the simulator's clock")
+
+    fly = sub.add_parser("fly", help="fly a whole mission from start to finish, then report")
+    common(fly)
+    fly.add_argument("--mission", help=f"mission name or file (default: {DEFAULT_MISSION}; see `zenpilot missions`)")
+    fly.add_argument("--out", help="output directory (default: runs/<mission>-<mode>-seed<N>)")
+    fly.add_argument("--port", type=int, help="router port (default: a free one)")
+    fly.set_defaults(func=cmd_fly)
+
+    up = sub.add_parser("up", help="start the router and a machine's services; show live status")
+    common(up)
+    up.add_argument("--machine", help="start only this machine's services (connect to its router)")
+    up.add_argument("--router", help="router endpoint to connect to (default: the stack's)")
+    up.add_argument("--mission", help="mission for the planner")
+    up.add_argument("--out", help="run directory for logs and the flight log")
+    up.add_argument("-d", "--detach", action="store_true", help="return once everything is up; `zenpilot down` stops it")
+    up.set_defaults(func=cmd_up)
+
+    st = sub.add_parser("status", help="liveliness and health of a running stack")
+    st.add_argument("--stack")
+    st.add_argument("--router", help="router endpoint (default: the one `up -d` started, else the stack's)")
+    st.set_defaults(func=cmd_status)
+
+    down = sub.add_parser("down", help="stop what `zenpilot up -d` started")
+    down.set_defaults(func=cmd_down)
+
+    rep = sub.add_parser("report", help="redraw a flight's plots and print its metrics")
+    rep.add_argument("dir", help="a flight's output directory")
+    rep.set_defaults(func=cmd_report)
+
+    mis = sub.add_parser("missions", help="list the shipped missions")
+    mis.set_defaults(func=cmd_missions)
+    return p
+
+
+def main(argv=None) -> None:
+    args = build_parser().parse_args(argv)
+    try:
+        code = args.func(args)
+    except (StackError, MissionError, ValueError) as exc:
+        print(f"zenpilot: error: {exc}", file=sys.stderr)
+        code = 2
+    except KeyboardInterrupt:
+        code = 130
+    raise SystemExit(code)
+
+
+if __name__ == "__main__":
+    main()

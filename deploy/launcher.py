@@ -1,0 +1,149 @@
+"""Start, watch and stop a stack's processes: the Zenoh router and the services.
+
+Each service is its own OS process (`python -m services.<name>`), connected
+in peer mode to the router of its machine; its output goes to
+<run dir>/logs/<service>.log.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import zenoh
+
+from deploy.stack import SERVICE_MODULES, Stack, StackError
+
+ROUTER_START_TIMEOUT_S = 10.0
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def endpoint_port(endpoint: str) -> tuple[str, int]:
+    try:
+        host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
+        return host, int(port)
+    except (IndexError, ValueError):
+        raise StackError(f"router endpoint {endpoint!r}: expected tcp/HOST:PORT") from None
+
+
+def wait_port(endpoint: str, timeout_s: float) -> bool:
+    host, port = endpoint_port(endpoint)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            with socket.create_connection((host, port), timeout=0.2):
+                return True
+        except OSError:
+            time.sleep(0.05)
+    return False
+
+
+def client_session(endpoint: str) -> zenoh.Session:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(conf)
+
+
+def alive_services(session: zenoh.Session, vehicle_id: int, timeout_s: float = 0.5) -> set[str]:
+    replies = session.liveliness().get(f"zp/{vehicle_id}/alive/*", timeout=timeout_s)
+    return {str(r.ok.key_expr).rsplit("/", 1)[1] for r in replies if r.ok is not None}
+
+
+@dataclass
+class Launcher:
+    stack: Stack
+    run_dir: Path
+    router: str  # endpoint the services connect to
+    lockstep: bool = False
+    seed: int = 0
+    vehicle: str | None = None
+    mission: str | None = None
+    params: dict[str, list[str]] = field(default_factory=dict)  # service -> ["k=v", ...]
+    procs: dict[str, subprocess.Popen] = field(default_factory=dict)
+
+    def __post_init__(self):
+        (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
+
+    def _spawn(self, name: str, argv: list[str]) -> subprocess.Popen:
+        log = open(self.run_dir / "logs" / f"{name}.log", "w")
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        proc = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, env=env,
+                                start_new_session=True)  # Ctrl-C in a terminal reaches us only
+        self.procs[name] = proc
+        return proc
+
+    def start_router(self) -> None:
+        self._spawn("router", [sys.executable, "-m", "deploy.router", "--listen", self.router])
+        if not wait_port(self.router, ROUTER_START_TIMEOUT_S):
+            raise StackError(f"the Zenoh router did not open {self.router} "
+                             f"(see {self.run_dir / 'logs' / 'router.log'})")
+
+    def service_argv(self, name: str) -> list[str]:
+        argv = [sys.executable, "-m", SERVICE_MODULES[name], "--stack", str(self.stack.path),
+                "-e", self.router, "--seed", str(self.seed)]
+        if self.lockstep:
+            argv.append("--lockstep")
+        if self.vehicle:
+            argv += ["--vehicle", self.vehicle]
+        if name == "planner" and self.mission:
+            argv += ["--mission", self.mission]
+        if name == "recorder":
+            argv += ["--out", str(self.run_dir)]
+        for item in self.params.get(name, []):
+            argv += ["--param", item]
+        return argv
+
+    def start_services(self, names: list[str]) -> None:
+        # the recorder first so it sees everything; the simulator last, it drives the clock
+        order = sorted(names, key=lambda n: (n != "recorder", n == "sim"))
+        for name in order:
+            self._spawn(name, self.service_argv(name))
+
+    def wait_alive(self, names: list[str], timeout_s: float = 30.0) -> set[str]:
+        """Wait for every service's liveliness token; returns the ones still missing."""
+        session = client_session(self.router)
+        try:
+            deadline = time.monotonic() + timeout_s
+            missing = set(names)
+            while missing and time.monotonic() < deadline:
+                dead = [n for n in missing if self.procs[n].poll() is not None]
+                if dead:
+                    raise StackError("service(s) exited during start-up: " + ", ".join(
+                        f"{n} (status {self.procs[n].returncode}, see {self.run_dir / 'logs' / (n + '.log')})"
+                        for n in dead))
+                missing -= alive_services(session, self.stack.vehicle_id)
+                time.sleep(0.1)
+            return missing
+        finally:
+            session.close()
+
+    def stop(self, names: list[str] | None = None, grace_s: float = 5.0) -> None:
+        names = [n for n in (names or list(self.procs)) if n in self.procs]
+        for n in names:
+            if self.procs[n].poll() is None:
+                self.procs[n].send_signal(signal.SIGINT)
+        deadline = time.monotonic() + grace_s
+        for n in names:
+            try:
+                self.procs[n].wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                self.procs[n].kill()
+                self.procs[n].wait()
+
+    def failed(self) -> dict[str, int]:
+        """Services that exited with an error status."""
+        return {n: p.returncode for n, p in self.procs.items() if p.poll() not in (None, 0)}

@@ -1,0 +1,294 @@
+"""Flight metrics from a flight log (see deploy.flightlog.read_log).
+
+Everything is computed from header.t_s (sample time) and the simulator truth;
+the result is a plain JSON-serialisable dict (no NaN: missing values are None).
+
+Step responses (attitude_steps, position_steps) are measured on the truth
+signal over a window that runs from the step until the planner's reference
+next changes (any change of the stepped quantity's reference, or a mode
+change) or the log ends. Crossing times are linearly interpolated between
+truth samples.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+ATTITUDE_STEP_MIN_DEG = 1.0
+POSITION_STEP_MIN_M = 0.2
+SETTLE_BAND = 0.05  # of the step size
+MONOTONE_TOL = 0.01  # of the step size
+_REF_EPS = 1e-9  # any reference change larger than this ends a step window
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _f(x) -> float | None:
+    """float() of a numpy value, None for None/NaN/inf."""
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _sorted(msgs: list[dict]) -> list[dict]:
+    return sorted(msgs, key=lambda m: m["header"]["t_s"])  # stable: file order on ties
+
+
+def _times(msgs: list[dict]) -> np.ndarray:
+    return np.array([m["header"]["t_s"] for m in msgs], dtype=np.float64)
+
+
+def euler_from_quaternions(q: np.ndarray) -> np.ndarray:
+    """(N, 4) [w, x, y, z] -> (N, 3) [roll, pitch, yaw] rad, ZYX (as flight.quat.quat_to_euler)."""
+    q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    roll = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0))
+    yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return np.stack([roll, pitch, yaw], axis=1)
+
+
+def _crossing(t: np.ndarray, s: np.ndarray, level: float) -> float | None:
+    """First time the rising signal s reaches level (linear interpolation)."""
+    idx = np.nonzero(s >= level)[0]
+    if idx.size == 0:
+        return None
+    i = int(idx[0])
+    if i == 0:
+        return float(t[0])
+    s0, s1 = s[i - 1], s[i]
+    frac = (level - s0) / (s1 - s0) if s1 != s0 else 1.0
+    return float(t[i - 1] + frac * (t[i] - t[i - 1]))
+
+
+def step_response(t: np.ndarray, y: np.ndarray, t0: float, y0: float, y1: float) -> dict:
+    """Rise (10->90 %), overshoot (% of step), settle (5 % band) and monotonicity of y
+    answering a step y0 -> y1 at t0; t, y are the samples of the window only.
+
+    In normalised units s = (y - y0) / (y1 - y0) (0 before, 1 at target):
+    - rise_s: t(s first reaches 0.9) - t(s first reaches 0.1); None if 0.9 never reached;
+    - overshoot_pct: 100 * max(0, max(s) - 1);
+    - settle_s: time from t0 until |s - 1| <= 0.05 for the rest of the window
+      (the exit time of the last excursion, interpolated); None if the last sample
+      is outside the band (never settled) or there are no samples;
+    - monotone: the running maximum of s never drops by more than 0.01 before s
+      reaches 0.9 (over the whole window if it never does).
+    """
+    d = y1 - y0
+    out: dict[str, Any] = {"rise_s": None, "overshoot_pct": None, "settle_s": None, "monotone": None}
+    if t.size == 0 or d == 0:
+        return out
+    s = (y - y0) / d
+    t10 = _crossing(t, s, 0.1)
+    t90 = _crossing(t, s, 0.9)
+    if t10 is not None and t90 is not None:
+        out["rise_s"] = _f(t90 - t10)
+    out["overshoot_pct"] = _f(100.0 * max(0.0, float(np.max(s)) - 1.0))
+
+    err = np.abs(s - 1.0)
+    outside = np.nonzero(err > SETTLE_BAND)[0]
+    if outside.size == 0:
+        out["settle_s"] = 0.0
+    elif outside[-1] < t.size - 1:
+        i = int(outside[-1])
+        e0, e1 = err[i], err[i + 1]
+        frac = (e0 - SETTLE_BAND) / (e0 - e1) if e0 != e1 else 1.0
+        out["settle_s"] = _f(t[i] + frac * (t[i + 1] - t[i]) - t0)
+
+    n90 = np.nonzero(s >= 0.9)[0]
+    end = int(n90[0]) + 1 if n90.size else s.size
+    head = s[:end]
+    reversal = np.max(np.maximum.accumulate(head) - head) if head.size else 0.0
+    out["monotone"] = bool(reversal <= MONOTONE_TOL)
+    return out
+
+
+def _pct(values: np.ndarray, p: float) -> float | None:
+    return _f(np.percentile(values, p)) if values.size else None
+
+
+def _max_or_none(values) -> float | None:
+    vals = [v for v in values if v is not None]
+    return _f(max(vals)) if vals else None
+
+
+# --------------------------------------------------------------------------- steps
+
+
+def _change_points(modes: list[str], ref: np.ndarray) -> np.ndarray:
+    """Indices j >= 1 where the mode or the reference differs from setpoint j - 1."""
+    mode_change = np.array([modes[j] != modes[j - 1] for j in range(1, len(modes))], dtype=bool)
+    ref_change = np.any(np.abs(np.diff(ref, axis=0)) > _REF_EPS, axis=1)
+    return np.nonzero(mode_change | ref_change)[0] + 1
+
+
+def _find_steps(sp: list[dict], sp_t: np.ndarray, truth_t: np.ndarray, truth_val: np.ndarray,
+                landed: np.ndarray, mode: str, axes: tuple[str, ...], threshold: float,
+                scale: float) -> list[dict]:
+    """Reference jumps > threshold (in display units: ref * scale) between consecutive
+    setpoints of `mode`; each analysed against truth_val[:, axis] * scale."""
+    if not sp or truth_t.size == 0:
+        return []
+    modes = [m["mode"] for m in sp]
+    if mode == "attitude":
+        ref = np.array([m["attitude_rad"][:2] for m in sp], dtype=np.float64) * scale
+    else:
+        ref = np.array([m["position_m"][:3] for m in sp], dtype=np.float64) * scale
+    vals = truth_val * scale
+    t_last = float(truth_t[-1])
+    unit = "deg" if mode == "attitude" else "m"
+    changes = _change_points(modes, ref)
+    steps = []
+    for i in changes:
+        if modes[i] != mode:
+            continue
+        t0 = float(sp_t[i])
+        k = int(np.searchsorted(truth_t, t0, side="right")) - 1  # truth at the step
+        if mode == "attitude" and modes[i - 1] != mode:
+            # entering attitude mode: the step starts from the angle actually flown
+            if k < 0:
+                continue
+            prev = vals[k, : len(axes)]
+        elif modes[i - 1] == mode:
+            prev = ref[i - 1]
+        else:
+            continue
+        if mode == "position" and (k < 0 or landed[k]):
+            continue  # only steps while airborne
+        jumps = [a for a in range(len(axes)) if abs(ref[i, a] - prev[a]) > threshold]
+        if not jumps:
+            continue
+        later = changes[changes > i]
+        t_end = float(sp_t[later[0]]) if later.size else t_last  # next reference or mode change
+        w = (truth_t >= t0) & (truth_t <= t_end)
+        for a in jumps:
+            name = axes[a]
+            r = step_response(truth_t[w], vals[w, a], t0, float(prev[a]), float(ref[i, a]))
+            entry = {"axis": name, "t_s": t0, f"from_{unit}": _f(prev[a]), f"to_{unit}": _f(ref[i, a]),
+                     "window_s": _f(t_end - t0), **r}
+            if mode == "position":
+                entry.pop("monotone")
+            steps.append(entry)
+    return steps
+
+
+# --------------------------------------------------------------------------- metrics
+
+
+def compute_metrics(log: dict[str, list[dict]], info: dict, vehicle_id: int = 0) -> dict:
+    """Metrics of one flight; info = {"mission", "mode", "seed", "vehicle"}."""
+    p = f"zp/{vehicle_id}/"
+    truth = _sorted(log.get(p + "sim/truth", []))
+    sp = _sorted(log.get(p + "planner/setpoint", []))
+
+    m: dict[str, Any] = {k: info.get(k) for k in ("mission", "mode", "seed", "vehicle")}
+    m["completed"] = bool(sp and sp[-1]["mission_state"] == "completed")
+    m["mission_state"] = sp[-1]["mission_state"] if sp else None
+
+    truth_t = _times(truth)
+    m["duration_s"] = _f(truth_t[-1] - truth_t[0]) if truth else None
+    if truth:
+        pos = np.array([x["position_m"] for x in truth], dtype=np.float64)
+        euler = euler_from_quaternions(np.array([x["quaternion_wxyz"] for x in truth]))
+        landed = np.array([bool(x["landed"]) for x in truth])
+    else:
+        pos, euler, landed = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, dtype=bool)
+
+    # position tracking over measured hold segments
+    sp_t = _times(sp)
+    m["position_rms_m"] = m["max_position_error_m"] = None
+    m["measured_s"] = 0.0
+    if truth and sp:
+        idx = np.searchsorted(sp_t, truth_t, side="right") - 1
+        ok = idx >= 0
+        meas = np.array([bool(x["measure"]) and x["mode"] == "position" for x in sp])
+        sel = ok & meas[np.clip(idx, 0, None)]
+        if sel.any():
+            ref = np.array([x["position_m"] for x in sp], dtype=np.float64)[idx[sel]]
+            err = np.linalg.norm(pos[sel] - ref, axis=1)
+            m["position_rms_m"] = _f(np.sqrt(np.mean(err**2)))
+            m["max_position_error_m"] = _f(np.max(err))
+            dt = np.diff(truth_t, append=truth_t[-1])
+            m["measured_s"] = _f(np.sum(dt[sel]))
+
+    # service health
+    rates: dict[str, float | None] = {}
+    rejected: dict[str, dict] = {}
+    for key in sorted(log):
+        if not (key.startswith(p) and key.endswith("/health")):
+            continue
+        service = key[len(p):-len("/health")]
+        hs = _sorted(log[key])
+        if not hs:
+            continue
+        inner = [h["rate_hz"] for h in hs[1:-1] if h["state"] == "running"]
+        rates[service] = _f(np.mean(inner)) if inner else None
+        rejected[service] = {str(k): int(v) for k, v in hs[-1].get("rejected", {}).items()}
+    m["rates_hz"] = rates
+    m["rejected_messages"] = rejected
+    m["rejected_total"] = int(sum(sum(r.values()) for r in rejected.values()))
+
+    # IMU sample -> PWM output latency
+    lat = np.array([(x["header"]["t_s"] - x["imu_t_s"]) * 1000.0 for x in log.get(p + "motors/pwm", [])
+                    if x["armed"] and x["imu_t_s"] >= 0], dtype=np.float64)
+    m["latency_ms"] = {"imu_to_pwm_p50": _pct(lat, 50), "imu_to_pwm_p99": _pct(lat, 99),
+                       "imu_to_pwm_max": _f(lat.max()) if lat.size else None, "samples": int(lat.size)}
+
+    # step responses
+    m["attitude_steps"] = _find_steps(sp, sp_t, truth_t, euler[:, :2], landed, "attitude",
+                                      ("roll", "pitch"), ATTITUDE_STEP_MIN_DEG, 180.0 / math.pi)
+    m["position_steps"] = _find_steps(sp, sp_t, truth_t, pos, landed, "position",
+                                      ("x", "y", "z"), POSITION_STEP_MIN_M, 1.0)
+    att, ps = m["attitude_steps"], m["position_steps"]
+    m["attitude_rise_s_max"] = _max_or_none(s["rise_s"] for s in att)
+    m["attitude_overshoot_pct_max"] = _max_or_none(s["overshoot_pct"] for s in att)
+    m["attitude_settle_s_max"] = _max_or_none(s["settle_s"] for s in att)
+    m["attitude_steps_unsettled"] = sum(1 for s in att if s["settle_s"] is None)
+    m["position_step_settle_s_max"] = _max_or_none(s["settle_s"] for s in ps)
+    m["position_step_overshoot_pct_max"] = _max_or_none(s["overshoot_pct"] for s in ps)
+    m["position_steps_unsettled"] = sum(1 for s in ps if s["settle_s"] is None)
+    return m
+
+
+# --------------------------------------------------------------------------- table
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    return str(v)
+
+
+def format_table(metrics: dict) -> str:
+    """Two-column text table: scalar metrics, latency, one line per service and per step."""
+    rows: list[tuple[str, str]] = []
+    for k, v in metrics.items():
+        if not isinstance(v, (dict, list)):
+            rows.append((k, _fmt(v)))
+    for k, v in metrics.get("latency_ms", {}).items():
+        rows.append((f"latency_ms.{k}", _fmt(v)))
+    rej = metrics.get("rejected_messages", {})
+    for svc in sorted(set(metrics.get("rates_hz", {})) | set(rej)):
+        r = rej.get(svc) or {}
+        rtxt = ", ".join(f"{k}={n}" for k, n in sorted(r.items())) or "none"
+        rows.append((f"service {svc}", f"{_fmt(metrics.get('rates_hz', {}).get(svc))} Hz, rejected: {rtxt}"))
+    for kind, unit in (("attitude_steps", "deg"), ("position_steps", "m")):
+        for s in metrics.get(kind, []):
+            txt = (f"{_fmt(s[f'from_{unit}'])} -> {_fmt(s[f'to_{unit}'])} {unit}: "
+                   f"rise {_fmt(s['rise_s'])} s, overshoot {_fmt(s['overshoot_pct'])} %, "
+                   f"settle {_fmt(s['settle_s'])} s")
+            if "monotone" in s:
+                txt += f", monotone {_fmt(s['monotone'])}"
+            rows.append((f"{kind[:-1]} {s['axis']} @ {s['t_s']:.2f} s", txt))
+    width = max((len(k) for k, _ in rows), default=0)
+    return "\n".join(f"{k.ljust(width)}  {v}" for k, v in rows)

@@ -1,0 +1,186 @@
+"""Flight plots (PNG) from a flight log (see deploy.flightlog.read_log)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from deploy.metrics import euler_from_quaternions  # noqa: E402
+
+_DPI = 110
+
+
+def _series(msgs: list[dict], field: str) -> tuple[np.ndarray, np.ndarray]:
+    msgs = sorted(msgs, key=lambda m: m["header"]["t_s"])
+    t = np.array([m["header"]["t_s"] for m in msgs], dtype=np.float64)
+    v = np.array([m[field] for m in msgs], dtype=np.float64)
+    return t, v
+
+
+def _save(fig, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=_DPI)
+    plt.close(fig)
+    return path
+
+
+def _min_span(ax, span: float) -> None:
+    """Keep an almost constant signal from being blown up to rounding noise."""
+    lo, hi = ax.get_ylim()
+    if hi - lo < span:
+        mid = 0.5 * (lo + hi)
+        ax.set_ylim(mid - span / 2, mid + span / 2)
+
+
+def _shade_measured(ax, sp: list[dict], t0: float, label: bool) -> None:
+    """Shade the spans where the planner setpoint has measure True in position mode."""
+    sp = sorted(sp, key=lambda m: m["header"]["t_s"])
+    start = None
+    first = True
+    for i, m in enumerate(sp):
+        on = bool(m["measure"]) and m["mode"] == "position"
+        t = m["header"]["t_s"] - t0
+        if on and start is None:
+            start = t
+        last = i == len(sp) - 1
+        if start is not None and (not on or last):
+            ax.axvspan(start, t, color="tab:green", alpha=0.12, lw=0,
+                       label="measured hold" if (label and first) else None)
+            first = False
+            start = None
+
+
+def _position_plot(log, p, t0, out: Path) -> Path | None:
+    truth = log.get(p + "sim/truth", [])
+    sp = log.get(p + "planner/setpoint", [])
+    if not truth:
+        return None
+    tt, pos = _series(truth, "position_m")
+    fig, axes = plt.subplots(3, 1, sharex=True, figsize=(10, 8))
+    if sp:
+        ts, ref = _series(sp, "position_m")
+    for a, (ax, name) in enumerate(zip(axes, "xyz")):
+        ax.plot(tt - t0, pos[:, a], label="truth", color="tab:blue")
+        if sp:
+            ax.step(ts - t0, ref[:, a], where="post", label="planner reference", color="tab:orange", ls="--")
+            _shade_measured(ax, sp, t0, label=(a == 0))
+        ax.set_ylabel(f"{name} [m]")
+        _min_span(ax, 0.1)
+        ax.grid(True, alpha=0.4)
+    axes[0].legend(loc="best")
+    axes[0].set_title("Position (world ENU): truth vs planner reference")
+    axes[-1].set_xlabel("time since start of log [s]")
+    return _save(fig, out / "position.png")
+
+
+def _attitude_plot(log, p, t0, out: Path) -> Path | None:
+    truth = log.get(p + "sim/truth", [])
+    att = log.get(p + "att/state", [])
+    if not truth and not att:
+        return None
+    fig, axes = plt.subplots(3, 1, sharex=True, figsize=(10, 8))
+    if truth:
+        tt, q = _series(truth, "quaternion_wxyz")
+        eul = np.degrees(euler_from_quaternions(q))
+        eul[:, 2] = np.degrees(np.unwrap(np.radians(eul[:, 2])))
+    if att:
+        ta, ref = _series(att, "euler_ref_rad")
+        ref = np.degrees(ref)
+    for a, (ax, name) in enumerate(zip(axes, ("roll", "pitch", "yaw"))):
+        if truth:
+            ax.plot(tt - t0, eul[:, a], label="truth", color="tab:blue")
+        if att:
+            ax.plot(ta - t0, ref[:, a], label="reference (att/state)", color="tab:orange", ls="--")
+        ax.set_ylabel(f"{name} [deg]")
+        _min_span(ax, 1.0)
+        ax.grid(True, alpha=0.4)
+    axes[0].legend(loc="best")
+    axes[0].set_title("Attitude (ZYX Euler): truth vs attitude reference")
+    axes[-1].set_xlabel("time since start of log [s]")
+    return _save(fig, out / "attitude.png")
+
+
+def _motors_plot(log, p, t0, out: Path) -> Path | None:
+    pwm = log.get(p + "motors/pwm", [])
+    truth = log.get(p + "sim/truth", [])
+    if not pwm and not truth:
+        return None
+    fig, axes = plt.subplots(2, 1, sharex=True, figsize=(10, 6))
+    if pwm:
+        tp, us = _series(pwm, "pwm_us")
+        for i in range(us.shape[1]):
+            axes[0].plot(tp - t0, us[:, i], label=f"motor {i + 1}", lw=0.8)
+        axes[0].legend(loc="best", ncol=4)
+    axes[0].set_ylabel("PWM [us]")
+    axes[0].set_title("Motor driver output (motors/pwm)")
+    if truth:
+        tt, thr = _series(truth, "motor_thrust_n")
+        for i in range(thr.shape[1]):
+            axes[1].plot(tt - t0, thr[:, i], label=f"motor {i + 1}", lw=0.8)
+        axes[1].legend(loc="best", ncol=4)
+    axes[1].set_ylabel("thrust [N]")
+    axes[1].set_title("Motor thrust (simulator truth)")
+    axes[1].set_xlabel("time since start of log [s]")
+    for ax in axes:
+        ax.grid(True, alpha=0.4)
+    return _save(fig, out / "motors.png")
+
+
+def _estimation_plot(log, p, t0, out: Path) -> Path | None:
+    truth = log.get(p + "sim/truth", [])
+    att = [m for m in log.get(p + "att/state", []) if m.get("state_source") == "estimate"]
+    pos = [m for m in log.get(p + "pos/state", []) if m.get("state_source") == "estimate"]
+    if not truth or not (att or pos):
+        return None
+    tt, tpos = _series(truth, "position_m")
+    _, tq = _series(truth, "quaternion_wxyz")
+    teul = euler_from_quaternions(tq)
+    fig, axes = plt.subplots(2, 1, sharex=True, figsize=(10, 7))
+    if pos:
+        tp, epos = _series(pos, "position_m")
+        for a, name in enumerate("xyz"):
+            tru = np.interp(tp, tt, tpos[:, a])
+            axes[0].plot(tp - t0, tru - epos[:, a], label=name, lw=0.8)
+        axes[0].legend(loc="best")
+    else:
+        axes[0].text(0.5, 0.5, "position from truth (no estimate)", ha="center", transform=axes[0].transAxes)
+    axes[0].set_ylabel("truth - estimate [m]")
+    _min_span(axes[0], 0.01)
+    axes[0].set_title("Position estimation error")
+    if att:
+        ta, eeul = _series(att, "euler_rad")
+        for a, name in enumerate(("roll", "pitch", "yaw")):
+            tru = np.interp(ta, tt, np.unwrap(teul[:, a]))
+            err = (tru - eeul[:, a] + np.pi) % (2 * np.pi) - np.pi  # wrap to [-pi, pi)
+            axes[1].plot(ta - t0, np.degrees(err), label=name, lw=0.8)
+        axes[1].legend(loc="best")
+    else:
+        axes[1].text(0.5, 0.5, "attitude from truth (no estimate)", ha="center", transform=axes[1].transAxes)
+    axes[1].set_ylabel("truth - estimate [deg]")
+    _min_span(axes[1], 0.1)
+    axes[1].set_title("Attitude estimation error")
+    axes[1].set_xlabel("time since start of log [s]")
+    for ax in axes:
+        ax.grid(True, alpha=0.4)
+    return _save(fig, out / "estimation.png")
+
+
+def make_plots(log: dict, out_dir: Path, vehicle_id: int = 0) -> list[Path]:
+    """Write position.png, attitude.png, motors.png (and estimation.png when a state
+    estimate was flown) into out_dir; plots whose topics are missing are skipped."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    p = f"zp/{vehicle_id}/"
+    starts = [min(m["header"]["t_s"] for m in msgs) for k, msgs in log.items() if k.startswith(p) and msgs]
+    t0 = float(min(starts)) if starts else 0.0
+    written = []
+    for fn in (_position_plot, _attitude_plot, _motors_plot, _estimation_plot):
+        path = fn(log, p, t0, out)
+        if path is not None:
+            written.append(path)
+    return written

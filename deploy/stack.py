@@ -1,0 +1,186 @@
+"""Stack files: which services run, at what rates, with which parameters, on which machine.
+
+A stack file is TOML:
+
+    [stack]
+    vehicle_id = 0            # the <vehicle> in zp/<vehicle>/...
+    vehicle = "x250"          # airframe file in flight/vehicles/ (a mission may name another)
+    tick_rate_hz = 400        # simulator tick; every service rate must divide it
+
+    [machines.vehicle]        # one table per machine
+    router = "tcp/127.0.0.1:7447"   # the Zenoh router its services connect to
+    runs_router = true        # `zenpilot up --machine vehicle` starts that router
+
+    [services.attitude]
+    machine = "vehicle"
+    rate_hz = 200
+    [services.attitude.params]
+    state_source = "truth"
+
+Every service checks its own parameters against its declared defaults
+(`resolve_params`), so a typo is refused with the file, section and key.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+STACKS_DIR = Path(__file__).parent / "stacks"
+DEFAULT_STACK = STACKS_DIR / "default.toml"
+
+# service name -> python module that runs it (console script zenpilot-<name>)
+SERVICE_MODULES = {
+    "sim": "services.sim",
+    "motors": "services.motors",
+    "attitude": "services.attitude",
+    "position": "services.position",
+    "planner": "services.planner",
+    "recorder": "services.recorder",
+}
+# services that take part in lockstep (the recorder only listens)
+LOCKSTEP_PARTICIPANTS = ("motors", "attitude", "position", "planner")
+
+
+class StackError(ValueError):
+    """A stack file, mission or parameter that cannot be used; the message says where."""
+
+
+@dataclass(frozen=True)
+class ServiceSpec:
+    name: str
+    machine: str
+    rate_hz: float  # 0: event driven
+    params: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Machine:
+    name: str
+    router: str
+    runs_router: bool
+
+
+@dataclass(frozen=True)
+class Stack:
+    path: Path
+    vehicle_id: int
+    vehicle: str
+    tick_rate_hz: float
+    machines: dict[str, Machine]
+    services: dict[str, ServiceSpec]
+
+    def service(self, name: str) -> ServiceSpec:
+        if name not in self.services:
+            raise StackError(f"{self.path}: no [services.{name}] section")
+        return self.services[name]
+
+    def period_ticks(self, name: str) -> int:
+        return round(self.tick_rate_hz / self.service(name).rate_hz)
+
+
+def _expect(value: Any, kind: type | tuple, where: str) -> Any:
+    if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+        name = kind.__name__ if isinstance(kind, type) else "/".join(k.__name__ for k in kind)
+        raise StackError(f"{where}: expected {name}, got {value!r}")
+    return value
+
+
+def load_stack(path: str | Path | None = None) -> Stack:
+    path = Path(path) if path else DEFAULT_STACK
+    try:
+        doc = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise StackError(f"{path}: stack file not found") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise StackError(f"{path}: not valid TOML: {exc}") from None
+    unknown = set(doc) - {"stack", "machines", "services"}
+    if unknown:
+        raise StackError(f"{path}: unknown top-level table(s) {sorted(unknown)}")
+    head = doc.get("stack", {})
+    unknown = set(head) - {"vehicle_id", "vehicle", "tick_rate_hz", "name", "description"}
+    if unknown:
+        raise StackError(f"{path}: [stack]: unknown key(s) {sorted(unknown)}")
+    tick_rate = _expect(head.get("tick_rate_hz", 400.0), float, f"{path}: [stack] tick_rate_hz")
+    machines = {}
+    for name, m in doc.get("machines", {}).items():
+        where = f"{path}: [machines.{name}]"
+        unknown = set(m) - {"router", "runs_router", "description"}
+        if unknown:
+            raise StackError(f"{where}: unknown key(s) {sorted(unknown)}")
+        machines[name] = Machine(
+            name,
+            _expect(m.get("router", "tcp/127.0.0.1:7447"), str, f"{where} router"),
+            _expect(m.get("runs_router", False), bool, f"{where} runs_router"),
+        )
+    if not machines:
+        raise StackError(f"{path}: no [machines.*] table")
+    services = {}
+    for name, s in doc.get("services", {}).items():
+        where = f"{path}: [services.{name}]"
+        if name not in SERVICE_MODULES:
+            raise StackError(f"{where}: unknown service (known: {', '.join(SERVICE_MODULES)})")
+        unknown = set(s) - {"machine", "rate_hz", "params"}
+        if unknown:
+            raise StackError(f"{where}: unknown key(s) {sorted(unknown)}")
+        machine = _expect(s.get("machine", next(iter(machines))), str, f"{where} machine")
+        if machine not in machines:
+            raise StackError(f"{where}: machine {machine!r} is not defined under [machines]")
+        rate = _expect(s.get("rate_hz", 0.0), float, f"{where} rate_hz")
+        if rate < 0 or (rate > 0 and abs(tick_rate / rate - round(tick_rate / rate)) > 1e-9):
+            raise StackError(f"{where}: rate_hz {rate} must divide the tick rate {tick_rate}")
+        services[name] = ServiceSpec(name, machine, rate, dict(_expect(s.get("params", {}), dict, f"{where} params")))
+    for needed in ("sim", "motors", "attitude", "position", "planner"):
+        if needed not in services:
+            raise StackError(f"{path}: the stack needs a [services.{needed}] section")
+    return Stack(
+        path=path,
+        vehicle_id=_expect(head.get("vehicle_id", 0), int, f"{path}: [stack] vehicle_id"),
+        vehicle=_expect(head.get("vehicle", "x250"), str, f"{path}: [stack] vehicle"),
+        tick_rate_hz=tick_rate,
+        machines=machines,
+        services=services,
+    )
+
+
+def parse_overrides(items: list[str] | None) -> dict[str, Any]:
+    """`--param key=value` pairs; values parsed as TOML (numbers, strings, arrays)."""
+    out = {}
+    for item in items or []:
+        if "=" not in item:
+            raise StackError(f"--param {item!r}: expected KEY=VALUE")
+        key, raw = item.split("=", 1)
+        try:
+            out[key.strip()] = tomllib.loads(f"v = {raw}")["v"]
+        except tomllib.TOMLDecodeError:
+            out[key.strip()] = raw  # a bare word is a string
+    return out
+
+
+def resolve_params(defaults: dict[str, Any], given: dict[str, Any], where: str) -> dict[str, Any]:
+    """Merge `given` over `defaults`, refusing unknown keys and wrong types."""
+    out = dict(defaults)
+    for key, value in given.items():
+        if key not in defaults:
+            raise StackError(f"{where}: unknown parameter {key!r} (known: {', '.join(sorted(defaults))})")
+        default = defaults[key]
+        if isinstance(default, bool):
+            value = _expect(value, bool, f"{where}.{key}")
+        elif isinstance(default, float):
+            value = _expect(value, float, f"{where}.{key}")
+        elif isinstance(default, int):
+            value = _expect(value, int, f"{where}.{key}")
+        elif isinstance(default, str):
+            value = _expect(value, str, f"{where}.{key}")
+        elif isinstance(default, (list, tuple)):
+            value = _expect(value, list, f"{where}.{key}")
+            if len(value) != len(default):
+                raise StackError(f"{where}.{key}: expected {len(default)} values, got {len(value)}")
+            value = [_expect(v, float, f"{where}.{key}[{i}]") if isinstance(d, float) else v
+                     for i, (v, d) in enumerate(zip(value, default))]
+        out[key] = value
+    return out

@@ -1,0 +1,224 @@
+"""Missions: a list of items flown by a phase machine (pure; no I/O).
+
+A mission file is TOML:
+
+    [mission]
+    name = "hover"
+    vehicle = "x250"          # airframe file in flight/vehicles/
+    description = "..."
+    timeout_s = 60            # the mission fails if it takes longer
+
+    [[items]]
+    type = "takeoff"          # arm, climb along a ramp, done within tolerance
+    altitude_m = 1.0
+
+Item types and their keys (defaults in ITEM_KEYS):
+  arm       wait_s                      arm the motors, wait on the ground
+  takeoff   altitude_m climb_rate_m_s tolerance_m
+  hold      duration_s settle_s         hold the reference; measured after settle_s
+  goto      position_m yaw_deg settle_s hold_s    step the reference; measured after settle_s
+  attitude  roll_deg pitch_deg yaw_deg duration_s attitude reference, altitude held
+  land      descent_rate_m_s            descend until landed, then disarm
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+MISSIONS_DIR = Path(__file__).resolve().parent.parent / "deploy" / "missions"
+
+ITEM_KEYS: dict[str, dict] = {
+    "arm": {"wait_s": 0.5},
+    "takeoff": {"altitude_m": 1.0, "climb_rate_m_s": 0.5, "tolerance_m": 0.05},
+    "hold": {"duration_s": 10.0, "settle_s": 1.0},
+    "goto": {"position_m": None, "yaw_deg": 0.0, "settle_s": 4.0, "hold_s": 2.0},
+    "attitude": {"roll_deg": 0.0, "pitch_deg": 0.0, "yaw_deg": 0.0, "duration_s": 1.0},
+    "land": {"descent_rate_m_s": 0.5},
+}
+LANDED_Z_M = 0.03      # below this, slow and with the reference under ground: landed
+LANDED_FOR_S = 0.5
+LAND_TARGET_Z_M = -0.3  # the reference goes below the floor so the vehicle sits down firmly
+
+
+class MissionError(ValueError):
+    """A mission file that cannot be flown; the message names the file and the item."""
+
+
+@dataclass(frozen=True)
+class Mission:
+    name: str
+    vehicle: str
+    description: str
+    timeout_s: float
+    items: tuple[dict, ...]
+    path: str = ""
+
+
+def mission_path(name_or_path: str) -> Path:
+    p = Path(name_or_path)
+    if p.suffix == ".toml":
+        return p
+    return MISSIONS_DIR / f"{name_or_path}.toml"
+
+
+def available_missions() -> list[str]:
+    return sorted(p.stem for p in MISSIONS_DIR.glob("*.toml"))
+
+
+def load_mission(name_or_path: str) -> Mission:
+    path = mission_path(name_or_path)
+    try:
+        doc = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise MissionError(f"mission {name_or_path!r}: no file {path} "
+                           f"(shipped: {', '.join(available_missions())})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise MissionError(f"{path}: not valid TOML: {exc}") from None
+    head = doc.get("mission", {})
+    for key in ("name", "vehicle"):
+        if not isinstance(head.get(key), str):
+            raise MissionError(f"{path}: [mission] needs a string '{key}'")
+    items = []
+    for i, raw in enumerate(doc.get("items", [])):
+        where = f"{path}: items[{i}]"
+        kind = raw.get("type")
+        if kind not in ITEM_KEYS:
+            raise MissionError(f"{where}: type {kind!r} not one of {', '.join(ITEM_KEYS)}")
+        item = {"type": kind, **ITEM_KEYS[kind]}
+        for key, value in raw.items():
+            if key == "type":
+                continue
+            if key not in ITEM_KEYS[kind]:
+                raise MissionError(f"{where}: unknown key {key!r} for {kind} (known: {', '.join(ITEM_KEYS[kind])})")
+            if key == "position_m":
+                if not (isinstance(value, list) and len(value) == 3 and all(isinstance(v, (int, float)) for v in value)):
+                    raise MissionError(f"{where}: position_m must be 3 numbers")
+                value = [float(v) for v in value]
+            elif not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
+                raise MissionError(f"{where}: {key} must be a finite number, got {value!r}")
+            item[key] = value
+        if any(v is None for v in item.values()):
+            raise MissionError(f"{where}: {kind} needs " + ", ".join(k for k, v in item.items() if v is None))
+        items.append(item)
+    if not items:
+        raise MissionError(f"{path}: no [[items]]")
+    timeout = head.get("timeout_s", 120.0)
+    if not isinstance(timeout, (int, float)) or timeout <= 0:
+        raise MissionError(f"{path}: [mission] timeout_s must be a positive number")
+    return Mission(head["name"], head["vehicle"], head.get("description", ""), float(timeout),
+                   tuple(items), str(path))
+
+
+@dataclass
+class Setpoint:
+    mode: str = "idle"
+    armed: bool = False
+    position_m: list = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    attitude_rad: list = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    item: int = 0
+    phase: str = "waiting"
+    measure: bool = False
+    mission_state: str = "waiting"
+
+    def as_message(self) -> dict:
+        return dict(self.__dict__)
+
+
+class MissionRunner:
+    """Phase machine: feed it the time and the state, get the setpoint."""
+
+    def __init__(self, mission: Mission):
+        self.mission = mission
+        self.index = 0
+        self.item_start_t: float | None = None
+        self.start_t: float | None = None
+        self.sp = Setpoint()
+        self.ref = np.zeros(3)
+        self.yaw = 0.0
+        self.landed_since: float | None = None
+        self.ramp_from = 0.0
+
+    def update(self, t: float, position, velocity) -> Setpoint:
+        sp = self.sp
+        if sp.mission_state in ("completed", "failed"):
+            return sp
+        position = np.asarray(position, dtype=float)
+        if self.start_t is None:
+            self.start_t = t
+            self.ref = position.copy()
+            sp.mission_state = "running"
+        if t - self.start_t > self.mission.timeout_s:
+            sp.mission_state, sp.mode, sp.armed, sp.phase = "failed", "idle", False, "timeout"
+            return sp
+        item = self.mission.items[self.index]
+        if self.item_start_t is None:
+            self.item_start_t = t
+            self.ramp_from = float(self.ref[2])
+            self.landed_since = None
+        dt = t - self.item_start_t
+        done = getattr(self, "_" + item["type"])(item, dt, t, position, np.asarray(velocity, dtype=float))
+        sp.item = self.index
+        sp.position_m = [float(v) for v in self.ref]
+        if sp.mode != "attitude":
+            sp.attitude_rad = [0.0, 0.0, self.yaw]
+        if done:
+            self.index += 1
+            self.item_start_t = None
+            if self.index >= len(self.mission.items):
+                sp.mission_state, sp.measure = "completed", False
+        return sp
+
+    # -- items: each sets self.sp / self.ref and returns True when done ---------
+    def _arm(self, item, dt, t, pos, vel) -> bool:
+        self.sp.mode, self.sp.armed, self.sp.phase, self.sp.measure = "idle", True, "arm", False
+        return dt >= item["wait_s"]
+
+    def _takeoff(self, item, dt, t, pos, vel) -> bool:
+        sp = self.sp
+        sp.mode, sp.armed, sp.phase, sp.measure = "position", True, "takeoff", False
+        target = item["altitude_m"]
+        z = self.ramp_from + math.copysign(min(abs(target - self.ramp_from), item["climb_rate_m_s"] * dt),
+                                           target - self.ramp_from)
+        self.ref[2] = z
+        return z == target and abs(pos[2] - target) < item["tolerance_m"]
+
+    def _hold(self, item, dt, t, pos, vel) -> bool:
+        sp = self.sp
+        sp.mode, sp.armed = "position", True
+        settled = dt >= item["settle_s"]
+        sp.phase, sp.measure = ("hold", True) if settled else ("settle", False)
+        return dt >= item["settle_s"] + item["duration_s"]
+
+    def _goto(self, item, dt, t, pos, vel) -> bool:
+        sp = self.sp
+        sp.mode, sp.armed = "position", True
+        self.ref = np.array(item["position_m"], dtype=float)
+        self.yaw = math.radians(item["yaw_deg"])
+        settled = dt >= item["settle_s"]
+        sp.phase, sp.measure = ("hold", True) if settled else ("goto", False)
+        return dt >= item["settle_s"] + item["hold_s"]
+
+    def _attitude(self, item, dt, t, pos, vel) -> bool:
+        sp = self.sp
+        sp.mode, sp.armed, sp.phase, sp.measure = "attitude", True, "attitude", False
+        sp.attitude_rad = [math.radians(item["roll_deg"]), math.radians(item["pitch_deg"]),
+                           math.radians(item["yaw_deg"])]
+        return dt >= item["duration_s"]
+
+    def _land(self, item, dt, t, pos, vel) -> bool:
+        sp = self.sp
+        sp.mode, sp.armed, sp.phase, sp.measure = "position", True, "land", False
+        self.ref[2] = max(LAND_TARGET_Z_M, self.ramp_from - item["descent_rate_m_s"] * dt)
+        if pos[2] < LANDED_Z_M and abs(vel[2]) < 0.1 and self.ref[2] <= 0.0:
+            self.landed_since = t if self.landed_since is None else self.landed_since
+        else:
+            self.landed_since = None
+        if self.landed_since is not None and t - self.landed_since >= LANDED_FOR_S:
+            sp.mode, sp.armed, sp.phase = "idle", False, "landed"
+            return True
+        return False

@@ -1,0 +1,184 @@
+"""Vehicle description: a frozen dataclass loaded from flight/vehicles/<name>.toml.
+
+Allocation (rotor forces F -> body wrench u), with motor i at (x_i, y_i) in body FLU:
+    u = [thrust_total_n, torque_x, torque_y, torque_z] = M @ F
+    thrust_total = sum F_i
+    torque_x     = sum  y_i F_i                     (force up at +y rolls right-side-down: +x torque)
+    torque_y     = sum -x_i F_i                     (force up at +x pitches nose up: -y torque)
+    torque_z     = sum  sign_i * yaw_moment_m * F_i (rotor reaction torque, lambda = km/kf)
+"""
+from __future__ import annotations
+
+import math
+import re
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+VEHICLES_DIR = Path(__file__).resolve().parent / "vehicles"
+
+
+class VehicleError(ValueError):
+    """Bad, missing or unknown vehicle description."""
+
+
+@dataclass(frozen=True)
+class Vehicle:
+    name: str
+    description: str
+    mass_kg: float
+    inertia_kg_m2: tuple[float, float, float]  # diagonal Ixx, Iyy, Izz
+    motor_positions_m: tuple[tuple[float, float], ...]  # 4 x (x, y), body FLU
+    motor_yaw_torque_sign: tuple[int, int, int, int]
+    yaw_moment_m: float
+    max_thrust_n: float  # per motor
+    drag_n_per_m_s: float
+    gravity_m_s2: float = 9.81
+    min_thrust_n: float = 0.0
+    motor_time_constant_s: float = 0.02
+    pwm_min_us: float = 1000.0
+    pwm_max_us: float = 2000.0
+    # optional extras of document 001 (None when the file does not give them)
+    thrust_coefficient_kf: float | None = None
+    moment_coefficient_km: float | None = None
+    max_rotor_speed_rad_s: float | None = None
+    rotor_inertia_kg_m2: float | None = None
+    max_body_rate_rad_s: float | None = None
+
+    @property
+    def allocation(self) -> np.ndarray:
+        """4x4 M with [thrust_total_n, torque_x, torque_y, torque_z] = M @ F."""
+        xy = np.asarray(self.motor_positions_m, dtype=np.float64)
+        signs = np.asarray(self.motor_yaw_torque_sign, dtype=np.float64)
+        return np.vstack([
+            np.ones(4),
+            xy[:, 1],
+            -xy[:, 0],
+            signs * self.yaw_moment_m,
+        ])
+
+    @property
+    def allocation_inv(self) -> np.ndarray:
+        return np.linalg.inv(self.allocation)
+
+    @property
+    def inertia_matrix_kg_m2(self) -> np.ndarray:
+        return np.diag(np.asarray(self.inertia_kg_m2, dtype=np.float64))
+
+    @property
+    def hover_thrust_per_motor_n(self) -> float:
+        return self.mass_kg * self.gravity_m_s2 / 4.0
+
+
+# field -> (kind, required); kinds: "str", "pos" (>0 float), "nonneg", "vec3pos", "xy4", "sign4"
+_FIELDS: dict[str, tuple[str, bool]] = {
+    "name": ("str", True),
+    "description": ("str", False),
+    "mass_kg": ("pos", True),
+    "inertia_kg_m2": ("vec3pos", True),
+    "motor_positions_m": ("xy4", True),
+    "motor_yaw_torque_sign": ("sign4", True),
+    "yaw_moment_m": ("pos", True),
+    "max_thrust_n": ("pos", True),
+    "drag_n_per_m_s": ("nonneg", True),
+    "gravity_m_s2": ("pos", False),
+    "min_thrust_n": ("nonneg", False),
+    "motor_time_constant_s": ("pos", False),
+    "pwm_min_us": ("pos", False),
+    "pwm_max_us": ("pos", False),
+    "thrust_coefficient_kf": ("pos", False),
+    "moment_coefficient_km": ("pos", False),
+    "max_rotor_speed_rad_s": ("pos", False),
+    "rotor_inertia_kg_m2": ("pos", False),
+    "max_body_rate_rad_s": ("pos", False),
+}
+
+
+def _is_num(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _check(src: str, key: str, kind: str, v):
+    def bad(why: str) -> VehicleError:
+        return VehicleError(f"{src}: field '{key}': {why} (got {v!r})")
+
+    if kind == "str":
+        if not isinstance(v, str):
+            raise bad("must be a string")
+        return v
+    if kind in ("pos", "nonneg"):
+        if not _is_num(v):
+            raise bad("must be a finite number")
+        if kind == "pos" and v <= 0 or kind == "nonneg" and v < 0:
+            raise bad("must be > 0" if kind == "pos" else "must be >= 0")
+        return float(v)
+    if kind == "vec3pos":
+        if not isinstance(v, list) or len(v) != 3 or not all(_is_num(e) and e > 0 for e in v):
+            raise bad("must be a list of 3 positive numbers")
+        return tuple(float(e) for e in v)
+    if kind == "xy4":
+        if (not isinstance(v, list) or len(v) != 4
+                or not all(isinstance(p, list) and len(p) == 2 and all(_is_num(e) for e in p) for p in v)):
+            raise bad("must be a list of 4 [x, y] pairs of numbers")
+        return tuple((float(p[0]), float(p[1])) for p in v)
+    if kind == "sign4":
+        if (not isinstance(v, list) or len(v) != 4
+                or not all(isinstance(e, int) and not isinstance(e, bool) and e in (1, -1) for e in v)):
+            raise bad("must be a list of 4 integers, each +1 or -1")
+        return tuple(v)
+    raise AssertionError(kind)
+
+
+def vehicle_from_dict(d: dict, src: str = "<dict>") -> Vehicle:
+    """Validate a parsed TOML table and build the Vehicle; src names the file in errors."""
+    unknown = sorted(set(d) - set(_FIELDS))
+    if unknown:
+        raise VehicleError(f"{src}: field '{unknown[0]}': unknown field")
+    kwargs = {}
+    for key, (kind, required) in _FIELDS.items():
+        if key not in d:
+            if required:
+                raise VehicleError(f"{src}: field '{key}': missing")
+            continue
+        kwargs[key] = _check(src, key, kind, d[key])
+    veh = Vehicle(**kwargs)
+
+    if veh.min_thrust_n >= veh.max_thrust_n:
+        raise VehicleError(f"{src}: field 'min_thrust_n': must be below max_thrust_n")
+    if veh.pwm_min_us >= veh.pwm_max_us:
+        raise VehicleError(f"{src}: field 'pwm_max_us': must be above pwm_min_us")
+    if veh.hover_thrust_per_motor_n >= veh.max_thrust_n:
+        raise VehicleError(f"{src}: field 'max_thrust_n': cannot lift mass_kg (hover needs "
+                           f"{veh.hover_thrust_per_motor_n:.3f} N per motor)")
+    m = veh.allocation
+    if abs(np.linalg.det(m)) < 1e-12:
+        raise VehicleError(f"{src}: field 'motor_positions_m': allocation matrix is singular")
+    # The mixer moves collective thrust along [1,1,1,1]; that must not create torque,
+    # i.e. motors centred on the CG and yaw signs balanced.
+    if not np.allclose(m @ np.ones(4), [4, 0, 0, 0], atol=1e-9):
+        raise VehicleError(f"{src}: field 'motor_positions_m': motors must be centred on the "
+                           "centre of mass with balanced motor_yaw_torque_sign")
+    return veh
+
+
+def load_vehicle(name_or_path: str) -> Vehicle:
+    """'x250' -> flight/vehicles/x250.toml; a path ending in .toml -> that file."""
+    if str(name_or_path).endswith(".toml"):
+        path = Path(name_or_path)
+    else:
+        if not re.fullmatch(r"[A-Za-z0-9_\-]+", str(name_or_path)):
+            raise VehicleError(f"bad vehicle name {name_or_path!r}")
+        path = VEHICLES_DIR / f"{name_or_path}.toml"
+        if not path.is_file():
+            known = sorted(p.stem for p in VEHICLES_DIR.glob("*.toml"))
+            raise VehicleError(f"{path}: unknown vehicle {name_or_path!r} (known: {', '.join(known)})")
+    try:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    except FileNotFoundError:
+        raise VehicleError(f"{path}: file not found") from None
+    except tomllib.TOMLDecodeError as e:
+        raise VehicleError(f"{path}: not valid TOML: {e}") from None
+    return vehicle_from_dict(data, str(path))

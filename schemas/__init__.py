@@ -1,0 +1,14 @@
+"""zenpilot message schemas: definitions, key expressions and the strict codec."""
+
+from .core import REASONS, Field, Message, SchemaError
+from .messages import (
+    ALL, ATTITUDE_COMMAND, ATTITUDE_STATE, BARO, BY_NAME, CAMERA, CLOCK, HEALTH, IMU, MAG,
+    MOTOR_PWM, PLANNER_SETPOINT, POSITION_SETPOINT, POSITION_STATE, SIM_TOPICS, SYNC_DONE,
+    TRUTH, message_for_key,
+)
+
+__all__ = [
+    "REASONS", "Field", "Message", "SchemaError", "ALL", "BY_NAME", "SIM_TOPICS", "message_for_key",
+    "CLOCK", "SYNC_DONE", "IMU", "BARO", "MAG", "CAMERA", "TRUTH", "PLANNER_SETPOINT",
+    "POSITION_SETPOINT", "POSITION_STATE", "ATTITUDE_COMMAND", "ATTITUDE_STATE", "MOTOR_PWM", "HEALTH",
+]

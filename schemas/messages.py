@@ -1,0 +1,221 @@
+"""Every message of the zenpilot data flow: the only place fields are written down.
+
+Frames: world ENU (x east, y north, z up), body FLU (x forward, y left,
+z up); quaternions [w, x, y, z] rotate body to world; Euler angles are ZYX
+(yaw, pitch, roll) and listed as [roll, pitch, yaw]. MAVLink's NED/FRD
+appears only at the MAVLink edge.
+
+Key expressions are `zp/<vehicle>/<topic>`; liveliness tokens are
+`zp/<vehicle>/alive/<service>`.
+"""
+
+from __future__ import annotations
+
+import re
+
+from .core import Field, Message
+
+F = Field
+
+BIG = 1e6  # generous bound for positions etc.: catches garbage, not physics
+
+
+def _vec(name, doc, unit, n=3, lo=-BIG, hi=BIG):
+    return F(name, "float[]", doc, unit, length=n, min=lo, max=hi)
+
+
+def _camera_lengths(doc: dict) -> str | None:
+    if len(doc["corners_px"]) != 8 * len(doc["marker_ids"]):
+        return f"corners_px has {len(doc['corners_px'])} values for {len(doc['marker_ids'])} markers (8 each)"
+    return None
+
+
+CLOCK = Message(
+    "clock", "sim/clock", 1,
+    "Lockstep only: the simulator reached `tick`; services run the work due at "
+    "that simulated time, then answer on sync/<service>.",
+    (
+        F("tick", "int", "tick index; t = tick / tick_rate_hz", min=0),
+        F("tick_rate_hz", "float", "ticks per simulated second", "Hz", min=1.0, max=100000.0),
+        F("published", "str[]", "simulator topics published for this tick, before this message"),
+    ),
+)
+
+SYNC_DONE = Message(
+    "sync_done", "sync/{service}", 1,
+    "Lockstep only: a service finished `tick` (its outputs for it are published) "
+    "and says when it next needs to run. header.source names the service.",
+    (
+        F("tick", "int", "tick handled (-1: ready, nothing handled yet)", min=-1),
+        F("next_tick", "int", "next tick this service must run at; -1 when it only "
+          "runs on the simulator topics in `triggers`", min=-1),
+        F("triggers", "str[]", "simulator topics whose publication makes this service run"),
+    ),
+)
+
+IMU = Message(
+    "imu", "sim/imu", 1, "Inertial measurement, body FLU.",
+    (
+        _vec("gyro_rad_s", "angular rate", "rad/s", lo=-100.0, hi=100.0),
+        _vec("accel_m_s2", "specific force (reads +9.81 on z at rest)", "m/s^2", lo=-500.0, hi=500.0),
+    ),
+)
+
+BARO = Message(
+    "baro", "sim/baro", 1,
+    "Static pressure; the receiver turns it into altitude with "
+    "h = 44330 (1 - (p / 101325)^0.1903).",
+    (
+        F("pressure_pa", "float", "static pressure", "Pa", min=10000.0, max=120000.0),
+        F("temperature_k", "float", "air temperature", "K", min=150.0, max=400.0),
+    ),
+)
+
+MAG = Message(
+    "mag", "sim/mag", 1, "Magnetic field, body FLU.",
+    (_vec("field_ut", "magnetic flux density", "uT", lo=-1000.0, hi=1000.0),),
+)
+
+CAMERA = Message(
+    "camera", "sim/camera", 1,
+    "Fiducial markers seen by the downward camera. header.t_s is the exposure "
+    "time; the message arrives about camera_latency_s later. Empty lists: no "
+    "marker in view.",
+    (
+        F("marker_ids", "int[]", "id of each marker seen", min=0),
+        F("corners_px", "float[]", "pixel corners, 8 per marker: u0,v0,u1,v1,u2,v2,u3,v3 "
+          "(corner order of flight.camera.marker_grid)", "px", min=-1e5, max=1e5),
+    ),
+    check=_camera_lengths,
+)
+
+TRUTH = Message(
+    "truth", "sim/truth", 1,
+    "Simulator ground truth, for the recorder and metrics only: no flight "
+    "service may use it unless its state source is explicitly `truth`.",
+    (
+        _vec("position_m", "position, world ENU", "m"),
+        _vec("velocity_m_s", "velocity, world ENU", "m/s"),
+        _vec("quaternion_wxyz", "attitude, body to world", "", 4, -1.0, 1.0),
+        _vec("rate_rad_s", "angular rate, body FLU", "rad/s"),
+        _vec("acceleration_m_s2", "acceleration, world ENU", "m/s^2"),
+        _vec("motor_thrust_n", "thrust of each motor", "N", 4, 0.0, 1000.0),
+        _vec("wind_m_s", "wind velocity, world ENU", "m/s"),
+        F("landed", "bool", "resting on the ground"),
+    ),
+)
+
+PLANNER_SETPOINT = Message(
+    "planner_setpoint", "planner/setpoint", 1,
+    "What the mission asks for now. mode `position`: hold position_m and yaw; "
+    "mode `attitude`: hold roll/pitch/yaw with altitude position_m[2]; `idle`: "
+    "motors off.",
+    (
+        F("mode", "str", "control mode", choices=("idle", "position", "attitude")),
+        F("armed", "bool", "motors may spin"),
+        _vec("position_m", "position reference, world ENU", "m", lo=-1e4, hi=1e4),
+        _vec("attitude_rad", "[roll, pitch, yaw] reference", "rad", lo=-7.0, hi=7.0),
+        F("item", "int", "index of the mission item being flown", min=0),
+        F("phase", "str", "name of the mission item's phase"),
+        F("measure", "bool", "this is a hold segment counted in position_rms_m"),
+        F("mission_state", "str", "mission progress",
+          choices=("waiting", "running", "completed", "failed")),
+    ),
+)
+
+POSITION_SETPOINT = Message(
+    "position_setpoint", "pos/setpoint", 1,
+    "Position level output (laws (9)-(11)): attitude reference and collective thrust.",
+    (
+        _vec("attitude_ref_rad", "[roll, pitch, yaw] reference", "rad", lo=-7.0, hi=7.0),
+        F("thrust_n", "float", "collective thrust u1", "N", min=0.0, max=1000.0),
+    ),
+)
+
+POSITION_STATE = Message(
+    "position_state", "pos/state", 1,
+    "The translational state the position level used.",
+    (
+        _vec("position_m", "position, world ENU", "m"),
+        _vec("velocity_m_s", "velocity, world ENU", "m/s"),
+        _vec("position_ref_m", "position reference", "m", lo=-1e4, hi=1e4),
+        F("state_source", "str", "where the state came from", choices=("truth", "estimate")),
+    ),
+)
+
+ATTITUDE_COMMAND = Message(
+    "attitude_command", "att/command", 1,
+    "Attitude level output (law (8)): body torques and the collective thrust, "
+    "for the motor driver.",
+    (
+        F("thrust_n", "float", "collective thrust u1", "N", min=0.0, max=1000.0),
+        _vec("torque_nm", "body torques [u2, u3, u4]", "N m", lo=-100.0, hi=100.0),
+        F("imu_t_s", "float", "sample time of the newest IMU sample used (-1: none)", "s", min=-1.0),
+    ),
+)
+
+ATTITUDE_STATE = Message(
+    "attitude_state", "att/state", 1,
+    "The attitude state the attitude level used, and its reference.",
+    (
+        _vec("quaternion_wxyz", "attitude, body to world", "", 4, -1.0, 1.0),
+        _vec("euler_rad", "[roll, pitch, yaw]", "rad", lo=-7.0, hi=7.0),
+        _vec("rate_rad_s", "angular rate, body FLU", "rad/s"),
+        _vec("euler_ref_rad", "[roll, pitch, yaw] reference", "rad", lo=-7.0, hi=7.0),
+        F("state_source", "str", "where the state came from", choices=("truth", "estimate")),
+    ),
+)
+
+MOTOR_PWM = Message(
+    "motor_pwm", "motors/pwm", 1,
+    "Motor driver output: PWM pulse widths for the ESCs (or the simulator).",
+    (
+        _vec("pwm_us", "pulse width per motor", "us", 4, 0.0, 3000.0),
+        _vec("thrust_n", "thrust the mixer asked of each motor", "N", 4, 0.0, 1000.0),
+        F("armed", "bool", "motors enabled"),
+        F("saturated", "bool", "the mixer had to give up thrust or torque"),
+        F("imu_t_s", "float", "sample time of the IMU sample behind this output (-1: none)", "s", min=-1.0),
+    ),
+)
+
+HEALTH = Message(
+    "health", "{service}/health", 1,
+    "Every service, at 1 Hz (in its clock): how it is doing.",
+    (
+        F("state", "str", "service state", choices=("starting", "running", "degraded", "stopping", "failed")),
+        F("rate_hz", "float", "achieved rate of the main task over the last second", "Hz", min=0.0),
+        F("target_rate_hz", "float", "configured rate (0: event driven)", "Hz", min=0.0),
+        F("overruns", "int", "main-task deadlines missed since start", min=0),
+        F("jitter_p99_ms", "float", "p99 of |period - nominal| over the last second", "ms", min=0.0),
+        F("rejected", "counts", "messages dropped since start, by reason"),
+        F("detail", "str", "last problem, human readable ('' if none)"),
+    ),
+)
+
+ALL = (
+    CLOCK, SYNC_DONE, IMU, BARO, MAG, CAMERA, TRUTH, PLANNER_SETPOINT,
+    POSITION_SETPOINT, POSITION_STATE, ATTITUDE_COMMAND, ATTITUDE_STATE, MOTOR_PWM, HEALTH,
+)
+
+BY_NAME = {m.name: m for m in ALL}
+
+# Simulator topics as named in CLOCK.published and SYNC_DONE.triggers.
+SIM_TOPICS = {"imu": IMU, "baro": BARO, "mag": MAG, "camera": CAMERA, "truth": TRUTH}
+
+
+def _pattern(topic: str) -> re.Pattern:
+    return re.compile("^" + re.escape(topic).replace(re.escape("{service}"), "[^/]+") + "$")
+
+
+_PATTERNS = [(_pattern(m.topic), m) for m in ALL]
+
+
+def message_for_key(key: str) -> Message | None:
+    """The definition behind a concrete key expression (for tools and the recorder)."""
+    parts = key.split("/", 2)
+    if len(parts) < 3 or parts[0] != "zp":
+        return None
+    for pattern, m in _PATTERNS:
+        if pattern.match(parts[2]):
+            return m
+    return None

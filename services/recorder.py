@@ -1,0 +1,69 @@
+"""zenpilot-recorder: writes every message of the vehicle to one MCAP flight log.
+
+Subscribes to zp/<vehicle>/** and decodes each message strictly (malformed
+ones are counted, not logged). In lockstep the log is sorted by sample time,
+key and sequence number before writing, so the same seed gives the same file.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import zenoh
+
+import schemas
+from deploy.flightlog import LOG_NAME, write_log
+from services.runtime import Runtime, main_guard, service_parser
+
+NAME = "recorder"
+PARAMS: dict = {}
+
+
+def run(args) -> None:
+    rt = Runtime(NAME, args, PARAMS)
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    own_health = schemas.HEALTH.key(rt.vehicle_id, NAME)
+    records: list[tuple[str, dict]] = []
+    lock = threading.Lock()
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        if key == own_health or "/alive/" in key:
+            return
+        definition = schemas.message_for_key(key)
+        if definition is None:
+            rt.reject(key, schemas.SchemaError("malformed", "?", f"no message is defined for key {key}"))
+            return
+        try:
+            msg = definition.decode(sample.payload.to_bytes())
+        except schemas.SchemaError as exc:
+            rt.reject(key, exc)
+            return
+        with lock:
+            records.append((key, msg))
+
+    rt.subscribe(rt.key("**"), on_sample)
+    rt.lockstep = False  # the recorder only listens: it keeps wall time for its own health
+    rt.rate_hz = 10.0
+    try:
+        rt.run(lambda t: None)
+    finally:
+        with lock:
+            rows = list(records)
+        if args.lockstep:  # arrival order across senders is not deterministic; sample time is
+            rows.sort(key=lambda r: (r[1]["header"]["t_s"], r[0], r[1]["header"]["seq"]))
+        n = write_log(out_dir / LOG_NAME, rows)
+        print(f"zenpilot-recorder: wrote {n} messages to {out_dir / LOG_NAME}", flush=True)
+
+
+def main(argv=None) -> None:
+    parser = service_parser(NAME, __doc__.splitlines()[0])
+    parser.add_argument("--out", default="runs/latest", help="directory for flight.mcap")
+    args = parser.parse_args(argv)
+    main_guard(NAME, lambda: run(args))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,436 @@
+"""The runtime every zenpilot service shares.
+
+It owns the I/O so that service modules hold only their algorithm's wiring:
+the Zenoh session from the standard flags, the clock, the rate loop or the
+lockstep handshake, strict decoding with per-reason reject counters, the
+liveliness token, the 1 Hz health message and clean shutdown on SIGINT/SIGTERM.
+
+Lockstep protocol (deterministic; like PX4 SITL lockstep):
+
+* The simulator publishes its sensor messages for tick k, then `sim/clock`
+  with tick k. A service runs when k is its `next_tick` (rate services) or
+  when the clock lists one of its trigger topics (event services, e.g. vision).
+* Before running at tick k a service waits until each upstream service has
+  announced (`sync/<upstream>`) that it has finished all its work before k.
+* Each run sees exactly: simulator messages of ticks <= k, and upstream
+  messages produced by upstream runs at ticks < k (one tick of transport
+  delay per hop, as on a real bus). Messages are tagged on arrival with the
+  last sync tick seen from their producer; Zenoh delivers one session's
+  messages over one link in order, so the tag says which run produced them.
+* After its outputs, the service publishes `sync/<name>` with the tick done
+  and its next tick; the simulator advances once everyone due is done.
+"""
+
+from __future__ import annotations
+
+import argparse
+import bisect
+import json
+import math
+import signal
+import sys
+import threading
+import time
+from collections import deque
+from typing import Any, Callable
+
+import zenoh
+
+import schemas
+from deploy.stack import Stack, StackError, load_stack, parse_overrides, resolve_params
+
+HEALTH_PERIOD_S = 1.0
+READY_RESEND_S = 0.2
+
+
+# ---------------------------------------------------------------- CLI and Zenoh
+def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
+    """The standard Zenoh flags of the zenoh-python examples."""
+    g = parser.add_argument_group("zenoh")
+    g.add_argument("-m", "--mode", choices=["peer", "client", "router"], default="peer",
+                   help="Zenoh session mode (default: peer, connected to the router)")
+    g.add_argument("-e", "--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    g.add_argument("-l", "--listen", action="append", default=[], metavar="ENDPOINT",
+                   help="endpoint to listen on (repeatable)")
+    g.add_argument("-c", "--config", metavar="FILE", help="Zenoh JSON5 configuration file")
+    g.add_argument("--no-multicast-scouting", action="store_true", default=True,
+                   help="disable multicast scouting (always on here: routers are given explicitly)")
+    g.add_argument("--cfg", action="append", default=[], metavar="KEY:VALUE",
+                   help="Zenoh config entry, VALUE in JSON5, e.g. --cfg 'transport/shared_memory/enabled:false'")
+
+
+def zenoh_config(args: argparse.Namespace) -> zenoh.Config:
+    conf = zenoh.Config.from_file(args.config) if args.config else zenoh.Config()
+    conf.insert_json5("mode", json.dumps(args.mode))
+    if args.connect:
+        conf.insert_json5("connect/endpoints", json.dumps(args.connect))
+    if args.listen:
+        conf.insert_json5("listen/endpoints", json.dumps(args.listen))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    for item in args.cfg:
+        key, _, value = item.partition(":")
+        if not value:
+            raise StackError(f"--cfg {item!r}: expected KEY:VALUE")
+        conf.insert_json5(key, value)
+    return conf
+
+
+def service_parser(name: str, description: str) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=f"zenpilot-{name}", description=description)
+    p.add_argument("--stack", help="stack file (default: deploy/stacks/default.toml)")
+    p.add_argument("--vehicle", help="airframe name or .toml file (default: the stack's)")
+    p.add_argument("--lockstep", action="store_true", help="run on the simulator's clock ticks")
+    p.add_argument("--seed", type=int, default=0, help="random seed (simulator)")
+    p.add_argument("--param", action="append", metavar="KEY=VALUE",
+                   help="override a parameter of this service (repeatable)")
+    add_zenoh_args(p)
+    return p
+
+
+def fail(name: str, message: str) -> None:
+    """The user interface for a fatal problem: one clear line, exit status 2."""
+    print(f"zenpilot-{name}: error: {message}", file=sys.stderr, flush=True)
+    raise SystemExit(2)
+
+
+# ---------------------------------------------------------------- inputs
+class Inbox:
+    """Messages of one key, decoded strictly, tagged for lockstep visibility."""
+
+    def __init__(self, runtime: "Runtime", message: schemas.Message, key: str, upstream: str, keep: int):
+        self.runtime = runtime
+        self.message = message
+        self.key = key
+        self.upstream = upstream  # "sim" or the producing service
+        self.keep = keep
+        self._items: deque[tuple[int, dict]] = deque(maxlen=keep)
+        self._taken_seq = -1
+        self._lock = threading.Lock()
+        self.limit = math.inf  # visibility: tag < limit (set per run in lockstep)
+        self.arrived = 0
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        tag = self.runtime._sync_tick(self.upstream)
+        self.arrived += 1
+        try:
+            msg = self.message.decode(sample.payload.to_bytes())
+        except schemas.SchemaError as exc:
+            self.runtime.reject(self.key, exc)
+            return
+        msg["_tag"] = tag
+        msg["_n"] = self.arrived
+        with self._lock:
+            self._items.append((tag, msg))
+
+    def latest(self) -> dict | None:
+        """The newest visible message, or None."""
+        with self._lock:
+            for tag, msg in reversed(self._items):
+                if tag < self.limit:
+                    return msg
+        return None
+
+    def take(self) -> list[dict]:
+        """Visible messages not taken before, oldest first."""
+        with self._lock:
+            out = [m for tag, m in self._items if tag < self.limit and m["_n"] > self._taken_seq]
+        if out:
+            self._taken_seq = out[-1]["_n"]
+        return out
+
+
+class Publisher:
+    def __init__(self, runtime: "Runtime", message: schemas.Message, key: str):
+        self.runtime = runtime
+        self.message = message
+        self.key = key
+        self.seq = 0
+        self._pub = runtime.session.declare_publisher(key, express=not runtime.lockstep)
+
+    def put(self, values: dict[str, Any], t_s: float | None = None) -> None:
+        """Publish; invalid values (NaN, out of range) are reported, never sent."""
+        t = self.runtime.now() if t_s is None else t_s
+        try:
+            payload = self.message.encode(t, self.seq, self.runtime.name, values)
+        except schemas.SchemaError as exc:
+            self.runtime.problem(f"not publishing {self.key}: {exc}")
+            return
+        self._pub.put(payload)
+        self.seq += 1
+
+
+class _Upstream:
+    """What a service knows of another service's lockstep progress."""
+
+    def __init__(self):
+        self.done_ticks: list[int] = [-2]
+        self.next_tick = 0
+        self.triggers: tuple[str, ...] = ()
+
+
+# ---------------------------------------------------------------- runtime
+class Runtime:
+    def __init__(self, name: str, args: argparse.Namespace, param_defaults: dict[str, Any] | None = None):
+        self.name = name
+        self.args = args
+        try:
+            self.stack: Stack = load_stack(args.stack)
+            spec = self.stack.services.get(name)
+            given = dict(spec.params) if spec else {}
+            given.update(parse_overrides(getattr(args, "param", None)))
+            self.params = resolve_params(param_defaults or {}, given, f"{self.stack.path}: [services.{name}.params]")
+            self.conf = zenoh_config(args)
+        except (StackError, zenoh.ZError, ValueError) as exc:
+            fail(name, str(exc))
+        self.vehicle_id = self.stack.vehicle_id
+        self.vehicle_name = args.vehicle or self.stack.vehicle
+        self.lockstep = bool(args.lockstep)
+        self.rate_hz = spec.rate_hz if spec else 0.0
+        self.tick_rate = self.stack.tick_rate_hz
+        self.stop_event = threading.Event()
+        self.rejected: dict[str, int] = {}
+        self._reported: set[tuple[str, str]] = set()
+        self.detail = ""
+        self.overruns = 0
+        self.state = "starting"
+        self._run_times: deque[float] = deque()
+        self._periods: deque[float] = deque(maxlen=2000)
+        self._t = 0.0
+        self._upstreams: dict[str, _Upstream] = {}
+        self._clock_ticks: deque[tuple[int, tuple[str, ...]]] = deque(maxlen=4096)
+        self._sim_tick = -1
+        self._clock_queue: deque[dict] = deque()
+        self._clock_event = threading.Event()
+        self._sync_event = threading.Event()
+        self.inboxes: list[Inbox] = []
+        try:
+            self.session = zenoh.open(self.conf)
+        except zenoh.ZError as exc:
+            fail(name, f"cannot open the Zenoh session: {exc}")
+        self._token = self.session.liveliness().declare_token(self.key(f"alive/{name}"))
+        self._health = Publisher(self, schemas.HEALTH, schemas.HEALTH.key(self.vehicle_id, name))
+        self._next_health = 0.0
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: self.stop_event.set())
+
+    # -- helpers ---------------------------------------------------------
+    def key(self, topic: str) -> str:
+        return f"zp/{self.vehicle_id}/{topic}"
+
+    def now(self) -> float:
+        return self._t if self.lockstep else time.time()
+
+    def problem(self, text: str) -> None:
+        if text != self.detail:
+            print(f"zenpilot-{self.name}: {text}", file=sys.stderr, flush=True)
+        self.detail = text
+
+    def reject(self, key: str, exc: schemas.SchemaError) -> None:
+        self.rejected[exc.reason] = self.rejected.get(exc.reason, 0) + 1
+        if (key, exc.reason) not in self._reported:  # log once per kind
+            self._reported.add((key, exc.reason))
+            self.problem(f"dropped a message on {key}: {exc}")
+
+    def inbox(self, message: schemas.Message, upstream: str, key: str | None = None, keep: int = 4) -> Inbox:
+        """Subscribe to `message` from `upstream` ("sim" or a service name)."""
+        key = key or message.key(self.vehicle_id)
+        box = Inbox(self, message, key, upstream, keep)
+        if self.lockstep and upstream != "sim":
+            self.follow(upstream)
+        self.subscribe(key, box._on_sample)
+        self.inboxes.append(box)
+        return box
+
+    def follow(self, upstream: str) -> None:
+        """Track another service's lockstep progress (its sync/<name> messages)."""
+        if upstream not in self._upstreams:
+            self._upstreams[upstream] = _Upstream()
+            self.subscribe(self.key(f"sync/{upstream}"), self._make_sync_cb(upstream))
+
+    def subscribe(self, key: str, callback: Callable[[zenoh.Sample], None]):
+        """Subscribe with the callback run on Zenoh's receiving thread (indirect=False):
+        one sender's messages then reach every callback in the order they were sent,
+        which lockstep relies on. Callbacks must be short."""
+        return self.session.declare_subscriber(key, zenoh.handlers.Callback(callback, indirect=False))
+
+    def publisher(self, message: schemas.Message, key: str | None = None) -> Publisher:
+        return Publisher(self, message, key or message.key(self.vehicle_id))
+
+    # -- lockstep bookkeeping (called from Zenoh threads) ---------------------
+    def _sync_tick(self, upstream: str) -> int:
+        if upstream == "sim":
+            return self._sim_tick
+        u = self._upstreams.get(upstream)
+        return u.done_ticks[-1] if u else -2
+
+    def _make_sync_cb(self, upstream: str) -> Callable:
+        def on_sync(sample: zenoh.Sample) -> None:
+            try:
+                msg = schemas.SYNC_DONE.decode(sample.payload.to_bytes())
+            except schemas.SchemaError as exc:
+                self.reject(f"sync/{upstream}", exc)
+                return
+            u = self._upstreams[upstream]
+            u.next_tick, u.triggers = msg["next_tick"], tuple(msg["triggers"])
+            if msg["tick"] > u.done_ticks[-1]:
+                u.done_ticks.append(msg["tick"])
+                if len(u.done_ticks) > 4096:
+                    del u.done_ticks[:2048]
+            self._sync_event.set()
+        return on_sync
+
+    def _on_clock(self, sample: zenoh.Sample) -> None:
+        try:
+            msg = schemas.CLOCK.decode(sample.payload.to_bytes())
+        except schemas.SchemaError as exc:
+            self.reject(self.key("sim/clock"), exc)
+            return
+        self._sim_tick = msg["tick"]
+        self._clock_ticks.append((msg["tick"], tuple(msg["published"])))
+        self._clock_queue.append(msg)
+        self._clock_event.set()
+
+    def _upstream_finished_before(self, u: _Upstream, k: int) -> bool:
+        if u.next_tick >= 0:
+            return u.next_tick >= k and u.done_ticks[-1] >= -1
+        # event-driven upstream: done with every tick before k that triggered it
+        for tick, published in reversed(self._clock_ticks):
+            if tick < k and set(published) & set(u.triggers):
+                return u.done_ticks[-1] >= tick
+        return True
+
+    @staticmethod
+    def _last_done_before(u: _Upstream, k: int) -> int:
+        i = bisect.bisect_left(u.done_ticks, k)
+        return u.done_ticks[i - 1] if i > 0 else -2
+
+    # -- health ------------------------------------------------------------
+    def _count_run(self, t: float) -> None:
+        if self._run_times:
+            self._periods.append(t - self._run_times[-1])
+        self._run_times.append(t)
+        while self._run_times and self._run_times[0] <= t - HEALTH_PERIOD_S:
+            self._run_times.popleft()
+
+    def publish_health(self, force: bool = False) -> None:
+        t = self.now()
+        if not force and t < self._next_health:
+            return
+        self._next_health = (math.floor(t / HEALTH_PERIOD_S) + 1) * HEALTH_PERIOD_S
+        nominal = 1.0 / self.rate_hz if self.rate_hz > 0 else None
+        jitter = 0.0
+        if nominal and self._periods and not self.lockstep:
+            dev = sorted(abs(p - nominal) for p in self._periods)
+            jitter = dev[min(len(dev) - 1, int(0.99 * len(dev)))] * 1e3
+            self._periods.clear()
+        self._health.put({
+            "state": self.state, "rate_hz": float(len(self._run_times)) / HEALTH_PERIOD_S,
+            "target_rate_hz": float(self.rate_hz), "overruns": self.overruns,
+            "jitter_p99_ms": jitter, "rejected": dict(self.rejected), "detail": self.detail,
+        })
+
+    # -- main loops ----------------------------------------------------------
+    def run(self, step: Callable[[float], None], triggers: tuple[str, ...] = ()) -> None:
+        """Call `step(t)` at the service's rate (or on `triggers`) until stopped."""
+        try:
+            if self.lockstep:
+                self._run_lockstep(step, triggers)
+            else:
+                self._run_realtime(step, triggers)
+        finally:
+            self.close()
+
+    def _run_realtime(self, step: Callable[[float], None], triggers: tuple[str, ...]) -> None:
+        self.state = "running"
+        if self.rate_hz <= 0:  # event driven: the step polls its inboxes
+            period = 0.002
+        else:
+            period = 1.0 / self.rate_hz
+        t_next = time.time()
+        while not self.stop_event.is_set():
+            delay = t_next - time.time()
+            if delay > 0:
+                time.sleep(delay)
+            now = time.time()
+            self._t = now
+            self._count_run(now)
+            self._safe_step(step, now)
+            self.publish_health()
+            t_next += period
+            if time.time() > t_next:  # missed the next deadline: count it, do not catch up in a burst
+                missed = int((time.time() - t_next) / period) + 1
+                self.overruns += missed
+                t_next += missed * period
+
+    def _safe_step(self, step: Callable[[float], None], t: float) -> None:
+        try:
+            step(t)
+        except Exception as exc:  # a failing step is reported and the loop goes on
+            self.state = "degraded"
+            self.problem(f"step failed at t={t:.3f}: {type(exc).__name__}: {exc}")
+
+    def _run_lockstep(self, step: Callable[[float], None], triggers: tuple[str, ...]) -> None:
+        period = round(self.tick_rate / self.rate_hz) if self.rate_hz > 0 else 0
+        sync = Publisher(self, schemas.SYNC_DONE, self.key(f"sync/{self.name}"))
+        next_tick = 0 if period else -1
+        self.subscribe(self.key("sim/clock"), self._on_clock)
+        # announce readiness until the first clock tick arrives
+        while not self.stop_event.is_set() and not self._clock_queue:
+            sync.put({"tick": -1, "next_tick": next_tick, "triggers": list(triggers)}, t_s=0.0)
+            self._clock_event.wait(READY_RESEND_S)
+        self.state = "running"
+        while not self.stop_event.is_set():
+            self._clock_event.clear()
+            if not self._clock_queue:
+                self._clock_event.wait(0.2)
+                continue
+            clock = self._clock_queue.popleft()
+            k = clock["tick"]
+            due = (period and k >= next_tick) or (not period and set(clock["published"]) & set(triggers))
+            if not due:
+                continue
+            self._t = k / self.tick_rate
+            if not self._wait_upstreams(k):
+                break
+            for box in self.inboxes:
+                box.limit = k if box.upstream == "sim" else self._last_done_before(self._upstreams[box.upstream], k)
+            self._count_run(self._t)
+            self._safe_step(step, self._t)
+            self.publish_health()
+            if period:
+                next_tick = k + period
+            sync.put({"tick": k, "next_tick": next_tick, "triggers": list(triggers)}, t_s=self._t)
+
+    def _wait_upstreams(self, k: int) -> bool:
+        warned = False
+        start = time.monotonic()
+        while not self.stop_event.is_set():
+            self._sync_event.clear()  # clear before checking, so a sync arriving now is not lost
+            if all(self._upstream_finished_before(u, k) for u in self._upstreams.values()):
+                return True
+            self._sync_event.wait(0.5)
+            if not warned and time.monotonic() - start > 5.0:
+                waiting = [n for n, u in self._upstreams.items() if not self._upstream_finished_before(u, k)]
+                self.problem(f"lockstep: tick {k} still waiting for {', '.join(waiting)}")
+                warned = True
+        return False
+
+    def close(self) -> None:
+        self.state = "stopping"
+        try:
+            self.publish_health(force=True)
+            self._token.undeclare()
+            self.session.close()
+        except Exception:  # already closing; nothing left to report to
+            pass
+
+
+def main_guard(name: str, fn: Callable[[], None]) -> None:
+    """Run a service's main: configuration problems become one line, not a traceback."""
+    try:
+        fn()
+    except (StackError, ValueError) as exc:
+        fail(name, str(exc))
+    except KeyboardInterrupt:
+        pass

@@ -1,0 +1,150 @@
+"""zenpilot-sim: the simulated quadcopter and its sensors.
+
+Publishes sim/imu, sim/baro, sim/mag, sim/camera and sim/truth at their own
+rates; applies the motor driver's PWM. In lockstep it drives the clock: it
+publishes sim/clock for each tick and advances only when every service due
+at that tick has reported done. It stops by itself `linger_s` after the
+mission completes (or fails), or after `max_duration_s`.
+"""
+
+from __future__ import annotations
+
+import time
+
+import schemas
+from deploy.stack import LOCKSTEP_PARTICIPANTS
+from flight.vehicle import VehicleError, load_vehicle
+from services.runtime import Runtime, main_guard, service_parser
+from simulator.config import SimConfig
+from simulator.world import Simulator
+
+NAME = "sim"
+EXTRA_PARAMS = {
+    "linger_s": 1.0,  # keep simulating after the mission ends (landing settles, logs flush)
+    "max_duration_s": 600.0,  # hard stop, simulated seconds
+}
+START_GRACE_S = 0.5  # lockstep: let subscriptions propagate before tick 0
+
+
+def param_defaults() -> dict:
+    d = SimConfig().to_dict()
+    d.pop("tick_rate_hz")  # the stack's tick rate is the one source of truth
+    return {**{k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}, **EXTRA_PARAMS}
+
+
+class SimService:
+    def __init__(self, args):
+        self.rt = rt = Runtime(NAME, args, param_defaults())
+        sim_params = {k: v for k, v in rt.params.items() if k not in EXTRA_PARAMS}
+        sim_params["tick_rate_hz"] = rt.tick_rate
+        try:
+            config = SimConfig.from_dict(sim_params)
+            vehicle = load_vehicle(rt.vehicle_name)
+        except (ValueError, VehicleError) as exc:
+            rt.close()
+            raise ValueError(f"{rt.stack.path}: [services.sim.params]: {exc}") from None
+        self.sim = Simulator(vehicle, config, seed=args.seed)
+        self.pubs = {topic: rt.publisher(msg) for topic, msg in schemas.SIM_TOPICS.items()}
+        self.clock = rt.publisher(schemas.CLOCK)
+        self.pwm = rt.inbox(schemas.MOTOR_PWM, "motors", keep=2)
+        self.mission = rt.inbox(schemas.PLANNER_SETPOINT, "planner", keep=2)
+        self.participants = [p for p in LOCKSTEP_PARTICIPANTS if p in rt.stack.services]
+        self.end_t: float | None = None
+        self.t0 = 0.0  # wall time of tick 0 in real time: headers carry the stack's clock
+
+    def publish_outputs(self) -> list[str]:
+        published = []
+        for topic, t_s, fields in self.sim.outputs():
+            self.pubs[topic].put(fields, t_s=self.t0 + t_s)
+            published.append(topic)
+        return published
+
+    def advance(self) -> bool:
+        """Apply the newest PWM, step one tick; False when the run is over."""
+        pwm = self.pwm.latest()
+        if pwm is None:
+            self.sim.step([0.0] * 4, armed=False)
+        else:
+            self.sim.step(pwm["pwm_us"], armed=pwm["armed"])
+        t = self.sim.t
+        sp = self.mission.latest()
+        if self.end_t is None and sp is not None and sp["mission_state"] in ("completed", "failed"):
+            self.end_t = t + self.rt.params["linger_s"]
+        if t >= self.rt.params["max_duration_s"]:
+            self.rt.problem(f"stopping at max_duration_s={self.rt.params['max_duration_s']}")
+            return False
+        return self.end_t is None or t < self.end_t
+
+    # -- lockstep: this service drives the clock ------------------------------
+    def run_lockstep(self) -> None:
+        rt = self.rt
+        for p in self.participants:
+            rt.follow(p)
+        # wait for every participant's "ready"
+        while not rt.stop_event.is_set():
+            missing = [p for p in self.participants if rt._upstreams[p].done_ticks[-1] < -1]
+            if not missing:
+                break
+            rt._sync_event.wait(0.2)
+            rt._sync_event.clear()
+        time.sleep(START_GRACE_S)
+        rt.state = "running"
+        while not rt.stop_event.is_set():
+            k = self.sim.tick
+            rt._t = self.sim.t
+            published = self.publish_outputs()
+            self.clock.put({"tick": k, "tick_rate_hz": rt.tick_rate, "published": published}, t_s=rt._t)
+            if not self.wait_done(k, published):
+                break
+            rt._count_run(rt._t)
+            rt.publish_health()
+            if not self.advance():
+                break
+
+    def wait_done(self, k: int, published: list[str]) -> bool:
+        rt = self.rt
+        start = time.monotonic()
+        warned = False
+        while not rt.stop_event.is_set():
+            rt._sync_event.clear()
+            waiting = []
+            for p in self.participants:
+                u = rt._upstreams[p]
+                due = u.next_tick == k or (u.next_tick < 0 and set(published) & set(u.triggers))
+                if due and u.done_ticks[-1] < k:
+                    waiting.append(p)
+            if not waiting:
+                return True
+            rt._sync_event.wait(0.5)
+            if not warned and time.monotonic() - start > 5.0:
+                rt.problem(f"lockstep: tick {k} waiting for {', '.join(waiting)}")
+                warned = True
+        return False
+
+    # -- real time -------------------------------------------------------------
+    def run_realtime(self) -> None:
+        def step(_t: float) -> None:
+            self.publish_outputs()
+            if not self.advance():
+                self.rt.stop_event.set()
+        self.rt.rate_hz = self.rt.tick_rate
+        self.t0 = time.time()
+        self.rt._run_realtime(step, ())
+
+    def run(self) -> None:
+        try:
+            if self.rt.lockstep:
+                self.run_lockstep()
+            else:
+                self.run_realtime()
+        finally:
+            self.rt.close()
+
+
+def main(argv=None) -> None:
+    args = service_parser(NAME, __doc__.splitlines()[0]).parse_args(argv)
+    main_guard(NAME, lambda: SimService(args).run())
+
+
+if __name__ == "__main__":
+    main()

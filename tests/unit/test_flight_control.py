@@ -1,0 +1,64 @@
+import numpy as np
+import pytest
+
+from flight.control import (altitude_law, attitude_from_thrust_vector, attitude_law,
+                            position_law, wrap_angle)
+from flight.quat import quat_from_euler, quat_to_rotation
+
+G = 9.81
+
+
+def test_thrust_vector_attitude_is_parallel():
+    rng = np.random.default_rng(4)
+    for _ in range(300):
+        h = rng.normal(0, 5, 3)
+        h[2] = abs(h[2]) + 0.1
+        yaw = rng.uniform(-np.pi, np.pi)
+        roll, pitch = attitude_from_thrust_vector(h, yaw)
+        e3 = quat_to_rotation(quat_from_euler(roll, pitch, yaw))[:, 2]
+        np.testing.assert_allclose(e3, h / np.linalg.norm(h), atol=1e-12)
+
+
+def test_position_law_direction_and_hover():
+    m = 0.4
+    k = a = np.full(3, 4.0)
+    r, p, t = position_law(m, G, [0, 0, 1], [0, 0, 0], [0, 0, 1], k, a, yaw=0.3)
+    assert (r, p) == pytest.approx((0, 0)) and t == pytest.approx(m * G)
+    # target ahead (+x) with yaw 0: pitch forward (positive pitch tilts thrust to +x)
+    r, p, t = position_law(m, G, [0, 0, 1], [0, 0, 0], [0.1, 0, 1], k, a, yaw=0.0)
+    assert p > 0 and r == pytest.approx(0)
+    # target to the left (+y): negative roll tilts thrust to +y
+    r, p, t = position_law(m, G, [0, 0, 1], [0, 0, 0], [0, 0.1, 1], k, a, yaw=0.0)
+    assert r < 0 and p == pytest.approx(0)
+    # unclamped: R e3 parallel to H, thrust = m |H|
+    pos, vel, ref, yaw = np.array([0.2, -0.1, 1.0]), np.array([0.1, 0.05, -0.2]), np.array([0.0, 0.0, 1.1]), 1.0
+    h = -(a + k) * vel - a * k * (pos - ref) + [0, 0, G]
+    r, p, t = position_law(m, G, pos, vel, ref, k, a, yaw, max_tilt_rad=1.5)
+    e3 = quat_to_rotation(quat_from_euler(r, p, yaw))[:, 2]
+    np.testing.assert_allclose(e3 * t / m, h, atol=1e-12)
+
+
+def test_position_law_clamps_tilt_and_never_inverts():
+    k = a = np.full(3, 4.0)
+    r, p, t = position_law(0.4, G, [0, 0, 1], [0, 0, 0], [100, 50, 1], k, a, yaw=0.0, max_tilt_rad=0.6)
+    e3 = quat_to_rotation(quat_from_euler(r, p, 0.0))[:, 2]
+    assert np.arccos(e3[2]) == pytest.approx(0.6)
+    r, p, t = position_law(0.4, G, [0, 0, 100], [0, 0, 0], [0, 0, 0], k, a, yaw=0.0)
+    assert t == pytest.approx(0.4 * 0.1 * G) and (r, p) == pytest.approx((0, 0))
+
+
+def test_attitude_law_and_yaw_wrap():
+    inertia = np.array([7.5e-3, 7.5e-3, 14.2e-3])
+    k = a = np.full(3, 16.0)
+    tau = attitude_law(inertia, [0.1, 0, 0], [0, 0.5, 0], [0, 0, 0], k, a)
+    np.testing.assert_allclose(tau, inertia * np.array([-256 * 0.1, -32 * 0.5, 0]))
+    # yaw 3.1 to ref -3.1: the short way is +0.083 rad, so torque is positive
+    tau = attitude_law(inertia, [0, 0, 3.1], [0, 0, 0], [0, 0, -3.1], k, a)
+    assert tau[2] == pytest.approx(-inertia[2] * 256 * wrap_angle(6.2))
+    assert tau[2] > 0
+
+
+def test_altitude_law_tilted_keeps_vertical_thrust():
+    t = altitude_law(0.4, G, 1.0, 0.0, 1.0, 4.0, 4.0, roll=0.2, pitch=-0.1)
+    assert t * np.cos(0.2) * np.cos(-0.1) == pytest.approx(0.4 * G)
+    assert altitude_law(0.4, G, 1.0, 0.0, 1.5, 4.0, 4.0, 0.0, 0.0) > 0.4 * G

@@ -1,0 +1,51 @@
+import numpy as np
+import pytest
+
+from flight.quat import (quat_conjugate, quat_from_euler, quat_multiply, quat_normalize,
+                         quat_to_euler, quat_to_rotation, rotate_vector)
+
+
+def rx(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+
+
+def ry(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+
+
+def rz(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+
+
+def test_euler_matches_zyx_matrix_and_round_trips():
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        roll, yaw = rng.uniform(-np.pi, np.pi, 2)
+        pitch = rng.uniform(-1.5, 1.5)
+        q = quat_from_euler(roll, pitch, yaw)
+        np.testing.assert_allclose(quat_to_rotation(q), rz(yaw) @ ry(pitch) @ rx(roll), atol=1e-12)
+        np.testing.assert_allclose(quat_to_euler(q), (roll, pitch, yaw), atol=1e-9)
+
+
+def test_multiply_composes_rotations_and_conjugate_inverts():
+    a = quat_from_euler(0.3, -0.2, 1.0)
+    b = quat_from_euler(-1.1, 0.4, -2.0)
+    np.testing.assert_allclose(quat_to_rotation(quat_multiply(a, b)),
+                               quat_to_rotation(a) @ quat_to_rotation(b), atol=1e-12)
+    np.testing.assert_allclose(quat_multiply(a, quat_conjugate(a)), [1, 0, 0, 0], atol=1e-12)
+
+
+def test_rotate_vector_body_to_world():
+    q = quat_from_euler(0.0, 0.0, np.pi / 2)  # yaw 90 deg: body forward points north (+y)
+    np.testing.assert_allclose(rotate_vector(q, [1, 0, 0]), [0, 1, 0], atol=1e-12)
+    vs = np.eye(3)
+    np.testing.assert_allclose(rotate_vector(q, vs), vs @ quat_to_rotation(q).T, atol=1e-12)
+
+
+def test_normalize():
+    np.testing.assert_allclose(quat_normalize([2, 0, 0, 0]), [1, 0, 0, 0])
+    with pytest.raises(ValueError):
+        quat_normalize([0, 0, 0, 0])

@@ -1,0 +1,74 @@
+import numpy as np
+import pytest
+
+from flight.vehicle import VEHICLES_DIR, VehicleError, load_vehicle
+
+
+def test_x250_allocation_is_mixer_of_000():
+    v = load_vehicle("x250")
+    l = 0.125 * np.sin(np.pi / 4)
+    lam = v.yaw_moment_m
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        f1, f2, f3, f4 = f = rng.uniform(0, 2.5, 4)
+        expected = [f1 + f2 + f3 + f4,
+                    l * (f1 + f2 - f3 - f4),
+                    l * (-f1 + f2 + f3 - f4),
+                    lam * (f1 - f2 + f3 - f4)]
+        np.testing.assert_allclose(v.allocation @ f, expected, atol=1e-12)
+    np.testing.assert_allclose(v.allocation_inv @ v.allocation, np.eye(4), atol=1e-12)
+    assert v.mass_kg == 0.4 and v.inertia_kg_m2 == (7.5e-3, 7.5e-3, 14.2e-3)
+    assert v.hover_thrust_per_motor_n == pytest.approx(0.4 * 9.81 / 4)
+    assert v.thrust_coefficient_kf is None
+
+
+def test_q820_allocation_is_torque_of_001():
+    v = load_vehicle("q820")
+    kf, km, arm = 1.48e-6, 9.4e-8, 0.15
+    assert v.thrust_coefficient_kf == kf and v.moment_coefficient_km == km
+    assert v.max_thrust_n == pytest.approx(kf * 2100 ** 2)
+    rng = np.random.default_rng(2)
+    for _ in range(20):
+        w = rng.uniform(0, 2100, 4)
+        t = kf * w ** 2
+        expected = [t.sum(), arm * (t[1] - t[3]), arm * (t[2] - t[0]),
+                    km * (w[0] ** 2 - w[1] ** 2 + w[2] ** 2 - w[3] ** 2)]
+        np.testing.assert_allclose(v.allocation @ t, expected, rtol=1e-9, atol=1e-12)
+
+
+def test_load_by_path(tmp_path):
+    v = load_vehicle("x250")
+    src = (VEHICLES_DIR / "x250.toml").read_text()
+    p = tmp_path / "mine.toml"
+    p.write_text(src)
+    assert load_vehicle(str(p)) == v
+
+
+def test_unknown_name():
+    with pytest.raises(VehicleError, match="nosuch"):
+        load_vehicle("nosuch")
+
+
+@pytest.mark.parametrize("edit, field", [
+    (lambda s: s.replace("mass_kg = 0.4\n", ""), "mass_kg"),
+    (lambda s: s.replace("mass_kg = 0.4", "mass_kg = -1"), "mass_kg"),
+    (lambda s: s.replace("mass_kg = 0.4", 'mass_kg = "heavy"'), "mass_kg"),
+    (lambda s: s.replace("motor_yaw_torque_sign = [1, -1, 1, -1]",
+                         "motor_yaw_torque_sign = [1, -1, 2, -1]"), "motor_yaw_torque_sign"),
+    (lambda s: s.replace("inertia_kg_m2 = [7.5e-3, 7.5e-3, 14.2e-3]",
+                         "inertia_kg_m2 = [7.5e-3, 7.5e-3]"), "inertia_kg_m2"),
+    (lambda s: s + "\nmass_gk = 1.0\n", "mass_gk"),
+])
+def test_bad_field_names_file_and_field(tmp_path, edit, field):
+    src = (VEHICLES_DIR / "x250.toml").read_text()
+    p = tmp_path / "bad.toml"
+    p.write_text(edit(src))
+    with pytest.raises(VehicleError) as e:
+        load_vehicle(str(p))
+    assert str(p) in str(e.value) and field in str(e.value)
+    assert isinstance(e.value, ValueError)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(VehicleError, match="not found"):
+        load_vehicle(str(tmp_path / "none.toml"))
