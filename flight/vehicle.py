@@ -15,6 +15,8 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
+import functools
+
 import numpy as np
 
 VEHICLES_DIR = Path(__file__).resolve().parent / "vehicles"
@@ -47,7 +49,7 @@ class Vehicle:
     rotor_inertia_kg_m2: float | None = None
     max_body_rate_rad_s: float | None = None
 
-    @property
+    @functools.cached_property  # computed once: the mixer runs at 400 Hz
     def allocation(self) -> np.ndarray:
         """4x4 M with [thrust_total_n, torque_x, torque_y, torque_z] = M @ F."""
         xy = np.asarray(self.motor_positions_m, dtype=np.float64)
@@ -59,7 +61,7 @@ class Vehicle:
             signs * self.yaw_moment_m,
         ])
 
-    @property
+    @functools.cached_property
     def allocation_inv(self) -> np.ndarray:
         return np.linalg.inv(self.allocation)
 

@@ -34,7 +34,7 @@ REASONS = (
 )
 
 # Field kinds. Arrays are MessagePack arrays; "counts" is a map str -> int >= 0.
-KINDS = ("float", "int", "bool", "str", "float[]", "int[]", "str[]", "counts")
+KINDS = ("float", "int", "bool", "str", "float[]", "int[]", "str[]", "counts")  # counts: map str -> int >= min (0)
 
 
 class SchemaError(ValueError):
@@ -187,9 +187,12 @@ def _check_field(message: str, f: Field, v: Any, prefix: str = "") -> None:
     elif f.kind == "counts":
         if not isinstance(v, dict):
             raise SchemaError("wrong_type", message, f"{where} must be a map")
+        lo = 0 if f.min is None else f.min
         for k, n in v.items():
-            if not isinstance(k, str) or not isinstance(n, int) or isinstance(n, bool) or n < 0:
-                raise SchemaError("wrong_type", message, f"{where} must map strings to counts >= 0")
+            if not isinstance(k, str) or not isinstance(n, int) or isinstance(n, bool):
+                raise SchemaError("wrong_type", message, f"{where} must map strings to integers")
+            if n < lo:
+                raise SchemaError("out_of_range", message, f"{where}[{k!r}]={n} below {lo}")
     else:
         _check_scalar(message, f, v, where)
 

@@ -31,13 +31,14 @@ def _camera_lengths(doc: dict) -> str | None:
 
 
 CLOCK = Message(
-    "clock", "sim/clock", 1,
-    "Lockstep only: the simulator reached `tick`; services run the work due at "
-    "that simulated time, then answer on sync/<service>.",
+    "clock", "sim/clock/{service}", 1,
+    "Lockstep only, one per service due at `tick`: the service runs the work due "
+    "at that simulated time, then answers on sync/<service>.",
     (
         F("tick", "int", "tick index; t = tick / tick_rate_hz", min=0),
         F("tick_rate_hz", "float", "ticks per simulated second", "Hz", min=1.0, max=100000.0),
         F("published", "str[]", "simulator topics published for this tick, before this message"),
+        F("done", "counts", "per service, the last tick it finished before this one (-1: none yet)", min=-1),
     ),
 )
 

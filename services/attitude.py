@@ -34,14 +34,13 @@ def run(args) -> None:
                          f"{p['state_source']!r} not one of {STATE_SOURCES}")
     vehicle = load_vehicle(rt.vehicle_name)
     truth = rt.inbox(schemas.TRUTH, "sim")
-    imu = rt.inbox(schemas.IMU, "sim")
     setpoint = rt.inbox(schemas.POSITION_SETPOINT, "position")
     command = rt.publisher(schemas.ATTITUDE_COMMAND)
     state_out = rt.publisher(schemas.ATTITUDE_STATE)
     k, alpha = np.asarray(p["k"]), np.asarray(p["alpha"])
 
     def step(t: float) -> None:
-        state, sp, sample = truth.latest(), setpoint.latest(), imu.latest()
+        state, sp = truth.latest(), setpoint.latest()
         if state is None:
             return
         q = state["quaternion_wxyz"]
@@ -53,7 +52,7 @@ def run(args) -> None:
             ref, thrust = np.asarray(sp["attitude_ref_rad"]), sp["thrust_n"]
         torque = attitude_law(vehicle.inertia_kg_m2, euler, rates, ref, k, alpha)
         command.put({"thrust_n": float(thrust), "torque_nm": torque,
-                     "imu_t_s": sample["header"]["t_s"] if sample else -1.0}, t_s=t)
+                     "imu_t_s": state["header"]["t_s"]}, t_s=t)  # truth stands in for the IMU sample
         state_out.put({"quaternion_wxyz": q, "euler_rad": euler, "rate_rad_s": rates,
                        "euler_ref_rad": ref, "state_source": p["state_source"]}, t_s=t)
 

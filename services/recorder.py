@@ -54,6 +54,9 @@ def run(args) -> None:
             rows = list(records)
         if args.lockstep:  # arrival order across senders is not deterministic; sample time is
             rows.sort(key=lambda r: (r[1]["header"]["t_s"], r[0], r[1]["header"]["seq"]))
+            # a message repeated until answered (the lockstep "ready") is logged once
+            rows = [r for i, r in enumerate(rows) if i == 0 or (r[0], r[1]["header"]["seq"])
+                    != (rows[i - 1][0], rows[i - 1][1]["header"]["seq"])]
         n = write_log(out_dir / LOG_NAME, rows)
         print(f"zenpilot-recorder: wrote {n} messages to {out_dir / LOG_NAME}", flush=True)
 

@@ -7,16 +7,18 @@ liveliness token, the 1 Hz health message and clean shutdown on SIGINT/SIGTERM.
 
 Lockstep protocol (deterministic; like PX4 SITL lockstep):
 
-* The simulator publishes its sensor messages for tick k, then `sim/clock`
-  with tick k. A service runs when k is its `next_tick` (rate services) or
-  when the clock lists one of its trigger topics (event services, e.g. vision).
-* Before running at tick k a service waits until each upstream service has
-  announced (`sync/<upstream>`) that it has finished all its work before k.
-* Each run sees exactly: simulator messages of ticks <= k, and upstream
-  messages produced by upstream runs at ticks < k (one tick of transport
-  delay per hop, as on a real bus). Messages are tagged on arrival with the
-  last sync tick seen from their producer; Zenoh delivers one session's
-  messages over one link in order, so the tag says which run produced them.
+* At tick k the simulator publishes its sensor messages, then one
+  `sim/clock/<service>` to each service due at k: rate services when k is the
+  `next_tick` they announced, event services (e.g. vision) when one of their
+  trigger topics was published. The clock carries, for every service, the
+  last tick it finished before k.
+* A service waits until it has received each upstream's `sync/<upstream>`
+  for that tick, then runs once. The run sees exactly: simulator messages
+  published up to k, and upstream messages produced by upstream runs before
+  k (one tick of transport delay per hop, as on a real bus). Messages are
+  tagged on arrival with the last sync tick seen from their producer; Zenoh
+  delivers one session's messages over one link in order (callbacks run on
+  the receiving thread), so the tag says which run produced them.
 * After its outputs, the service publishes `sync/<name>` with the tick done
   and its next tick; the simulator advances once everyone due is done.
 """
@@ -24,9 +26,9 @@ Lockstep protocol (deterministic; like PX4 SITL lockstep):
 from __future__ import annotations
 
 import argparse
-import bisect
 import json
 import math
+import os
 import signal
 import sys
 import threading
@@ -146,10 +148,14 @@ class Publisher:
         self.message = message
         self.key = key
         self.seq = 0
-        self._pub = runtime.session.declare_publisher(key, express=not runtime.lockstep)
+        # express: no batching delay. Lockstep must not lose a message (the handshake
+        # would stall), so it blocks under congestion; real time drops stale data instead.
+        congestion = zenoh.CongestionControl.BLOCK if runtime.lockstep else zenoh.CongestionControl.DROP
+        self._pub = runtime.session.declare_publisher(key, express=False, congestion_control=congestion)
 
-    def put(self, values: dict[str, Any], t_s: float | None = None) -> None:
-        """Publish; invalid values (NaN, out of range) are reported, never sent."""
+    def put(self, values: dict[str, Any], t_s: float | None = None, repeat: bool = False) -> None:
+        """Publish; invalid values (NaN, out of range) are reported, never sent.
+        `repeat`: send the same message again (same seq) until the next one."""
         t = self.runtime.now() if t_s is None else t_s
         try:
             payload = self.message.encode(t, self.seq, self.runtime.name, values)
@@ -157,14 +163,15 @@ class Publisher:
             self.runtime.problem(f"not publishing {self.key}: {exc}")
             return
         self._pub.put(payload)
-        self.seq += 1
+        if not repeat:
+            self.seq += 1
 
 
 class _Upstream:
     """What a service knows of another service's lockstep progress."""
 
     def __init__(self):
-        self.done_ticks: list[int] = [-2]
+        self.last_done = -2  # -1: ready, nothing run yet
         self.next_tick = 0
         self.triggers: tuple[str, ...] = ()
 
@@ -198,7 +205,6 @@ class Runtime:
         self._periods: deque[float] = deque(maxlen=2000)
         self._t = 0.0
         self._upstreams: dict[str, _Upstream] = {}
-        self._clock_ticks: deque[tuple[int, tuple[str, ...]]] = deque(maxlen=4096)
         self._sim_tick = -1
         self._clock_queue: deque[dict] = deque()
         self._clock_event = threading.Event()
@@ -262,7 +268,7 @@ class Runtime:
         if upstream == "sim":
             return self._sim_tick
         u = self._upstreams.get(upstream)
-        return u.done_ticks[-1] if u else -2
+        return u.last_done if u else -2
 
     def _make_sync_cb(self, upstream: str) -> Callable:
         def on_sync(sample: zenoh.Sample) -> None:
@@ -273,10 +279,7 @@ class Runtime:
                 return
             u = self._upstreams[upstream]
             u.next_tick, u.triggers = msg["next_tick"], tuple(msg["triggers"])
-            if msg["tick"] > u.done_ticks[-1]:
-                u.done_ticks.append(msg["tick"])
-                if len(u.done_ticks) > 4096:
-                    del u.done_ticks[:2048]
+            u.last_done = max(u.last_done, msg["tick"])
             self._sync_event.set()
         return on_sync
 
@@ -287,23 +290,8 @@ class Runtime:
             self.reject(self.key("sim/clock"), exc)
             return
         self._sim_tick = msg["tick"]
-        self._clock_ticks.append((msg["tick"], tuple(msg["published"])))
         self._clock_queue.append(msg)
         self._clock_event.set()
-
-    def _upstream_finished_before(self, u: _Upstream, k: int) -> bool:
-        if u.next_tick >= 0:
-            return u.next_tick >= k and u.done_ticks[-1] >= -1
-        # event-driven upstream: done with every tick before k that triggered it
-        for tick, published in reversed(self._clock_ticks):
-            if tick < k and set(published) & set(u.triggers):
-                return u.done_ticks[-1] >= tick
-        return True
-
-    @staticmethod
-    def _last_done_before(u: _Upstream, k: int) -> int:
-        i = bisect.bisect_left(u.done_ticks, k)
-        return u.done_ticks[i - 1] if i > 0 else -2
 
     # -- health ------------------------------------------------------------
     def _count_run(self, t: float) -> None:
@@ -374,27 +362,26 @@ class Runtime:
         period = round(self.tick_rate / self.rate_hz) if self.rate_hz > 0 else 0
         sync = Publisher(self, schemas.SYNC_DONE, self.key(f"sync/{self.name}"))
         next_tick = 0 if period else -1
-        self.subscribe(self.key("sim/clock"), self._on_clock)
+        self.subscribe(schemas.CLOCK.key(self.vehicle_id, self.name), self._on_clock)
         # announce readiness until the first clock tick arrives
         while not self.stop_event.is_set() and not self._clock_queue:
-            sync.put({"tick": -1, "next_tick": next_tick, "triggers": list(triggers)}, t_s=0.0)
+            sync.put({"tick": -1, "next_tick": next_tick, "triggers": list(triggers)}, t_s=0.0, repeat=True)
             self._clock_event.wait(READY_RESEND_S)
+        sync.seq += 1
         self.state = "running"
         while not self.stop_event.is_set():
             self._clock_event.clear()
             if not self._clock_queue:
                 self._clock_event.wait(0.2)
                 continue
-            clock = self._clock_queue.popleft()
+            clock = self._clock_queue.popleft()  # a clock for us: we are due at this tick
             k = clock["tick"]
-            due = (period and k >= next_tick) or (not period and set(clock["published"]) & set(triggers))
-            if not due:
-                continue
             self._t = k / self.tick_rate
-            if not self._wait_upstreams(k):
+            done_before = clock["done"]
+            if not self._wait_upstreams(k, done_before):
                 break
             for box in self.inboxes:
-                box.limit = k if box.upstream == "sim" else self._last_done_before(self._upstreams[box.upstream], k)
+                box.limit = k if box.upstream == "sim" else done_before.get(box.upstream, -2)
             self._count_run(self._t)
             self._safe_step(step, self._t)
             self.publish_health()
@@ -402,21 +389,26 @@ class Runtime:
                 next_tick = k + period
             sync.put({"tick": k, "next_tick": next_tick, "triggers": list(triggers)}, t_s=self._t)
 
-    def _wait_upstreams(self, k: int) -> bool:
+    def _wait_upstreams(self, k: int, done_before: dict[str, int]) -> bool:
+        """Wait until every upstream's sync for its last run before k has arrived
+        (and with it, over the same link, that run's outputs)."""
         warned = False
         start = time.monotonic()
         while not self.stop_event.is_set():
             self._sync_event.clear()  # clear before checking, so a sync arriving now is not lost
-            if all(self._upstream_finished_before(u, k) for u in self._upstreams.values()):
+            waiting = [n for n, u in self._upstreams.items() if u.last_done < done_before.get(n, -2)]
+            if not waiting:
                 return True
             self._sync_event.wait(0.5)
             if not warned and time.monotonic() - start > 5.0:
-                waiting = [n for n, u in self._upstreams.items() if not self._upstream_finished_before(u, k)]
                 self.problem(f"lockstep: tick {k} still waiting for {', '.join(waiting)}")
                 warned = True
         return False
 
     def close(self) -> None:
+        if self.state != "stopping":
+            cpu = os.times()
+            print(f"zenpilot-{self.name}: stopping; cpu {cpu.user + cpu.system:.2f} s", flush=True)
         self.state = "stopping"
         try:
             self.publish_health(force=True)

@@ -45,7 +45,6 @@ class SimService:
             raise ValueError(f"{rt.stack.path}: [services.sim.params]: {exc}") from None
         self.sim = Simulator(vehicle, config, seed=args.seed)
         self.pubs = {topic: rt.publisher(msg) for topic, msg in schemas.SIM_TOPICS.items()}
-        self.clock = rt.publisher(schemas.CLOCK)
         self.pwm = rt.inbox(schemas.MOTOR_PWM, "motors", keep=2)
         self.mission = rt.inbox(schemas.PLANNER_SETPOINT, "planner", keep=2)
         self.participants = [p for p in LOCKSTEP_PARTICIPANTS if p in rt.stack.services]
@@ -78,11 +77,12 @@ class SimService:
     # -- lockstep: this service drives the clock ------------------------------
     def run_lockstep(self) -> None:
         rt = self.rt
+        clocks = {p: rt.publisher(schemas.CLOCK, schemas.CLOCK.key(rt.vehicle_id, p)) for p in self.participants}
         for p in self.participants:
             rt.follow(p)
         # wait for every participant's "ready"
         while not rt.stop_event.is_set():
-            missing = [p for p in self.participants if rt._upstreams[p].done_ticks[-1] < -1]
+            missing = [p for p in self.participants if rt._upstreams[p].last_done < -1]
             if not missing:
                 break
             rt._sync_event.wait(0.2)
@@ -93,26 +93,34 @@ class SimService:
             k = self.sim.tick
             rt._t = self.sim.t
             published = self.publish_outputs()
-            self.clock.put({"tick": k, "tick_rate_hz": rt.tick_rate, "published": published}, t_s=rt._t)
-            if not self.wait_done(k, published):
+            due = self.due_at(k, published)
+            done = {p: rt._upstreams[p].last_done for p in self.participants}
+            for p in due:
+                clocks[p].put({"tick": k, "tick_rate_hz": rt.tick_rate, "published": published,
+                               "done": done}, t_s=rt._t)
+            if not self.wait_done(k, due):
                 break
             rt._count_run(rt._t)
             rt.publish_health()
             if not self.advance():
                 break
 
-    def wait_done(self, k: int, published: list[str]) -> bool:
+    def due_at(self, k: int, published: list[str]) -> list[str]:
+        """Participants that run at tick k: by their announced next tick, or triggered."""
+        due = []
+        for p in self.participants:
+            u = self.rt._upstreams[p]
+            if u.next_tick == k or (u.next_tick < 0 and set(published) & set(u.triggers)):
+                due.append(p)
+        return due
+
+    def wait_done(self, k: int, due: list[str]) -> bool:
         rt = self.rt
         start = time.monotonic()
         warned = False
         while not rt.stop_event.is_set():
             rt._sync_event.clear()
-            waiting = []
-            for p in self.participants:
-                u = rt._upstreams[p]
-                due = u.next_tick == k or (u.next_tick < 0 and set(published) & set(u.triggers))
-                if due and u.done_ticks[-1] < k:
-                    waiting.append(p)
+            waiting = [p for p in due if rt._upstreams[p].last_done < k]
             if not waiting:
                 return True
             rt._sync_event.wait(0.5)
@@ -132,6 +140,8 @@ class SimService:
         self.rt._run_realtime(step, ())
 
     def run(self) -> None:
+        wall0 = time.monotonic()
+        tick0 = self.sim.tick
         try:
             if self.rt.lockstep:
                 self.run_lockstep()
@@ -139,6 +149,9 @@ class SimService:
                 self.run_realtime()
         finally:
             self.rt.close()
+            wall = time.monotonic() - wall0
+            print(f"zenpilot-sim: {self.sim.t:.2f} s simulated in {wall:.2f} s of wall time "
+                  f"({(self.sim.tick - tick0) / self.rt.tick_rate / max(wall, 1e-9):.2f}x real time)", flush=True)
 
 
 def main(argv=None) -> None:
