@@ -106,6 +106,8 @@ def load_stack(path: str | Path | None = None) -> Stack:
     if unknown:
         raise StackError(f"{path}: [stack]: unknown key(s) {sorted(unknown)}")
     tick_rate = _expect(head.get("tick_rate_hz", 400.0), float, f"{path}: [stack] tick_rate_hz")
+    vehicle_id = _expect(head.get("vehicle_id", 0), int, f"{path}: [stack] vehicle_id")
+    vehicle = _expect(head.get("vehicle", "x250"), str, f"{path}: [stack] vehicle")
     machines = {}
     for name, m in doc.get("machines", {}).items():
         where = f"{path}: [machines.{name}]"
@@ -139,8 +141,8 @@ def load_stack(path: str | Path | None = None) -> Stack:
             raise StackError(f"{path}: the stack needs a [services.{needed}] section")
     return Stack(
         path=path,
-        vehicle_id=_expect(head.get("vehicle_id", 0), int, f"{path}: [stack] vehicle_id"),
-        vehicle=_expect(head.get("vehicle", "x250"), str, f"{path}: [stack] vehicle"),
+        vehicle_id=vehicle_id,
+        vehicle=vehicle,
         tick_rate_hz=tick_rate,
         machines=machines,
         services=services,

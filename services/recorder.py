@@ -7,6 +7,7 @@ key and sequence number before writing, so the same seed gives the same file.
 
 from __future__ import annotations
 
+import json
 import threading
 from pathlib import Path
 
@@ -58,7 +59,8 @@ def run(args) -> None:
             rows = [r for i, r in enumerate(rows) if i == 0 or (r[0], r[1]["header"]["seq"])
                     != (rows[i - 1][0], rows[i - 1][1]["header"]["seq"])]
         n = write_log(out_dir / LOG_NAME, rows)
-        print(f"zenpilot-recorder: wrote {n} messages to {out_dir / LOG_NAME}", flush=True)
+        print(f"zenpilot-recorder: wrote {n} messages to {out_dir / LOG_NAME}; "
+              f"rejected {sum(rt.rejected.values())} {json.dumps(rt.rejected, sort_keys=True)}", flush=True)
 
 
 def main(argv=None) -> None:

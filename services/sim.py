@@ -131,11 +131,19 @@ class SimService:
 
     # -- real time -------------------------------------------------------------
     def run_realtime(self) -> None:
-        def step(_t: float) -> None:
-            self.publish_outputs()
-            if not self.advance():
-                self.rt.stop_event.set()
-        self.rt.rate_hz = self.rt.tick_rate
+        rate = self.rt.tick_rate
+
+        def step(now: float) -> None:
+            # physics keeps up with the wall clock: after a late wake-up, catch up
+            # tick by tick (each with its sensor samples) instead of slowing down
+            target = int((now - self.t0) * rate)
+            while self.sim.tick <= target:
+                self.publish_outputs()
+                if not self.advance():
+                    self.rt.stop_event.set()
+                    return
+
+        self.rt.rate_hz = rate
         self.t0 = time.time()
         self.rt._run_realtime(step, ())
 

@@ -1,0 +1,30 @@
+"""Integration tests: `zenpilot fly` spawns a local Zenoh router on a free port and
+every service as its own process; the tests read what the flight wrote."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def fly(out: Path, mission: str, *extra: str, lockstep: bool = True, seed: int = 0,
+        timeout: float = 400, background: bool = False):
+    argv = [sys.executable, "-m", "deploy.cli", "fly", "--mission", mission, "--seed", str(seed),
+            "--out", str(out), *extra]
+    if lockstep:
+        argv.append("--lockstep")
+    if background:
+        return subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=timeout)
+    assert (out / "metrics.json").exists(), proc.stdout + proc.stderr
+    return proc, json.loads((out / "metrics.json").read_text())
+
+
+@pytest.fixture(scope="session")
+def hover_lockstep(tmp_path_factory):
+    out = tmp_path_factory.mktemp("hover-lockstep")
+    return out, fly(out, "hover")

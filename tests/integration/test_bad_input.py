@@ -1,0 +1,63 @@
+"""Malformed messages on every input key are counted and dropped; the flight goes on."""
+
+import math
+import threading
+import time
+
+import msgpack
+import pytest
+
+from deploy.launcher import client_session, free_port
+
+from .conftest import fly
+
+pytestmark = pytest.mark.integration
+
+INPUT_KEYS = ["zp/0/sim/truth", "zp/0/pos/setpoint", "zp/0/att/command", "zp/0/planner/setpoint",
+              "zp/0/motors/pwm", "zp/0/pos/state", "zp/0/sim/clock/attitude", "zp/0/sync/motors"]
+HEADER = {"t_s": 1.0, "seq": 0, "source": "intruder"}
+BAD_PAYLOADS = {
+    "malformed": b"\xc1\x00garbage",
+    "wrong_type": msgpack.packb({"version": 1, "header": {**HEADER, "seq": "first"}}),
+    "non_finite": msgpack.packb({"version": 1, "header": {**HEADER, "t_s": math.nan}}),
+}
+
+
+def inject(endpoint: str, stop: threading.Event, sent: dict) -> None:
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not stop.is_set():
+        try:
+            session = client_session(endpoint)
+            break
+        except Exception:
+            time.sleep(0.2)
+    else:
+        return
+    time.sleep(3.0)  # the services are up and flying
+    for _ in range(3):
+        for key in INPUT_KEYS:
+            for reason, payload in BAD_PAYLOADS.items():
+                session.put(key, payload)
+                sent[reason] = sent.get(reason, 0) + 1
+        time.sleep(0.5)
+    session.close()
+
+
+def test_garbage_on_every_input_is_counted_and_dropped(tmp_path):
+    port = free_port()
+    stop, sent = threading.Event(), {}
+    thread = threading.Thread(target=inject, args=(f"tcp/127.0.0.1:{port}", stop, sent))
+    thread.start()
+    try:
+        proc, m = fly(tmp_path, "hover", "--port", str(port))
+    finally:
+        stop.set()
+        thread.join()
+    assert sent, "nothing was injected"
+    assert proc.returncode == 0 and m["completed"], proc.stdout + proc.stderr
+    assert m["position_rms_m"] < 0.01  # the flight did not notice
+    rejected = m["rejected_messages"]
+    for service in ("attitude", "position", "motors", "planner", "sim"):
+        assert set(rejected[service]) >= {"malformed", "wrong_type", "non_finite"}, (service, rejected)
+    # the recorder decodes everything: it saw every bad message once
+    assert f"rejected {sum(sent.values())} " in (tmp_path / "logs" / "recorder.log").read_text()
