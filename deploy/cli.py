@@ -164,17 +164,24 @@ def cmd_status(args) -> int:
 
 
 def _state() -> dict:
-    f = STATE_DIR / "up.json"
-    return json.loads(f.read_text()) if f.exists() else {}
+    """What `up -d` started, all machines merged (one up-<machine>.json each)."""
+    merged: dict = {"pids": {}}
+    for f in sorted(STATE_DIR.glob("up-*.json")):
+        state = json.loads(f.read_text())
+        merged.setdefault("router", state["router"])
+        merged["pids"].update(state["pids"])
+    return merged if merged["pids"] else {}
 
 
 def cmd_up(args) -> int:
     stack = load_stack(args.stack)
     machine, names, runs_router = _machine_services(stack, args.machine)
     router = args.router or stack.machines[machine].router
-    run_dir = Path(args.out or STATE_DIR / "run")
+    run_dir = Path(args.out or STATE_DIR / f"run-{machine}")
+    params = _param_overrides(args.set)
+    params.setdefault("sim", []).append("stop_after_mission=false")  # `up` runs until `down`
     launcher = Launcher(stack, run_dir, router, lockstep=args.lockstep, seed=args.seed,
-                        mission=args.mission, params=_param_overrides(args.set))
+                        mission=args.mission, params=params)
     if runs_router:
         launcher.start_router()
     launcher.start_services(names)
@@ -185,7 +192,7 @@ def cmd_up(args) -> int:
     print(f"zenpilot: machine {machine!r} up: router {router}, services {', '.join(names)}; logs in {run_dir / 'logs'}")
     if args.detach:
         STATE_DIR.mkdir(parents=True, exist_ok=True)
-        (STATE_DIR / "up.json").write_text(json.dumps(
+        (STATE_DIR / f"up-{machine}.json").write_text(json.dumps(
             {"router": router, "stack": str(stack.path), "pids": {n: p.pid for n, p in launcher.procs.items()}}))
         return 0
     stop = threading.Event()
@@ -227,7 +234,8 @@ def cmd_down(args) -> int:
                 break
         else:
             os.kill(pids[name], signal.SIGKILL)
-    (STATE_DIR / "up.json").unlink()
+    for f in STATE_DIR.glob("up-*.json"):
+        f.unlink()
     print(f"zenpilot: stopped {', '.join(order)}")
     return 0
 

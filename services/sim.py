@@ -20,6 +20,7 @@ from simulator.world import Simulator
 
 NAME = "sim"
 EXTRA_PARAMS = {
+    "stop_after_mission": True,  # `zenpilot fly`: end the run when the mission ends
     "linger_s": 1.0,  # keep simulating after the mission ends (landing settles, logs flush)
     "max_duration_s": 600.0,  # hard stop, simulated seconds
 }
@@ -67,7 +68,8 @@ class SimService:
             self.sim.step(pwm["pwm_us"], armed=pwm["armed"])
         t = self.sim.t
         sp = self.mission.latest()
-        if self.end_t is None and sp is not None and sp["mission_state"] in ("completed", "failed"):
+        if (self.end_t is None and self.rt.params["stop_after_mission"] and sp is not None
+                and sp["mission_state"] in ("completed", "failed")):
             self.end_t = t + self.rt.params["linger_s"]
         if t >= self.rt.params["max_duration_s"]:
             self.rt.problem(f"stopping at max_duration_s={self.rt.params['max_duration_s']}")
