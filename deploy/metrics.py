@@ -227,8 +227,9 @@ def compute_metrics(log: dict[str, list[dict]], info: dict, vehicle_id: int = 0)
         hs = _sorted(log[key])
         if not hs:
             continue
+        # median over full 1 s windows: the first windows after start-up are partial
         inner = [h["rate_hz"] for h in hs[1:-1] if h["state"] == "running"]
-        rates[service] = _f(np.mean(inner)) if inner else None
+        rates[service] = _f(np.median(inner)) if inner else None
         rejected[service] = {str(k): int(v) for k, v in hs[-1].get("rejected", {}).items()}
     m["rates_hz"] = rates
     m["rejected_messages"] = rejected

@@ -160,6 +160,8 @@ class MissionRunner:
             self.item_start_t = t
             self.ramp_from = float(self.ref[2])
             self.landed_since = None
+            if sp.mode == "attitude" and item["type"] != "attitude":
+                self.ref[:2] = position[:2]  # attitude steps drift: hold where they ended
         dt = t - self.item_start_t
         done = getattr(self, "_" + item["type"])(item, dt, t, position, np.asarray(velocity, dtype=float))
         sp.item = self.index
