@@ -138,7 +138,9 @@ def _status_lines(session, stack) -> list[str]:
             pass
 
     sub = session.declare_subscriber(f"zp/{stack.vehicle_id}/*/health", on_health)
-    time.sleep(1.2)  # health is published at 1 Hz
+    deadline = time.monotonic() + 3.0  # health is published at 1 Hz
+    while time.monotonic() < deadline and not alive <= set(replies):
+        time.sleep(0.1)
     sub.undeclare()
     health.update(replies)
     for name in stack.services:

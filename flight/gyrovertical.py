@@ -1,0 +1,546 @@
+"""Adaptive gyro-vertical: roll/pitch from gyros + accelerometers (document 004).
+
+Kachanov, Kulabukhov, Tuktaryov, Grishin, "Adaptive algorithm of a UAV
+gyro-vertical computer".  Pure algorithm, no I/O.
+
+Two models (004):
+
+* model 1, deterministic, every gyro sample: quaternion propagation
+  ``q_{i+1} = q_i + 1/2 q_i o q_w dt`` (then normalised);
+* model 2, stochastic and static: state ``x = [theta (pitch), gamma (roll), V]``
+  observed by the load factor ``n = specific force / g`` through (5)::
+
+      f_x = sin(theta)
+      f_y = cos(theta) cos(gamma) + V w_z / g
+      f_z = -cos(theta) sin(gamma) - V w_y / g
+
+  with Jacobian (6), one Joseph-form Kalman step (8) per sample, and the
+  variances of Q = diag(s_theta^2, s_gamma^2, s_V^2) and R = s_n^2 I all
+  functions of ``n* = |n| - 1`` (7): the farther the apparent vertical is from
+  gravity, the less the accelerometer is trusted.
+
+Axes.  004 writes (5)-(6) in aircraft axes: x forward, y up, z right.  The
+project's body frame is FLU (x forward, y left, z up).  The one mapping used
+everywhere is :func:`flu_to_doc` (a proper rotation, see ``FLU_TO_DOC``)::
+
+      doc_x = body_x,   doc_y = body_z,   doc_z = -body_y
+
+(its inverse is the transpose, :func:`doc_to_flu`).  Under it the document's
+angles are ``theta = -pitch`` (004's pitch is nose-up positive, the project's
+ZYX pitch about body-left is nose-down positive) and ``gamma = roll`` (both
+right-wing-down positive); :func:`doc_observation` evaluated at
+``(theta, gamma) = (-pitch, roll)`` equals ``flu_to_doc(R^T e_z)``.
+
+Singularities and inversion (the deviation from a literal (5)-(6)).  The Euler
+parameterisation of model 2 breaks where a quadcopter goes: (6)'s roll column
+carries a ``cos(theta)`` factor (roll unobservable at pitch +-90 deg, where roll
+and yaw merge) and a correction written on Euler angles wraps at roll +-180 deg.
+So the correction is done as a small-angle *error-state* update around the
+propagated quaternion:
+
+* the angle part of the state is the tilt error ``[d_theta, d_gamma]``, a
+  rotation about the two horizontal axes of the heading frame (world frame
+  turned by the propagated yaw): ``d_gamma`` about heading-forward,
+  ``-d_theta`` about heading-left (so, near level, exactly the document's pitch
+  and roll errors).  It is reset to zero after every correction; ``V`` is kept
+  (frozen between samples as in 004);
+* Z-bar is (5) evaluated at the propagated attitude, i.e.
+  ``flu_to_doc(R^T e_z) + V [0, w_z, -w_y] / g`` (doc axes), valid at any
+  attitude including inverted;
+* H is the derivative of that with respect to the tilt error.  Its pitch column
+  is exactly (6)'s; its roll column is (6)'s divided by ``cos(theta)`` (an
+  Euler-roll change is a body-x rotation whose tilt part is ``cos(theta)``
+  times a heading-forward tilt).  The columns are ``R^T`` of two orthonormal
+  horizontal vectors, so H never loses rank: no singularity at pitch +-90 deg,
+  no wrap at roll 180 deg;
+* Q, R from the adaptive functions of n*, Joseph form (8), P kept between
+  samples (``P-bar_{i+1} = P_i`` as 004 says, then ``+ Q``);
+* the correction is applied as a world-frame rotation of the quaternion about
+  that horizontal axis, then the yaw of the *propagated* quaternion is restored
+  by a rotation about world z (which cannot change roll/pitch).  This is 004's
+  "rebuild the quaternion from the corrected angles, keeping yaw", done without
+  passing through Euler angles.  Within ~11 deg of pitch +-90 deg, where ZYX
+  yaw is ill-conditioned, the yaw restoration is skipped (the horizontal-axis
+  correction alone never drives heading to first order).
+* n* is passed through a short low-pass (``n_star_tau_s``, 0.05 s; 0 gives
+  004's raw per-sample n*) so that accelerometer noise does not inflate R at rest.
+* When ``|n| < min_load_factor`` (free fall, thrust cut in a flip) the
+  accelerometer direction is meaningless and the correction is skipped;
+  covariance still grows by Q.
+
+With the accelerometer reading "level" (thrust along body z) through a whole
+flip, an inverted prior gives an innovation along the predicted vertical, which
+is orthogonal to both H columns, so it produces no correction; where the
+prior is side-on the large |n*| of a flip makes R large.  Roll is therefore
+carried through by the gyros (model 1) as it should be.
+
+Baselines: :class:`GyroIntegrator` (model 1 alone) and
+``GyroVertical(..., adaptive=False)`` (every variance fixed at its n* = 0 value).
+Helpers: :func:`run_sequence`, :func:`rms_error_deg` (wrapped), :func:`evaluate`
+(criterion (10)), :func:`make_training_sequences` (the 9 sequences), :func:`train`.
+
+Sample-rate scaling: the parameters are the document's per-sample variances
+*at the reference rate* ``DT_REF`` = 1/400 s (the simulator's IMU rate).  For
+another ``dt`` Q is scaled by ``dt / DT_REF`` and R by ``DT_REF / dt`` so the
+correction time constant (~ dt sqrt(R/Q)) is independent of the sample rate;
+at ``dt == DT_REF`` this is exactly 004.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Callable, Sequence
+
+import numpy as np
+
+from flight.quat import quat_from_euler, quat_normalize
+
+G = 9.80665                 # m/s^2, normalises specific force to the load factor
+DT_REF = 1.0 / 400.0        # s, rate at which the parameters are per-sample variances
+
+# v_doc = FLU_TO_DOC @ v_flu; a proper rotation (det +1) so cross products map too.
+FLU_TO_DOC = np.array([[1.0, 0.0, 0.0],
+                       [0.0, 0.0, 1.0],
+                       [0.0, -1.0, 0.0]])
+
+
+def flu_to_doc(v) -> np.ndarray:
+    """Body FLU -> 004's aircraft axes: (x, y, z)_doc = (x, z, -y)_flu. Works on (3,) or (N, 3)."""
+    return np.asarray(v, dtype=np.float64) @ FLU_TO_DOC.T
+
+
+def doc_to_flu(v) -> np.ndarray:
+    """Inverse of :func:`flu_to_doc` (the transpose): (x, y, z)_flu = (x, -z, y)_doc."""
+    return np.asarray(v, dtype=np.float64) @ FLU_TO_DOC
+
+
+def doc_observation(theta: float, gamma: float, V: float = 0.0, omega_doc=(0.0, 0.0, 0.0),
+                    g: float = G) -> np.ndarray:
+    """(5)/(9) of 004, doc axes: predicted load factor [n_x, n_y, n_z]."""
+    wx, wy, wz = omega_doc
+    return np.array([math.sin(theta),
+                     math.cos(theta) * math.cos(gamma) + V * wz / g,
+                     -math.cos(theta) * math.sin(gamma) - V * wy / g])
+
+
+def doc_jacobian(theta: float, gamma: float, omega_doc=(0.0, 0.0, 0.0), g: float = G) -> np.ndarray:
+    """(6) of 004: dZ/d[theta, gamma, V] (reference; the filter uses the error-state form)."""
+    wx, wy, wz = omega_doc
+    ct, st, cg, sg = math.cos(theta), math.sin(theta), math.cos(gamma), math.sin(gamma)
+    return np.array([[ct, 0.0, 0.0],
+                     [-st * cg, -ct * sg, wz / g],
+                     [st * sg, -ct * cg, -wy / g]])
+
+
+def piecewise_variance(n_star: float, var0: float, n2: float, var2: float) -> float:
+    """(7): linear through (0, var0) and (n2, var2) in |n*|, held at var2 beyond n2."""
+    a = abs(n_star)
+    if a >= n2:
+        return var2
+    return var0 + (var2 - var0) * (a / n2)
+
+
+_FUNCS = ("pitch", "roll", "speed", "n")
+_SUFFIX = ("var0", "n2", "var2")
+
+
+@dataclass(frozen=True)
+class GyroVerticalParams:
+    """The 12 parameters of (7): four adaptive variance functions of n* = |n| - 1.
+
+    Each function f(n*) is piecewise linear in |n*| through two nodes
+    ``(0, var0)`` and ``(n2, var2)`` and limited to ``var2`` beyond ``n2``
+    (004: left node at n* = 0, i.e. |n| = 1; 3 parameters a function).  |n*| is
+    used because |n| < 1 (thrust cut, descent) is as far from gravity as |n| > 1.
+
+    * ``pitch_*``: sigma_theta^2 of Q, rad^2 per sample (at DT_REF);
+    * ``roll_*``:  sigma_gamma^2 of Q, rad^2 per sample;
+    * ``speed_*``: sigma_V^2 of Q, (m/s)^2 per sample;
+    * ``n_*``:     sigma_n^2 of R (same on the three axes), load factor^2 (g^2).
+    ``*_var0`` is the variance at |n| = 1, ``*_n2`` the |n*| at which the
+    function reaches ``*_var2``, the limit held beyond it.
+
+    Defaults (hand-set, not trained): at |n| = 1 the correction time constant
+    is ~ DT_REF sqrt(R/Q) = 2.5 s (a 0.05 deg/s gyro bias leaves ~0.13 deg);
+    at |n*| = 0.015 (a quadcopter holding 10 deg of tilt) ~ 15 s; at
+    |n*| >= 0.044 (3 m/s^2 of sustained horizontal acceleration) ~ 30 s.
+    """
+
+    pitch_var0: float = 1e-8
+    pitch_n2: float = 0.1
+    pitch_var2: float = 2e-8
+    roll_var0: float = 1e-8
+    roll_n2: float = 0.1
+    roll_var2: float = 2e-8
+    speed_var0: float = 1e-4
+    speed_n2: float = 0.1
+    speed_var2: float = 1e-4
+    n_var0: float = 1e-2
+    n_n2: float = 0.05
+    n_var2: float = 3.0
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or v <= 0:
+                raise ValueError(f"gyrovertical: {f.name} must be a positive finite number, got {v!r}")
+
+    @classmethod
+    def names(cls) -> tuple[str, ...]:
+        return tuple(f"{fn}_{s}" for fn in _FUNCS for s in _SUFFIX)
+
+    def function(self, which: str) -> tuple[float, float, float]:
+        """(var0, n2, var2) of one of 'pitch', 'roll', 'speed', 'n'."""
+        return tuple(getattr(self, f"{which}_{s}") for s in _SUFFIX)
+
+    def variances(self, n_star: float) -> tuple[float, float, float, float]:
+        """(sigma_theta^2, sigma_gamma^2, sigma_V^2, sigma_n^2) at n* (per sample at DT_REF)."""
+        return tuple(piecewise_variance(n_star, *self.function(fn)) for fn in _FUNCS)
+
+    def to_vector(self) -> np.ndarray:
+        """Natural-log vector of the 12 parameters, order of :meth:`names` (for optimisers)."""
+        return np.log(np.array([getattr(self, k) for k in self.names()], dtype=np.float64))
+
+    @classmethod
+    def from_vector(cls, v) -> "GyroVerticalParams":
+        v = np.asarray(v, dtype=np.float64)
+        if v.shape != (12,):
+            raise ValueError(f"gyrovertical: vector must have shape (12,), got {v.shape}")
+        v = np.clip(v, -60.0, 30.0)  # keep exp() finite and positive whatever the optimiser tries
+        return cls(**{k: float(math.exp(x)) for k, x in zip(cls.names(), v)})
+
+    def to_dict(self) -> dict:
+        """Flat table {name: value} (TOML/JSON friendly)."""
+        return {k: float(getattr(self, k)) for k in self.names()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "GyroVerticalParams":
+        """Inverse of :meth:`to_dict`; missing keys take defaults, unknown keys -> ValueError."""
+        if not isinstance(d, dict):
+            raise ValueError(f"gyrovertical: expected a table, got {type(d).__name__}")
+        unknown = set(d) - set(cls.names())
+        if unknown:
+            raise ValueError(f"gyrovertical: unknown parameter(s) {sorted(unknown)}")
+        kw = {}
+        for k, v in d.items():
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise ValueError(f"gyrovertical: {k} must be a number, got {v!r}")
+            kw[k] = float(v)
+        return cls(**kw)
+
+
+def _euler_rp(w, x, y, z) -> tuple[float, float]:
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    return roll, pitch
+
+
+class GyroIntegrator:
+    """Baseline: model 1 alone (pure quaternion integration, no correction)."""
+
+    def __init__(self, dt: float, q0=None):
+        if not dt > 0:
+            raise ValueError("gyrovertical: dt must be > 0")
+        self.dt = float(dt)
+        self._q = [1.0, 0.0, 0.0, 0.0] if q0 is None else [float(e) for e in quat_normalize(q0)]
+
+    def _propagate(self, gyro) -> None:
+        gx, gy, gz = (float(e) for e in gyro)
+        w, x, y, z = self._q
+        h = 0.5 * self.dt
+        w, x, y, z = (w + h * (-x * gx - y * gy - z * gz),
+                      x + h * (w * gx + y * gz - z * gy),
+                      y + h * (w * gy - x * gz + z * gx),
+                      z + h * (w * gz + x * gy - y * gx))
+        s = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
+        self._q = [w * s, x * s, y * s, z * s]
+
+    def update(self, gyro_rad_s, accel_m_s2=None) -> tuple[float, float]:
+        """Propagate with one gyro sample (body FLU, rad/s); accel ignored. Returns (roll, pitch)."""
+        self._propagate(gyro_rad_s)
+        return _euler_rp(*self._q)
+
+    @property
+    def quaternion(self) -> np.ndarray:
+        return np.array(self._q)
+
+    @property
+    def roll(self) -> float:
+        return _euler_rp(*self._q)[0]
+
+    @property
+    def pitch(self) -> float:
+        return _euler_rp(*self._q)[1]
+
+
+class GyroVertical(GyroIntegrator):
+    """The adaptive gyro-vertical of 004 (see the module docstring for the error-state form).
+
+    params: :class:`GyroVerticalParams`; dt: gyro/accelerometer sample period, s.
+    adaptive=False gives the fixed-variance baseline (every variance at n* = 0).
+    q0: initial quaternion [w,x,y,z] body->world (default level, yaw 0).
+    P0: initial 3x3 covariance of [d_theta, d_gamma, V] (default diag(0.2^2, 0.2^2, 1)).
+    min_load_factor: below this |n| the accelerometer is not used.
+    n_star_tau_s: time constant of a first-order low-pass on n* before it enters
+    (7).  An addition to 004 (which uses the raw sample; pass 0 for that):
+    because (7) rises linearly from n* = 0, accelerometer noise alone (~0.002 g
+    per sample) would otherwise inflate R at rest several-fold.  0.05 s keeps
+    the adaptation fast enough for manoeuvres.
+
+    ``update(gyro, accel)`` = model 1 with the gyro sample, then the step (8)
+    with the accelerometer sample of the same instant; returns (roll, pitch) of
+    the project's ZYX convention.  ``.x`` gives 004's state [theta, gamma, V]
+    (theta = -pitch, gamma = roll), ``.P`` the covariance of [d_theta, d_gamma, V],
+    ``.n_star`` and ``.variances`` the last adaptive values (Q diag, sigma_n^2, scaled to dt).
+    """
+
+    def __init__(self, params: GyroVerticalParams | None = None, dt: float = DT_REF, q0=None, P0=None,
+                 adaptive: bool = True, min_load_factor: float = 0.2, n_star_tau_s: float = 0.05,
+                 g: float = G):
+        super().__init__(dt, q0)
+        self.params = params if params is not None else GyroVerticalParams()
+        self.adaptive = bool(adaptive)
+        self.min_load_factor = float(min_load_factor)
+        self.g = float(g)
+        self.V = 0.0
+        self._P = np.diag([0.04, 0.04, 1.0]) if P0 is None else np.array(P0, dtype=np.float64)
+        if self._P.shape != (3, 3):
+            raise ValueError("gyrovertical: P0 must be 3x3")
+        self._q_scale = self.dt / DT_REF
+        self._r_scale = DT_REF / self.dt
+        self._fixed = self.params.variances(0.0)
+        if not n_star_tau_s >= 0:
+            raise ValueError("gyrovertical: n_star_tau_s must be >= 0")
+        self._n_alpha = 1.0 if n_star_tau_s == 0 else 1.0 - math.exp(-self.dt / n_star_tau_s)
+        self.n_star = 0.0
+        self.variances = self._scaled(self._fixed)
+        self.corrected = False
+
+    def _scaled(self, v):
+        return (v[0] * self._q_scale, v[1] * self._q_scale, v[2] * self._q_scale, v[3] * self._r_scale)
+
+    @property
+    def P(self) -> np.ndarray:
+        return self._P.copy()
+
+    @property
+    def x(self) -> np.ndarray:
+        roll, pitch = _euler_rp(*self._q)
+        return np.array([-pitch, roll, self.V])
+
+    def observation_model(self, gyro_rad_s) -> tuple[np.ndarray, np.ndarray]:
+        """(Z-bar, H) at the current quaternion and V, doc axes; H columns = [d_theta, d_gamma, V]."""
+        w, x, y, z = self._q
+        # rotation matrix body->world
+        r00 = 1 - 2 * (y * y + z * z); r01 = 2 * (x * y - w * z); r02 = 2 * (x * z + w * y)
+        r10 = 2 * (x * y + w * z); r11 = 1 - 2 * (x * x + z * z); r12 = 2 * (y * z - w * x)
+        r20 = 2 * (x * z - w * y); r21 = 2 * (y * z + w * x); r22 = 1 - 2 * (x * x + y * y)
+        # heading frame of the propagated yaw; near pitch +-90 any yaw gives a valid frame
+        psi = math.atan2(r10, r00)
+        c, s = math.cos(psi), math.sin(psi)
+        # R^T h_x and R^T h_y in body FLU (h_x = [c, s, 0], h_y = [-s, c, 0])
+        ax, ay, az = r00 * c + r10 * s, r01 * c + r11 * s, r02 * c + r12 * s
+        bx, by, bz = -r00 * s + r10 * c, -r01 * s + r11 * c, -r02 * s + r12 * c
+        gx, gy, gz = (float(e) for e in gyro_rad_s)
+        # doc axes: (x, y, z)_doc = (x, z, -y)_flu;  w_y,doc = gz,  w_z,doc = -gy
+        wy_d, wz_d = gz, -gy
+        zbar = np.array([r20 + 0.0, r22 + self.V * wz_d / self.g, -r21 - self.V * wy_d / self.g])
+        # d n_body / d(world tilt phi) = R^T (e_z x phi); phi = d_gamma h_x - d_theta h_y
+        # e_z x h_x = h_y, e_z x h_y = -h_x  ->  d/d d_theta = R^T h_x, d/d d_gamma = R^T h_y
+        H = np.array([[ax, bx, 0.0],
+                      [az, bz, wz_d / self.g],
+                      [-ay, -by, -wy_d / self.g]])
+        return zbar, H
+
+    def update(self, gyro_rad_s, accel_m_s2) -> tuple[float, float]:
+        """One sample: model 1 with the gyro (body FLU, rad/s), then (8) with the accel (m/s^2)."""
+        self._propagate(gyro_rad_s)
+        f = np.asarray(accel_m_s2, dtype=np.float64)
+        Z = np.array([f[0], f[2], -f[1]]) / self.g
+        n = math.sqrt(float(Z @ Z))
+        if math.isfinite(n):
+            self.n_star += self._n_alpha * ((n - 1.0) - self.n_star)
+        n_star = self.n_star
+        var = self.params.variances(n_star) if self.adaptive else self._fixed
+        sq, sg, sv, sn = self.variances = self._scaled(var)
+        P = self._P
+        P[0, 0] += sq
+        P[1, 1] += sg
+        P[2, 2] += sv
+        self.corrected = False
+        if not (n >= self.min_load_factor) or not math.isfinite(n):
+            return _euler_rp(*self._q)
+        zbar, H = self.observation_model(gyro_rad_s)
+        PHt = P @ H.T
+        S = H @ PHt
+        S[0, 0] += sn; S[1, 1] += sn; S[2, 2] += sn
+        K = np.linalg.solve(S, PHt.T).T          # K = P H^T S^-1 (S symmetric)
+        A = np.eye(3) - K @ H
+        P = A @ P @ A.T + sn * (K @ K.T)         # Joseph form
+        self._P = 0.5 * (P + P.T)
+        dx = K @ (Z - zbar)
+        d_theta, d_gamma = float(dx[0]), float(dx[1])
+        self.V += float(dx[2])
+        self._apply_tilt(d_theta, d_gamma)
+        self.corrected = True
+        return _euler_rp(*self._q)
+
+    def _apply_tilt(self, d_theta: float, d_gamma: float) -> None:
+        w, x, y, z = self._q
+        r00 = 1 - 2 * (y * y + z * z)
+        r10 = 2 * (x * y + w * z)
+        psi = math.atan2(r10, r00)
+        c, s = math.cos(psi), math.sin(psi)
+        # world rotation vector phi = d_gamma h_x - d_theta h_y (horizontal)
+        px, py = d_gamma * c + d_theta * s, d_gamma * s - d_theta * c
+        ang = math.hypot(px, py)
+        if ang > 0.0:
+            k = math.sin(0.5 * ang) / ang
+            cw, ex, ey = math.cos(0.5 * ang), px * k, py * k
+            # q <- q_phi (x) q   (q_phi = [cw, ex, ey, 0]): a rotation in the world frame
+            w, x, y, z = (cw * w - ex * x - ey * y,
+                          cw * x + ex * w + ey * z,
+                          cw * y - ex * z + ey * w,
+                          cw * z + ex * y - ey * x)
+        # restore the propagated yaw by a world-z rotation (does not touch roll/pitch)
+        sin_pitch = -2 * (x * z - w * y)
+        if abs(sin_pitch) < 0.98:
+            psi_new = math.atan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z))
+            d = 0.5 * (psi - psi_new)
+            cz, sz = math.cos(d), math.sin(d)
+            w, x, y, z = (cz * w - sz * z, cz * x - sz * y, cz * y + sz * x, cz * z + sz * w)
+        s_ = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
+        self._q = [w * s_, x * s_, y * s_, z * s_]
+
+
+def run_sequence(filt, gyro, accel) -> tuple[np.ndarray, np.ndarray]:
+    """Feed (N, 3) gyro (rad/s) and accel (m/s^2) samples; returns (roll (N,), pitch (N,))."""
+    gyro = np.asarray(gyro, dtype=np.float64)
+    accel = np.asarray(accel, dtype=np.float64)
+    if gyro.ndim != 2 or gyro.shape[1] != 3 or accel.shape != gyro.shape:
+        raise ValueError(f"gyrovertical: gyro and accel must both be (N, 3), got {gyro.shape}, {accel.shape}")
+    n = gyro.shape[0]
+    roll = np.empty(n)
+    pitch = np.empty(n)
+    for i in range(n):
+        roll[i], pitch[i] = filt.update(gyro[i], accel[i])
+    return roll, pitch
+
+
+def wrap(a):
+    """Wrap angle(s) to [-pi, pi)."""
+    return (np.asarray(a, dtype=np.float64) + np.pi) % (2 * np.pi) - np.pi
+
+
+def rms_error_deg(est, truth) -> float:
+    """RMS of the wrapped angle difference, degrees (NaN anywhere -> NaN)."""
+    d = wrap(np.asarray(est, dtype=np.float64) - np.asarray(truth, dtype=np.float64))
+    return float(np.degrees(np.sqrt(np.mean(d * d))))
+
+
+@dataclass(frozen=True)
+class TrainingSequence:
+    """Consistent gyro (N,3) rad/s, accel (N,3) m/s^2 (body FLU) and truth roll/pitch (N,) rad.
+
+    The filter starts at (roll0, pitch0), yaw 0 (roll/pitch evolution does not
+    depend on the initial yaw).
+    """
+
+    gyro: np.ndarray
+    accel: np.ndarray
+    roll: np.ndarray
+    pitch: np.ndarray
+    roll0: float
+    pitch0: float
+    label: str = ""
+
+
+def make_training_sequences(gyro, accel, truth_roll, truth_pitch, bias_deg_s: float = 0.05,
+                            roll0: float | None = None, pitch0: float | None = None
+                            ) -> list[TrainingSequence]:
+    """The 9 sequences of 004: 8 sign combinations of +-bias on the three gyros, plus the exact one.
+
+    roll0/pitch0: initial attitude (default the first truth sample).
+    """
+    gyro = np.asarray(gyro, dtype=np.float64)
+    accel = np.asarray(accel, dtype=np.float64)
+    roll = np.asarray(truth_roll, dtype=np.float64)
+    pitch = np.asarray(truth_pitch, dtype=np.float64)
+    r0 = float(roll[0]) if roll0 is None else float(roll0)
+    p0 = float(pitch[0]) if pitch0 is None else float(pitch0)
+    b = math.radians(bias_deg_s)
+    out = []
+    for sx in (1, -1):
+        for sy in (1, -1):
+            for sz in (1, -1):
+                bias = b * np.array([sx, sy, sz], dtype=np.float64)
+                label = "bias " + "".join("+" if e > 0 else "-" for e in (sx, sy, sz))
+                out.append(TrainingSequence(gyro + bias, accel, roll, pitch, r0, p0, label))
+    out.append(TrainingSequence(gyro.copy(), accel, roll, pitch, r0, p0, "exact"))
+    return out
+
+
+def evaluate(params: GyroVerticalParams, sequences: Sequence[TrainingSequence], dt: float,
+             weights: tuple[float, float] = (0.5, 0.5), adaptive: bool = True) -> float:
+    """Criterion (10): a_theta * mean RMS pitch error + a_gamma * mean RMS roll error, degrees."""
+    ep, er = [], []
+    for s in sequences:
+        f = GyroVertical(params, dt, q0=quat_from_euler(s.roll0, s.pitch0, 0.0), adaptive=adaptive)
+        r, p = run_sequence(f, s.gyro, s.accel)
+        ep.append(rms_error_deg(p, s.pitch))
+        er.append(rms_error_deg(r, s.roll))
+    cost = weights[0] * float(np.mean(ep)) + weights[1] * float(np.mean(er))
+    return cost if math.isfinite(cost) else 1e6
+
+
+def train(sequences: Sequence[TrainingSequence], initial: GyroVerticalParams | None = None,
+          dt: float = DT_REF, maxiter: int = 100, seed: int = 0,
+          progress: Callable[[int, float, GyroVerticalParams], None] | None = None,
+          weights: tuple[float, float] = (0.5, 0.5), method: str = "Nelder-Mead",
+          step: float = 0.7) -> GyroVerticalParams:
+    """Minimise (10) over the 12 log-parameters with scipy.optimize (Nelder-Mead or Powell).
+
+    The Nelder-Mead initial simplex is the initial point plus 12 vertices
+    displaced by +-``step`` (natural log) along each coordinate with signs drawn
+    from ``seed``, so the result is deterministic for a seed.  ``progress(k,
+    best_cost, best_params)`` is called after every iteration.  Returns the
+    best parameters evaluated (never worse than ``initial`` on these sequences).
+    """
+    from scipy.optimize import minimize
+
+    initial = initial if initial is not None else GyroVerticalParams()
+    x0 = initial.to_vector()
+    best = {"cost": math.inf, "x": x0.copy()}
+    cache: dict[bytes, float] = {}
+
+    def cost(v):
+        key = np.asarray(v, dtype=np.float64).tobytes()
+        if key not in cache:
+            c = evaluate(GyroVerticalParams.from_vector(v), sequences, dt, weights)
+            cache[key] = c
+            if c < best["cost"]:
+                best["cost"], best["x"] = c, np.array(v, dtype=np.float64)
+        return cache[key]
+
+    it = [0]
+
+    def callback(*_args, **_kw):
+        it[0] += 1
+        if progress is not None:
+            progress(it[0], best["cost"], GyroVerticalParams.from_vector(best["x"]))
+
+    cost(x0)
+    if method == "Nelder-Mead":
+        rng = np.random.default_rng(seed)
+        signs = rng.choice([-1.0, 1.0], size=x0.size)
+        simplex = np.vstack([x0] + [x0 + step * signs[i] * np.eye(x0.size)[i] for i in range(x0.size)])
+        minimize(cost, x0, method="Nelder-Mead", callback=callback,
+                 options={"maxiter": int(maxiter), "initial_simplex": simplex,
+                          "xatol": 1e-3, "fatol": 1e-4})
+    elif method == "Powell":
+        minimize(cost, x0, method="Powell", callback=callback,
+                 options={"maxiter": int(maxiter), "xtol": 1e-3, "ftol": 1e-4})
+    else:
+        raise ValueError(f"gyrovertical: method must be 'Nelder-Mead' or 'Powell', got {method!r}")
+    return GyroVerticalParams.from_vector(best["x"])
