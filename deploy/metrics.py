@@ -254,7 +254,50 @@ def compute_metrics(log: dict[str, list[dict]], info: dict, vehicle_id: int = 0)
     m["position_step_settle_s_max"] = _max_or_none(s["settle_s"] for s in ps)
     m["position_step_overshoot_pct_max"] = _max_or_none(s["overshoot_pct"] for s in ps)
     m["position_steps_unsettled"] = sum(1 for s in ps if s["settle_s"] is None)
+    m["estimation"] = _estimation(log, p, truth_t, pos, euler, landed)
     return m
+
+
+NEES_BAND_95_3DOF = (0.2158, 9.3484)  # chi-square 2.5 % and 97.5 % points for 3 dof
+
+
+def _estimation(log, p, truth_t, truth_pos, truth_euler, landed) -> dict | None:
+    """Truth against the estimates the controllers used, while airborne; None when
+    the flight ran on truth."""
+    pos = [x for x in _sorted(log.get(p + "pos/state", [])) if x["state_source"] == "estimate"]
+    att = [x for x in _sorted(log.get(p + "att/state", [])) if x["state_source"] == "estimate"]
+    if not (pos or att) or truth_t.size == 0:
+        return None
+    out: dict[str, Any] = {"position_rms_m": None, "attitude_rms_deg": None, "nees_mean": None}
+
+    def truth_index(msgs):
+        t = _times(msgs)
+        idx = np.clip(np.searchsorted(truth_t, t + 1e-9, side="right") - 1, 0, truth_t.size - 1)
+        return idx, ~landed[idx]
+
+    if pos:
+        idx, air = truth_index(pos)
+        est = np.array([x["position_m"] for x in pos])[air]
+        err = truth_pos[idx[air]] - est
+        if len(err):
+            out["position_rms_m"] = _f(np.sqrt(np.mean(np.sum(err**2, axis=1))))
+            cov = np.array([x["position_cov_m2"] for x in pos])[air].reshape(-1, 3, 3)
+            nees = np.array([e @ np.linalg.solve(c, e) for e, c in zip(err, cov)
+                             if np.all(np.linalg.eigvalsh(c) > 0)])
+            if nees.size:
+                out["nees_mean"] = _f(np.mean(nees))
+                out["nees_band_95"] = list(NEES_BAND_95_3DOF)
+                out["nees_within_band_fraction"] = _f(np.mean((nees >= NEES_BAND_95_3DOF[0])
+                                                              & (nees <= NEES_BAND_95_3DOF[1])))
+    if att:
+        idx, air = truth_index(att)
+        est = np.array([x["euler_rad"] for x in att])[air]
+        err = np.degrees((truth_euler[idx[air]] - est + np.pi) % (2 * np.pi) - np.pi)
+        if len(err):
+            out["attitude_rms_deg"] = _f(np.sqrt(np.mean(np.sum(err**2, axis=1))))
+            for i, axis in enumerate(("roll", "pitch", "yaw")):
+                out[f"{axis}_rms_deg"] = _f(np.sqrt(np.mean(err[:, i] ** 2)))
+    return out
 
 
 # --------------------------------------------------------------------------- table
@@ -278,6 +321,8 @@ def format_table(metrics: dict) -> str:
             rows.append((k, _fmt(v)))
     for k, v in metrics.get("latency_ms", {}).items():
         rows.append((f"latency_ms.{k}", _fmt(v)))
+    for k, v in (metrics.get("estimation") or {}).items():
+        rows.append((f"estimation.{k}", _fmt(v) if not isinstance(v, list) else str(v)))
     rej = metrics.get("rejected_messages", {})
     for svc in sorted(set(metrics.get("rates_hz", {})) | set(rej)):
         r = rej.get(svc) or {}

@@ -38,10 +38,11 @@ SERVICE_MODULES = {
     "attitude": "services.attitude",
     "position": "services.position",
     "planner": "services.planner",
+    "vision": "services.vision",
     "recorder": "services.recorder",
 }
 # services that take part in lockstep (the recorder only listens)
-LOCKSTEP_PARTICIPANTS = ("motors", "attitude", "position", "planner")
+LOCKSTEP_PARTICIPANTS = ("motors", "attitude", "position", "planner", "vision")
 
 
 class StackError(ValueError):
@@ -178,6 +179,8 @@ def resolve_params(defaults: dict[str, Any], given: dict[str, Any], where: str) 
             value = _expect(value, int, f"{where}.{key}")
         elif isinstance(default, str):
             value = _expect(value, str, f"{where}.{key}")
+        elif isinstance(default, dict):  # a nested table: its owner validates the keys
+            value = _expect(value, dict, f"{where}.{key}")
         elif isinstance(default, (list, tuple)):
             value = _expect(value, list, f"{where}.{key}")
             if len(value) != len(default):

@@ -124,6 +124,20 @@ PLANNER_SETPOINT = Message(
     ),
 )
 
+VISION_POSE = Message(
+    "vision_pose", "vision/pose", 1,
+    "Vehicle pose solved from one camera frame's markers (perspective-n-point). "
+    "header.t_s is the frame's exposure time, not the time it was solved.",
+    (
+        _vec("position_m", "body origin, world ENU", "m"),
+        _vec("quaternion_wxyz", "attitude, body to world", "", 4, -1.0, 1.0),
+        _vec("position_cov_m2", "position covariance, row-major 3x3", "m^2", 9, -1e6, 1e6),
+        _vec("attitude_var_rad2", "variance of the small attitude error about world x, y, z", "rad^2", 3, 0.0, 1e6),
+        F("reprojection_rms_px", "float", "RMS reprojection error of the solution", "px", min=0.0),
+        F("markers", "int", "markers used", min=1),
+    ),
+)
+
 POSITION_SETPOINT = Message(
     "position_setpoint", "pos/setpoint", 1,
     "Position level output (laws (9)-(11)): attitude reference and collective thrust.",
@@ -140,6 +154,7 @@ POSITION_STATE = Message(
         _vec("position_m", "position, world ENU", "m"),
         _vec("velocity_m_s", "velocity, world ENU", "m/s"),
         _vec("position_ref_m", "position reference", "m", lo=-1e4, hi=1e4),
+        _vec("position_cov_m2", "position covariance, row-major 3x3 (zeros for truth)", "m^2", 9, -1e6, 1e6),
         F("state_source", "str", "where the state came from", choices=("truth", "estimate")),
     ),
 )
@@ -163,6 +178,8 @@ ATTITUDE_STATE = Message(
         _vec("euler_rad", "[roll, pitch, yaw]", "rad", lo=-7.0, hi=7.0),
         _vec("rate_rad_s", "angular rate, body FLU", "rad/s"),
         _vec("euler_ref_rad", "[roll, pitch, yaw] reference", "rad", lo=-7.0, hi=7.0),
+        _vec("euler_var_rad2", "variance of the angle estimates (zeros for truth)", "rad^2", 3, 0.0, 1e6),
+        _vec("rate_var_rad2_s2", "variance of the rate estimates (zeros for truth)", "rad^2/s^2", 3, 0.0, 1e6),
         F("state_source", "str", "where the state came from", choices=("truth", "estimate")),
     ),
 )
@@ -194,7 +211,7 @@ HEALTH = Message(
 )
 
 ALL = (
-    CLOCK, SYNC_DONE, IMU, BARO, MAG, CAMERA, TRUTH, PLANNER_SETPOINT,
+    CLOCK, SYNC_DONE, IMU, BARO, MAG, CAMERA, TRUTH, VISION_POSE, PLANNER_SETPOINT,
     POSITION_SETPOINT, POSITION_STATE, ATTITUDE_COMMAND, ATTITUDE_STATE, MOTOR_PWM, HEALTH,
 )
 

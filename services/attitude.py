@@ -1,9 +1,13 @@
-"""zenpilot-attitude: the attitude level (200 Hz), law (8) of 000.
+"""zenpilot-attitude: the attitude level (200 Hz) of 000: filter and law (8).
 
-Tracks the position level's attitude reference with body torques
-u = I [-(alpha+k) w - alpha k (angle - ref)] and passes the collective thrust
-on to the motor driver. State source: `truth` (the simulator's ground truth,
-an explicit ablation setting) until the attitude filter exists.
+State source `estimate` (default): every IMU sample goes through the
+low-pass filters (12) and a linear Kalman filter per axis on
+[w, w_f, angle, angle_f] with the torque input (13), (16)-(20); the analytic
+extrapolator (15) carries the estimate over the measured transport delay
+(newest IMU sample time to now) with the stored torques. State source
+`truth`: the simulator's ground truth (an explicit ablation setting).
+Law (8) u = I [-(alpha+k) w - alpha k (angle - ref)] tracks the position
+level's reference; the collective thrust is passed on to the motor driver.
 """
 
 from __future__ import annotations
@@ -11,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 import schemas
+from flight.attitude_filter import AttitudeFilter, AttitudeFilterParams
 from flight.control import attitude_law
 from flight.quat import quat_to_euler
 from flight.vehicle import load_vehicle
@@ -18,43 +23,74 @@ from services.runtime import Runtime, main_guard, service_parser
 
 NAME = "attitude"
 PARAMS = {
-    "state_source": "truth",
+    "state_source": "estimate",
     "k": [16.0, 16.0, 16.0],      # law (8) gains per axis (roll, pitch, yaw), 1/s
     "alpha": [16.0, 16.0, 16.0],
     "setpoint_timeout_s": 0.1,    # stale position setpoint -> level, zero thrust
+    "filter": {},                 # AttitudeFilterParams overrides (flight/attitude_filter.py)
 }
-STATE_SOURCES = ("truth",)
+STATE_SOURCES = ("truth", "estimate")
 
 
 def run(args) -> None:
     rt = Runtime(NAME, args, PARAMS)
     p = rt.params
+    where = f"{rt.stack.path}: [services.attitude.params]"
     if p["state_source"] not in STATE_SOURCES:
-        raise ValueError(f"{rt.stack.path}: [services.attitude.params] state_source: "
-                         f"{p['state_source']!r} not one of {STATE_SOURCES}")
+        raise ValueError(f"{where} state_source: {p['state_source']!r} not one of {STATE_SOURCES}")
     vehicle = load_vehicle(rt.vehicle_name)
-    truth = rt.inbox(schemas.TRUTH, "sim")
+    estimate = p["state_source"] == "estimate"
+    if estimate:
+        try:
+            params = AttitudeFilterParams.from_dict(p["filter"])
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"{where} filter: {exc}") from None
+        filt = AttitudeFilter(np.asarray(vehicle.inertia_kg_m2), params, dt=1.0 / rt.rate_hz)
+        imu = rt.inbox(schemas.IMU, "sim", keep=32)
+        mag = rt.inbox(schemas.MAG, "sim", keep=8)
+    else:
+        truth = rt.inbox(schemas.TRUTH, "sim")
     setpoint = rt.inbox(schemas.POSITION_SETPOINT, "position")
     command = rt.publisher(schemas.ATTITUDE_COMMAND)
     state_out = rt.publisher(schemas.ATTITUDE_STATE)
     k, alpha = np.asarray(p["k"]), np.asarray(p["alpha"])
+    last_torque = {"u": np.zeros(3)}
+
+    def read_state(t: float):
+        """(quaternion, euler, rates, euler_var, rate_var, sample time) or None."""
+        if not estimate:
+            s = truth.latest()
+            if s is None:
+                return None
+            q = s["quaternion_wxyz"]
+            return q, np.array(quat_to_euler(q)), np.asarray(s["rate_rad_s"]), np.zeros(3), np.zeros(3), s["header"]["t_s"]
+        samples = [(m["header"]["t_s"], np.asarray(m["gyro_rad_s"]), np.asarray(m["accel_m_s2"])) for m in imu.take()]
+        mags = mag.take()
+        mag_sample = (mags[-1]["header"]["t_s"], np.asarray(mags[-1]["field_ut"])) if mags else None
+        if not samples and filt.initialized is False:
+            return None
+        est = filt.update(samples, mag_sample, last_torque["u"], t)
+        sample_t = samples[-1][0] if samples else filt.last_sample_t
+        return est.quaternion_wxyz, est.euler_rad, est.rate_rad_s, est.euler_var, est.rate_var, sample_t
 
     def step(t: float) -> None:
-        state, sp = truth.latest(), setpoint.latest()
+        state = read_state(t)
+        sp = setpoint.latest()
         if state is None:
             return
-        q = state["quaternion_wxyz"]
-        euler = np.array(quat_to_euler(q))
-        rates = np.asarray(state["rate_rad_s"])
+        q, euler, rates, euler_var, rate_var, sample_t = state
         if sp is None or t - sp["header"]["t_s"] > p["setpoint_timeout_s"]:
             ref, thrust = np.array([0.0, 0.0, euler[2]]), 0.0
         else:
             ref, thrust = np.asarray(sp["attitude_ref_rad"]), sp["thrust_n"]
         torque = attitude_law(vehicle.inertia_kg_m2, euler, rates, ref, k, alpha)
-        command.put({"thrust_n": float(thrust), "torque_nm": torque,
-                     "imu_t_s": state["header"]["t_s"]}, t_s=t)  # truth stands in for the IMU sample
+        if thrust <= 0.0:
+            torque = np.zeros(3)  # on the ground, idle: nothing to steer (and nothing to wind up)
+        last_torque["u"] = torque
+        command.put({"thrust_n": float(thrust), "torque_nm": torque, "imu_t_s": sample_t}, t_s=t)
         state_out.put({"quaternion_wxyz": q, "euler_rad": euler, "rate_rad_s": rates,
-                       "euler_ref_rad": ref, "state_source": p["state_source"]}, t_s=t)
+                       "euler_ref_rad": ref, "euler_var_rad2": euler_var, "rate_var_rad2_s2": rate_var,
+                       "state_source": p["state_source"]}, t_s=t)
 
     rt.run(step)
 

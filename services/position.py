@@ -1,9 +1,14 @@
-"""zenpilot-position: the position level (100 Hz), laws (9)-(11) of 000.
+"""zenpilot-position: the position level (100 Hz) of 000: EKF and laws (9)-(11).
 
-In `position` mode it turns the planner's position reference into an
-attitude reference and collective thrust; in `attitude` mode it holds the
-planner's altitude and passes its roll/pitch/yaw reference through. State
-source: `truth` (explicit ablation setting) until the position EKF exists.
+State source `estimate` (default): an extended Kalman filter on the
+12-state model (1)-(2) with the thrust/torque input, fed with the attitude
+level's angles and rates (200 Hz) and the vision poses (20 Hz, about 50 ms
+old: fused at their exposure time and predicted forward, see
+flight/position_ekf.py). Gated measurements are counted, never fused.
+State source `truth`: the simulator's ground truth (an explicit ablation).
+In `position` mode laws (10), (9), (11) turn the planner's reference into an
+attitude reference and collective thrust; in `attitude` mode the altitude
+is held and the planner's attitude reference passed through.
 """
 
 from __future__ import annotations
@@ -12,29 +17,44 @@ import numpy as np
 
 import schemas
 from flight.control import altitude_law, position_law
+from flight.position_ekf import PositionEKF, PositionEKFParams
 from flight.quat import quat_to_euler
 from flight.vehicle import load_vehicle
 from services.runtime import Runtime, main_guard, service_parser
 
 NAME = "position"
 PARAMS = {
-    "state_source": "truth",
+    "state_source": "estimate",
     "k": [4.0, 4.0, 4.0],        # laws (10) gains per axis (x, y, z), 1/s
     "alpha": [4.0, 4.0, 4.0],
     "max_tilt_deg": 35.0,
     "setpoint_timeout_s": 0.5,   # stale planner setpoint -> hold where we are
+    "home_position_m": [0.0, 0.0, 0.0],  # where the EKF starts: the take-off point
+    "ekf": {},                   # PositionEKFParams overrides (flight/position_ekf.py)
 }
-STATE_SOURCES = ("truth",)
+STATE_SOURCES = ("truth", "estimate")
 
 
 def run(args) -> None:
     rt = Runtime(NAME, args, PARAMS)
     p = rt.params
+    where = f"{rt.stack.path}: [services.position.params]"
     if p["state_source"] not in STATE_SOURCES:
-        raise ValueError(f"{rt.stack.path}: [services.position.params] state_source: "
-                         f"{p['state_source']!r} not one of {STATE_SOURCES}")
+        raise ValueError(f"{where} state_source: {p['state_source']!r} not one of {STATE_SOURCES}")
     vehicle = load_vehicle(rt.vehicle_name)
-    truth = rt.inbox(schemas.TRUTH, "sim")
+    estimate = p["state_source"] == "estimate"
+    if estimate:
+        try:
+            ekf_params = PositionEKFParams.from_dict(p["ekf"])
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"{where} ekf: {exc}") from None
+        ekf = PositionEKF(vehicle, ekf_params, dt=1.0 / rt.rate_hz)
+        attitude = rt.inbox(schemas.ATTITUDE_STATE, "attitude")
+        command = rt.inbox(schemas.ATTITUDE_COMMAND, "attitude")
+        poses = rt.inbox(schemas.VISION_POSE, "vision", keep=16)
+        started = {"ekf": False}
+    else:
+        truth = rt.inbox(schemas.TRUTH, "sim")
     planner = rt.inbox(schemas.PLANNER_SETPOINT, "planner")
     setpoint_out = rt.publisher(schemas.POSITION_SETPOINT)
     state_out = rt.publisher(schemas.POSITION_STATE)
@@ -42,12 +62,41 @@ def run(args) -> None:
     m, g = vehicle.mass_kg, vehicle.gravity_m_s2
     hold = {"position": None}
 
+    def count(reason: str) -> None:
+        rt.rejected[reason] = rt.rejected.get(reason, 0) + 1
+
+    def read_state(t: float):
+        """(position, velocity, euler, position covariance) or None."""
+        if not estimate:
+            s = truth.latest()
+            if s is None:
+                return None
+            return (np.asarray(s["position_m"]), np.asarray(s["velocity_m_s"]),
+                    np.array(quat_to_euler(s["quaternion_wxyz"])), np.zeros((3, 3)))
+        if not started["ekf"]:
+            ekf.initialize(t, np.asarray(p["home_position_m"], dtype=float))
+            started["ekf"] = True
+        cmd = command.latest()
+        u = np.zeros(4) if cmd is None else np.array([cmd["thrust_n"], *cmd["torque_nm"]])
+        if t > ekf.t:
+            ekf.predict(t, u)
+        att = attitude.latest()
+        if att is not None and att["state_source"] == "estimate":
+            if not ekf.update_attitude(att["header"]["t_s"], np.asarray(att["euler_rad"]), np.asarray(att["rate_rad_s"]),
+                                       np.asarray(att["euler_var_rad2"]), np.asarray(att["rate_var_rad2_s2"])):
+                count("fusion_attitude_gate")
+        for pose in poses.take():
+            accepted, _nis = ekf.update_position(pose["header"]["t_s"], np.asarray(pose["position_m"]),
+                                                 np.asarray(pose["position_cov_m2"]).reshape(3, 3))
+            if not accepted:
+                count("fusion_position_rejected")
+        return ekf.position, ekf.velocity, ekf.euler, ekf.position_cov
+
     def step(t: float) -> None:
-        state, sp = truth.latest(), planner.latest()
+        state, sp = read_state(t), planner.latest()
         if state is None:
             return
-        pos, vel = np.asarray(state["position_m"]), np.asarray(state["velocity_m_s"])
-        roll, pitch, yaw = quat_to_euler(state["quaternion_wxyz"])
+        pos, vel, (roll, pitch, yaw), cov = state
         stale = sp is None or t - sp["header"]["t_s"] > p["setpoint_timeout_s"]
         if stale and hold["position"] is None:
             hold["position"] = pos.copy()  # planner lost: hold the position we had
@@ -67,7 +116,7 @@ def run(args) -> None:
         thrust = float(min(thrust, 4 * vehicle.max_thrust_n))
         setpoint_out.put({"attitude_ref_rad": att_ref, "thrust_n": thrust}, t_s=t)
         state_out.put({"position_m": pos, "velocity_m_s": vel, "position_ref_m": ref_pos,
-                       "state_source": p["state_source"]}, t_s=t)
+                       "position_cov_m2": np.asarray(cov).reshape(-1), "state_source": p["state_source"]}, t_s=t)
 
     rt.run(step)
 

@@ -294,7 +294,7 @@ class Runtime:
         self._clock_event.set()
 
     # -- health ------------------------------------------------------------
-    def _count_run(self, t: float) -> None:
+    def count_run(self, t: float) -> None:
         if self._run_times:
             self._periods.append(t - self._run_times[-1])
         self._run_times.append(t)
@@ -342,7 +342,8 @@ class Runtime:
                 time.sleep(delay)
             now = time.time()
             self._t = now
-            self._count_run(now)
+            if self.rate_hz > 0:  # event-driven steps count their own runs
+                self.count_run(now)
             self._safe_step(step, now)
             self.publish_health()
             t_next += period
@@ -382,7 +383,7 @@ class Runtime:
                 break
             for box in self.inboxes:
                 box.limit = k if box.upstream == "sim" else done_before.get(box.upstream, -2)
-            self._count_run(self._t)
+            self.count_run(self._t)
             self._safe_step(step, self._t)
             self.publish_health()
             if period:

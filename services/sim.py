@@ -102,7 +102,7 @@ class SimService:
                                "done": done}, t_s=rt._t)
             if not self.wait_done(k, due):
                 break
-            rt._count_run(rt._t)
+            rt.count_run(rt._t)
             rt.publish_health()
             if not self.advance():
                 break

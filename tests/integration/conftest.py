@@ -10,6 +10,10 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 
+# the ablation "truth state": the control laws of 000 on the simulator's truth (issue 2's figures)
+TRUTH_STATE = ("--set", "attitude.state_source=truth", "--set", "position.state_source=truth",
+               "--set", "sim.truth_rate_hz=200")
+
 
 def fly(out: Path, mission: str, *extra: str, lockstep: bool = True, seed: int = 0,
         timeout: float = 400, background: bool = False):
@@ -27,4 +31,4 @@ def fly(out: Path, mission: str, *extra: str, lockstep: bool = True, seed: int =
 @pytest.fixture(scope="session")
 def hover_lockstep(tmp_path_factory):
     out = tmp_path_factory.mktemp("hover-lockstep")
-    return out, fly(out, "hover")
+    return out, fly(out, "hover", *TRUTH_STATE)

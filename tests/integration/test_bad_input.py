@@ -9,7 +9,7 @@ import pytest
 
 from deploy.launcher import client_session, free_port
 
-from .conftest import fly
+from .conftest import TRUTH_STATE, fly
 
 pytestmark = pytest.mark.integration
 
@@ -49,7 +49,7 @@ def test_garbage_on_every_input_is_counted_and_dropped(tmp_path):
     thread = threading.Thread(target=inject, args=(f"tcp/127.0.0.1:{port}", stop, sent))
     thread.start()
     try:
-        proc, m = fly(tmp_path, "hover", "--port", str(port))
+        proc, m = fly(tmp_path, "hover", "--port", str(port), *TRUTH_STATE)
     finally:
         stop.set()
         thread.join()

@@ -4,12 +4,12 @@ import json
 
 import pytest
 
-from .conftest import fly
+from .conftest import TRUTH_STATE, fly
 
 pytestmark = pytest.mark.integration
 
 
-def test_hover_lockstep_holds_within_a_centimetre(hover_lockstep):
+def test_truth_state_hover_lockstep_holds_within_a_centimetre(hover_lockstep):
     out, (proc, m) = hover_lockstep
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert m["completed"] and m["mode"] == "lockstep" and m["vehicle"] == "x250"
@@ -24,16 +24,16 @@ def test_hover_lockstep_holds_within_a_centimetre(hover_lockstep):
 
 def test_lockstep_is_deterministic(hover_lockstep, tmp_path):
     out, (_, first) = hover_lockstep
-    _, again = fly(tmp_path / "again", "hover")
+    _, again = fly(tmp_path / "again", "hover", *TRUTH_STATE)
     assert again == first
     assert (tmp_path / "again" / "flight.mcap").read_bytes() == (out / "flight.mcap").read_bytes()
-    _, other = fly(tmp_path / "other-seed", "hover", seed=1)
+    _, other = fly(tmp_path / "other-seed", "hover", *TRUTH_STATE, seed=1)
     assert other["seed"] == 1  # another seed: other sensor noise in the log
     assert (tmp_path / "other-seed" / "flight.mcap").read_bytes() != (out / "flight.mcap").read_bytes()
 
 
 def test_attitude_steps_reproduce_figure_4(tmp_path):
-    proc, m = fly(tmp_path, "attitude-steps")
+    proc, m = fly(tmp_path, "attitude-steps", *TRUTH_STATE)
     assert m["completed"], proc.stdout
     steps = m["attitude_steps"]
     assert len(steps) == 8 and {s["axis"] for s in steps} == {"roll", "pitch"}
@@ -46,7 +46,7 @@ def test_attitude_steps_reproduce_figure_4(tmp_path):
 
 
 def test_position_steps_settle_within_4_s(tmp_path):
-    proc, m = fly(tmp_path, "steps")
+    proc, m = fly(tmp_path, "steps", *TRUTH_STATE)
     assert m["completed"], proc.stdout
     axes = {s["axis"] for s in m["position_steps"]}
     assert axes == {"x", "y", "z"}
@@ -57,7 +57,7 @@ def test_position_steps_settle_within_4_s(tmp_path):
 
 
 def test_hover_real_time(tmp_path):
-    proc, m = fly(tmp_path, "hover", lockstep=False)
+    proc, m = fly(tmp_path, "hover", *TRUTH_STATE, lockstep=False)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert m["completed"] and m["mode"] == "realtime"
     assert m["position_rms_m"] < 0.02

@@ -1,4 +1,6 @@
 import numpy as np
+
+from flight.camera import marker_grid
 import pytest
 
 from flight.control import attitude_law, position_law
@@ -75,8 +77,10 @@ def test_camera_sees_markers_at_1m_with_latency():
     # exposures at ticks 0 and 20 published 20 ticks later (ticks 20, 40); tick 40's at 60
     assert [t for t, _ in cam] == [0.0, 0.05]
     t, f = cam[0]
-    assert 60 in f["marker_ids"] and len(f["corners_px"]) == 8 * len(f["marker_ids"])
-    i = f["marker_ids"].index(60)
+    ids, corners = marker_grid(cfg.marker_size_m, cfg.marker_spacing_m, cfg.marker_grid_half_extent_m)
+    below = int(ids[np.argmin(np.linalg.norm(corners.mean(axis=1)[:, :2], axis=1))])  # marker under the vehicle
+    assert below in f["marker_ids"] and len(f["corners_px"]) == 8 * len(f["marker_ids"])
+    i = f["marker_ids"].index(below)
     np.testing.assert_allclose(np.reshape(f["corners_px"][8 * i:8 * i + 8], (4, 2)),
                                [[280, 200], [360, 200], [360, 280], [280, 280]], atol=3.0)
     assert all(isinstance(e, float) for e in f["corners_px"])

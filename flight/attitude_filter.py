@@ -1,0 +1,580 @@
+"""Attitude-level estimator of document 000 (fast loop): low-pass (12), per-axis
+Kalman filter on the model with the filter lag (13), (16)-(20), analytic
+extrapolator (15) over the transport delay.  Pure algorithm, no I/O.
+
+Per axis (roll, pitch, yaw alike; 000 uses the body rate as the Euler-angle
+rate, valid near hover, and neglects the cross-coupling terms)::
+
+    w'  = u                      u = torque / I  (the commanded torque)
+    wf' = k_f (w - wf)           k_f = 1 / lpf_tau_s, the low-pass (12)
+    a'  = w
+    af' = k_f (a - af)
+
+state ``x = [w, wf, a, af]`` (16), measurements ``z = [wf, af]``: the
+low-passed gyro rate and the low-passed accelerometer (roll, pitch) or
+tilt-compensated magnetometer (yaw) angle.  The low-pass therefore removes the
+noise while the Kalman filter, knowing the filter's lag, undoes the lag.
+
+Ablations (``AttitudeFilterParams``):
+
+* ``model_filter_lag=False``: the cascade without the filter lag in the model;
+  the low-passed signals are taken as direct measurements of w and a
+  (H picks w and a), so the estimate inherits the low-pass lag (about tau).
+* ``extrapolate=False``: no extrapolator; the estimate refers to the newest
+  IMU sample's time, i.e. it is late by the transport delay.
+
+Discretisation.  The model is linear and time invariant, so F, B (and Q by
+Van Loan's method from the continuous noise densities) are the exact matrix
+exponentials for a step h.  ``kf.F``/``kf.B`` hold the ones for the nominal
+``dt``; the filter itself steps at every IMU sample (400 Hz, two per 200 Hz
+call) with the exact F, B, Q of the actual interval, split wherever the
+commanded torque changed inside it (the torque is piecewise constant between
+calls).
+
+Extrapolator (15).  From the filtered state at the newest IMU sample time
+t_s the model is integrated forward to t_now with the torques that were
+applied over [t_s, t_now) (their history is kept).  000 writes this as
+N = round((t_now - t_s)/dt) steps of dt; here the same model is integrated
+exactly over the measured delay (so a delay that is not a multiple of dt,
+e.g. 10 ms plus an IMU phase of 2.5 ms, is compensated in full), piecewise in
+the stored torques, capped at ``max_delay_steps * dt``.  The covariance is
+propagated with it (euler_var, rate_var grow with the delay).
+
+Yaw.  From the magnetometer, tilt-compensated with the filter's current
+roll/pitch; the world field's horizontal direction comes from
+``mag_field_world_ut`` (ENU, north = +y).  Between magnetometer samples
+(50 Hz) the held yaw is carried on by the z gyro, so the 400 Hz low-pass sees
+no zero-order-hold lag.  Yaw innovations and every angle state are wrapped to
+[-pi, pi).  Until the first magnetometer sample the yaw is 0 with a large
+variance; the first sample sets it.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from filterpy.kalman import KalmanFilter
+from scipy.linalg import expm
+
+from flight.quat import quat_from_euler
+
+W, WF, A, AF = 0, 1, 2, 3          # state indices per axis
+G_REF = 9.80665
+_BIG_ANGLE_VAR = math.pi ** 2      # yaw variance before any magnetometer sample
+
+
+def wrap(a):
+    """Wrap to [-pi, pi) (scalar or array)."""
+    return (np.asarray(a, dtype=np.float64) + np.pi) % (2 * np.pi) - np.pi
+
+
+def _wrap1(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def accel_roll_pitch(accel) -> tuple[float, float]:
+    """(roll, pitch) from specific force in body FLU (exact for the ZYX convention at rest)."""
+    ax, ay, az = (float(v) for v in accel)
+    return math.atan2(ay, az), math.atan2(-ax, math.hypot(ay, az))
+
+
+def mag_yaw(field_body, roll: float, pitch: float, field_world=(0.0, 20.0, -45.0)) -> float:
+    """Yaw (ZYX, ENU) from a body-FLU magnetometer reading, tilt-compensated.
+
+    Ry(pitch) Rx(roll) m_body is the field in the yaw-only frame, i.e.
+    Rz(yaw)^T m_world; its horizontal direction is the world field's turned by -yaw.
+    """
+    mx, my, mz = (float(v) for v in field_body)
+    cr, sr = math.cos(roll), math.sin(roll)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    # Rx(roll) m
+    y1 = cr * my - sr * mz
+    z1 = sr * my + cr * mz
+    # Ry(pitch) (.)
+    hx = cp * mx + sp * z1
+    hy = y1
+    beta = math.atan2(float(field_world[1]), float(field_world[0]))
+    return _wrap1(beta - math.atan2(hy, hx))
+
+
+# ------------------------------------------------------------------ parameters
+def _vec3(name, v):
+    if isinstance(v, (int, float)) and not isinstance(v, bool):
+        v = (v, v, v)
+    try:
+        t = tuple(float(e) for e in v)
+    except TypeError:
+        raise ValueError(f"attitude_filter: {name} must be a number or 3 numbers, got {v!r}") from None
+    if len(t) != 3:
+        raise ValueError(f"attitude_filter: {name} must have 3 values, got {v!r}")
+    return t
+
+
+_VEC_FIELDS = ("rate_meas_var", "angle_meas_var", "rate_process_var", "angle_process_var")
+
+
+@dataclass(frozen=True)
+class AttitudeFilterParams:
+    """Parameters of :class:`AttitudeFilter`.  Per-axis tuples are (roll, pitch, yaw).
+
+    Variances of the measurements are per IMU sample (400 Hz); the process
+    noises are continuous densities (discretised exactly for each step).
+    """
+    # (12): first-order low-pass on the gyro and on the accel/mag angles, k_f = 1/tau
+    lpf_tau_s: float = 0.02
+    # R: low-passed gyro rate, rad^2/s^2.  The raw gyro noise is 1e-5 per sample;
+    # after the low-pass it is ~6e-7 but coloured (correlated over ~tau), so the
+    # raw per-sample value is kept as a conservative white-noise equivalent.
+    rate_meas_var: tuple = (1e-5, 1e-5, 1e-5)
+    # R: low-passed accelerometer / magnetometer angle, rad^2.  The sensor noise
+    # alone is ~1e-6 (accel) and ~6e-4 (mag, 0.5 uT over a 20 uT horizontal field);
+    # roll/pitch use a far larger value because in flight a multirotor's specific
+    # force is thrust plus drag: the accelerometer reads "level" whenever the
+    # vehicle tilts to accelerate, so the gyro must carry the angle for seconds
+    # (with 0.05 the accelerometer pulls with a ~3.5 s time constant; with 1e-3,
+    # ~0.5 s, the hover estimate erred by 5 deg in closed-loop flight).
+    # Yaw: the 50 Hz magnetometer is held over 8 IMU samples, so its per-sample
+    # variance is ~8x the sensor's 6e-4.
+    angle_meas_var: tuple = (5e-2, 5e-2, 5e-3)
+    # Q: density of the unmodelled angular acceleration (torque error, motor lag,
+    # disturbances), rad^2/s^3
+    rate_process_var: tuple = (50.0, 50.0, 20.0)
+    # Q: density of a random walk on the angle (gyro bias, body-vs-Euler rate),
+    # rad^2/s; sets how fast accel/mag pull the gyro-integrated angle (~1 s)
+    angle_process_var: tuple = (1e-5, 1e-5, 1e-5)
+    model_filter_lag: bool = True    # False: ablation "cascade without the filter lag in the model"
+    extrapolate: bool = True         # False: ablation without the extrapolator (15)
+    max_delay_steps: int = 10        # extrapolate at most this many dt (longer delays are capped)
+    mag_field_world_ut: tuple = (0.0, 20.0, -45.0)  # ENU, only its horizontal direction is used
+    init_angle_var: float = 1e-2     # rad^2 at initialisation (roll/pitch; yaw once the mag is seen)
+    init_rate_var: float = 1e-2      # rad^2/s^2
+    min_accel_g: float = 0.3         # |specific force| below this: no accel angle update (free fall)
+    max_gap_s: float = 0.5           # IMU silent for longer: re-initialise from the next sample
+
+    def __post_init__(self):
+        for name in _VEC_FIELDS:
+            t = _vec3(name, getattr(self, name))
+            if not all(math.isfinite(e) and e > 0 for e in t):
+                raise ValueError(f"attitude_filter: {name} must be positive finite, got {t}")
+            object.__setattr__(self, name, t)
+        fw = _vec3("mag_field_world_ut", self.mag_field_world_ut)
+        if not all(math.isfinite(e) for e in fw) or math.hypot(fw[0], fw[1]) <= 0:
+            raise ValueError(f"attitude_filter: mag_field_world_ut needs a horizontal component, got {fw}")
+        object.__setattr__(self, "mag_field_world_ut", fw)
+        for name in ("lpf_tau_s", "init_angle_var", "init_rate_var", "max_gap_s"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise ValueError(f"attitude_filter: {name} must be a positive number, got {v!r}")
+            object.__setattr__(self, name, float(v))
+        v = self.min_accel_g
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+            raise ValueError(f"attitude_filter: min_accel_g must be >= 0, got {v!r}")
+        object.__setattr__(self, "min_accel_g", float(v))
+        for name in ("model_filter_lag", "extrapolate"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"attitude_filter: {name} must be true or false, got {getattr(self, name)!r}")
+        m = self.max_delay_steps
+        if isinstance(m, bool) or not isinstance(m, int) or m < 0:
+            if isinstance(m, float) and m.is_integer() and m >= 0:
+                object.__setattr__(self, "max_delay_steps", int(m))
+            else:
+                raise ValueError(f"attitude_filter: max_delay_steps must be an integer >= 0, got {m!r}")
+
+    @classmethod
+    def names(cls) -> tuple[str, ...]:
+        return tuple(f.name for f in dataclasses.fields(cls))
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> "AttitudeFilterParams":
+        """Missing keys take defaults; unknown keys -> ValueError."""
+        if d is None:
+            return cls()
+        if not isinstance(d, dict):
+            raise ValueError(f"attitude_filter: expected a table, got {type(d).__name__}")
+        unknown = set(d) - set(cls.names())
+        if unknown:
+            raise ValueError(f"attitude_filter: unknown parameter(s) {sorted(unknown)}")
+        return cls(**d)
+
+    def to_dict(self) -> dict:
+        out = {}
+        for k in self.names():
+            v = getattr(self, k)
+            out[k] = list(v) if isinstance(v, tuple) else v
+        return out
+
+
+@dataclass
+class AttitudeEstimate:
+    euler_rad: np.ndarray        # (3,) roll, pitch, yaw at t_now (ZYX), wrapped to [-pi, pi)
+    rate_rad_s: np.ndarray       # (3,) body rates (used as Euler rates, as 000 does)
+    quaternion_wxyz: np.ndarray  # (4,) body -> world
+    euler_var: np.ndarray        # (3,) Kalman variances of the angles, rad^2
+    rate_var: np.ndarray         # (3,) Kalman variances of the rates, rad^2/s^2
+    delay_s: float               # t_now - newest IMU sample time (the measured transport delay)
+
+
+# ------------------------------------------------------------------ model
+def continuous_model(lpf_tau_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """(A, Bc) of (13) for one axis, state [w, wf, a, af], input u = torque / I."""
+    k = 1.0 / lpf_tau_s
+    a = np.array([[0.0, 0.0, 0.0, 0.0],
+                  [k, -k, 0.0, 0.0],
+                  [1.0, 0.0, 0.0, 0.0],
+                  [0.0, 0.0, k, -k]])
+    b = np.array([[1.0], [0.0], [0.0], [0.0]])
+    return a, b
+
+
+class _Discretiser:
+    """Exact F, B and unit process-noise matrices for a step h, cached."""
+
+    def __init__(self, lpf_tau_s: float):
+        self.a, self.b = continuous_model(lpf_tau_s)
+        self.cache: dict[int, tuple] = {}
+
+    def __call__(self, h: float):
+        key = int(round(h * 1e7))
+        hit = self.cache.get(key)
+        if hit is not None:
+            return hit
+        if len(self.cache) > 512:
+            self.cache.clear()
+        h = key * 1e-7
+        n = 4
+        m = np.zeros((n + 1, n + 1))
+        m[:n, :n] = self.a
+        m[:n, n:] = self.b
+        e = expm(m * h)
+        f, bd = e[:n, :n], e[:n, n:]
+        qs = []
+        for idx in (W, A):   # unit densities on w' and on a'
+            lc = np.zeros((n, n))
+            lc[idx, idx] = 1.0
+            vl = np.zeros((2 * n, 2 * n))
+            vl[:n, :n] = -self.a
+            vl[:n, n:] = lc
+            vl[n:, n:] = self.a.T
+            ev = expm(vl * h)
+            qd = ev[n:, n:].T @ ev[:n, n:]
+            qs.append(0.5 * (qd + qd.T))
+        hit = (f, bd, qs[0], qs[1])
+        self.cache[key] = hit
+        return hit
+
+
+# ------------------------------------------------------------------ filter
+class AttitudeFilter:
+    """Attitude level of 000: low-pass (12) + per-axis linear KF (13), (16)-(20) + extrapolator (15).
+
+    inertia_kg_m2: diagonal (Ixx, Iyy, Izz) (a 3x3 matrix is accepted, its diagonal used).
+    """
+
+    def __init__(self, inertia_kg_m2, params: AttitudeFilterParams | None = None, dt: float = 1.0 / 200.0):
+        inertia = np.asarray(inertia_kg_m2, dtype=np.float64)
+        if inertia.shape == (3, 3):
+            inertia = np.diag(inertia).copy()
+        if inertia.shape != (3,) or not np.all(np.isfinite(inertia)) or np.any(inertia <= 0):
+            raise ValueError(f"attitude_filter: inertia must be 3 positive values, got {inertia_kg_m2!r}")
+        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
+            raise ValueError(f"attitude_filter: dt must be positive, got {dt!r}")
+        self.inertia = inertia
+        self.params = params if params is not None else AttitudeFilterParams()
+        self.dt = float(dt)
+        self._disc = _Discretiser(self.params.lpf_tau_s)
+        p = self.params
+        if p.model_filter_lag:
+            self._h = np.array([[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+        else:
+            self._h = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
+        self._h_rate_only = self._h.copy()
+        self._h_rate_only[1, :] = 0.0
+        self._angle_meas_idx = AF if p.model_filter_lag else A
+        self._r = [np.diag([p.rate_meas_var[i], p.angle_meas_var[i]]) for i in range(3)]
+        self.reset()
+
+    # -------------------------------------------------------------- state
+    def reset(self) -> None:
+        f, bd, qw, qa = self._disc(self.dt)
+        self.kfs = []
+        for i in range(3):
+            kf = KalmanFilter(dim_x=4, dim_z=2, dim_u=1)
+            kf.F = f.copy()
+            kf.B = bd.copy()
+            kf.Q = self.params.rate_process_var[i] * qw + self.params.angle_process_var[i] * qa
+            kf.H = self._h.copy()
+            kf.R = self._r[i].copy()
+            kf.x = np.zeros((4, 1))
+            kf.P = np.diag([self.params.init_rate_var, self.params.init_rate_var,
+                            self.params.init_angle_var, self.params.init_angle_var])
+            self.kfs.append(kf)
+        self.kfs[2].P[A, A] = self.kfs[2].P[AF, AF] = _BIG_ANGLE_VAR
+        self._t_kf: float | None = None          # time of the KF state (newest processed IMU sample)
+        self._t_prev_call: float | None = None
+        self._segs: list[tuple[float, float, np.ndarray]] = []   # (t0, t1, torque/I) applied
+        self._wf = np.zeros(3)        # low-pass states (12)
+        self._af = np.zeros(3)
+        self._g_prev = np.zeros(3)    # previous raw samples (input averaging over the step)
+        self._a_prev = np.zeros(3)
+        self._yaw_hold: float | None = None   # newest magnetometer yaw, carried by the z gyro
+        self._yaw_hold_t: float = 0.0
+        self._yaw_seen = False        # the KF yaw has been set from the magnetometer
+        self._pending_mag = None      # magnetometer sample seen before the first IMU sample
+
+    @property
+    def initialized(self) -> bool:
+        return self._t_kf is not None
+
+    @property
+    def last_sample_t(self) -> float | None:
+        """Time of the newest IMU sample processed (the time the KF state refers to)."""
+        return self._t_kf
+
+    # -------------------------------------------------------------- torque history
+    def _add_torque(self, torque_nm, t_now: float) -> None:
+        u = np.asarray(torque_nm, dtype=np.float64).reshape(-1)
+        if u.shape != (3,) or not np.all(np.isfinite(u)):
+            u = np.zeros(3)
+        u = u / self.inertia
+        t0 = self._t_prev_call if self._t_prev_call is not None else t_now - self.dt
+        if self._segs:
+            t0 = max(t0, self._segs[-1][1])
+        if t_now > t0:
+            self._segs.append((t0, t_now, u))
+        # prune: the KF only moves forward; keep a margin for late samples
+        if self._t_kf is not None:
+            keep_from = self._t_kf - 1.0
+            while self._segs and self._segs[0][1] < keep_from:
+                self._segs.pop(0)
+        if len(self._segs) > 2000:
+            del self._segs[: len(self._segs) - 2000]
+
+    def _pieces(self, t0: float, t1: float) -> list[tuple[float, np.ndarray]]:
+        """[(duration, u)] covering [t0, t1): stored torques, gaps held at the previous one (0 before any)."""
+        out = []
+        t = t0
+        u_last = np.zeros(3)
+        for s0, s1, u in self._segs:
+            if t >= t1:
+                break
+            if s1 <= t:
+                u_last = u
+                continue
+            if s0 >= t1:
+                break
+            if s0 > t:
+                out.append((s0 - t, u_last))
+                t = s0
+            e = min(s1, t1)
+            out.append((e - t, u))
+            t = e
+            u_last = u
+        if t < t1:
+            out.append((t1 - t, u_last))
+        return [(h, u) for h, u in out if h > 1e-9]
+
+    # -------------------------------------------------------------- helpers
+    @staticmethod
+    def _rewrap(x: np.ndarray) -> None:
+        """Wrap the angle state to [-pi, pi) and move af by the same turn (keeps af - a small)."""
+        a = float(x[A, 0])
+        s = _wrap1(a) - a
+        if s != 0.0:
+            x[A, 0] += s
+            x[AF, 0] += s
+        x[AF, 0] = x[A, 0] + _wrap1(float(x[AF, 0] - x[A, 0]))
+
+    def _predict(self, t0: float, t1: float) -> None:
+        for h, u in self._pieces(t0, t1):
+            f, bd, qw, qa = self._disc(h)
+            for i, kf in enumerate(self.kfs):
+                q = self.params.rate_process_var[i] * qw + self.params.angle_process_var[i] * qa
+                kf.predict(u=np.array([[u[i]]]), B=bd, F=f, Q=q)
+
+    def _compute_mag_yaw(self, field, roll: float, pitch: float) -> float | None:
+        field = np.asarray(field, dtype=np.float64).reshape(-1)
+        if field.shape != (3,) or not np.all(np.isfinite(field)):
+            return None
+        yaw = mag_yaw(field, roll, pitch, self.params.mag_field_world_ut)
+        return yaw if math.isfinite(yaw) else None
+
+    def _set_yaw_from_mag(self, yaw: float) -> None:
+        kf = self.kfs[2]
+        kf.x[A, 0] = kf.x[AF, 0] = yaw
+        kf.P[A, :] = 0.0
+        kf.P[:, A] = 0.0
+        kf.P[AF, :] = 0.0
+        kf.P[:, AF] = 0.0
+        kf.P[A, A] = kf.P[AF, AF] = self.params.init_angle_var
+        self._af[2] = yaw
+        self._a_prev[2] = yaw
+        self._yaw_seen = True
+
+    def _accel_angles(self, accel) -> tuple[float, float] | None:
+        n = float(np.linalg.norm(accel))
+        if not math.isfinite(n) or n < self.params.min_accel_g * G_REF or n == 0.0:
+            return None
+        return accel_roll_pitch(accel)
+
+    def _initialise(self, t: float, gyro: np.ndarray, accel: np.ndarray) -> None:
+        rp = self._accel_angles(accel)
+        roll, pitch = rp if rp is not None else (0.0, 0.0)
+        yaw = 0.0
+        if self._pending_mag is not None:
+            y = self._compute_mag_yaw(self._pending_mag[1], roll, pitch)
+            if y is not None:
+                yaw = y
+                self._yaw_hold = y
+                self._yaw_hold_t = t
+        angles = np.array([roll, pitch, yaw])
+        self._wf = gyro.copy()
+        self._g_prev = gyro.copy()
+        self._af = angles.copy()
+        self._a_prev = angles.copy()
+        p = self.params
+        for i, kf in enumerate(self.kfs):
+            kf.x = np.array([[gyro[i]], [gyro[i]], [angles[i]], [angles[i]]])
+            kf.P = np.diag([p.init_rate_var, p.init_rate_var, p.init_angle_var, p.init_angle_var])
+        self._yaw_seen = self._yaw_hold is not None
+        if not self._yaw_seen:
+            self.kfs[2].P[A, A] = self.kfs[2].P[AF, AF] = _BIG_ANGLE_VAR
+        self._t_kf = t
+
+    def _process_mag(self, t_m: float, field) -> None:
+        if self._t_kf is None:
+            self._pending_mag = (t_m, field)
+            return
+        roll, pitch = float(self.kfs[0].x[A, 0]), float(self.kfs[1].x[A, 0])
+        yaw = self._compute_mag_yaw(field, roll, pitch)
+        if yaw is None:
+            return
+        if not self._yaw_seen:
+            self._set_yaw_from_mag(yaw)
+        self._yaw_hold = yaw
+        self._yaw_hold_t = t_m
+
+    def _process_imu(self, t: float, gyro: np.ndarray, accel: np.ndarray) -> None:
+        if self._t_kf is None:
+            self._initialise(t, gyro, accel)
+            return
+        h = t - self._t_kf
+        if not h > 0:
+            return    # stale or duplicate sample: the KF only moves forward
+        if h > self.params.max_gap_s:
+            yaw_keep = float(self.kfs[2].x[A, 0])
+            seen = self._yaw_seen
+            self._t_kf = None
+            self._initialise(t, gyro, accel)
+            if seen and self._yaw_hold is None:
+                self._set_yaw_from_mag(yaw_keep)
+            return
+        # low-pass (12), exact for an input linear over the step (mean of the two samples)
+        c = 1.0 - math.exp(-h / self.params.lpf_tau_s)
+        self._wf += c * (0.5 * (self._g_prev + gyro) - self._wf)
+        self._g_prev = gyro.copy()
+        rp = self._accel_angles(accel)
+        angle_ok = [rp is not None, rp is not None, False]
+        if rp is not None:
+            for i in range(2):
+                cur = rp[i]
+                mid = self._a_prev[i] + 0.5 * _wrap1(cur - self._a_prev[i])
+                self._af[i] = _wrap1(self._af[i] + c * _wrap1(mid - self._af[i]))
+                self._a_prev[i] = cur
+        if self._yaw_hold is not None:
+            # carry the held magnetometer yaw on with the z gyro up to this sample
+            dt_hold = t - max(self._yaw_hold_t, t - h)
+            if dt_hold > 0:
+                self._yaw_hold = _wrap1(self._yaw_hold + float(gyro[2]) * dt_hold)
+                self._yaw_hold_t = t
+            cur = self._yaw_hold
+            mid = self._a_prev[2] + 0.5 * _wrap1(cur - self._a_prev[2])
+            self._af[2] = _wrap1(self._af[2] + c * _wrap1(mid - self._af[2]))
+            self._a_prev[2] = cur
+            angle_ok[2] = self._yaw_seen
+        # Kalman filter: predict over [t_kf, t) with the applied torques, update with [wf, af]
+        self._predict(self._t_kf, t)
+        for i, kf in enumerate(self.kfs):
+            if angle_ok[i]:
+                pred = float(kf.x[self._angle_meas_idx, 0])
+                z = np.array([[self._wf[i]], [pred + _wrap1(self._af[i] - pred)]])
+                kf.update(z, R=self._r[i], H=self._h)
+            else:
+                z = np.array([[self._wf[i]], [0.0]])
+                kf.update(z, R=self._r[i], H=self._h_rate_only)
+            self._rewrap(kf.x)
+            kf.P = 0.5 * (kf.P + kf.P.T)
+        self._t_kf = t
+
+    def _healthy(self) -> bool:
+        for kf in self.kfs:
+            if not (np.all(np.isfinite(kf.x)) and np.all(np.isfinite(kf.P))):
+                return False
+        return True
+
+    # -------------------------------------------------------------- main entry
+    def update(self, imu_samples, mag, torque_nm, t_now: float) -> AttitudeEstimate:
+        """One attitude-level step.
+
+        imu_samples: list of (t_s, gyro (3,) rad/s, accel (3,) m/s^2) since the last call (any order);
+        mag: (t_s, field_ut (3,)) or None; torque_nm: the torque applied since the last call
+        (the one commanded at the previous call); t_now: the current time, s.
+        Returns the estimate at t_now (extrapolated over the delay when ``extrapolate``).
+        """
+        t_now = float(t_now)
+        self._add_torque(torque_nm, t_now)
+        self._t_prev_call = t_now
+        samples = []
+        for s in imu_samples or ():
+            t, g, a = s
+            g = np.asarray(g, dtype=np.float64).reshape(-1)
+            a = np.asarray(a, dtype=np.float64).reshape(-1)
+            t = float(t)
+            if g.shape == (3,) and a.shape == (3,) and math.isfinite(t) and np.all(np.isfinite(g)) \
+                    and np.all(np.isfinite(a)):
+                samples.append((t, g, a))
+        samples.sort(key=lambda s: s[0])
+        mag_item = None
+        if mag is not None:
+            t_m, field = mag
+            if t_m is not None and math.isfinite(float(t_m)):
+                mag_item = (float(t_m), field)
+        for t, g, a in samples:
+            if mag_item is not None and mag_item[0] <= t:
+                self._process_mag(*mag_item)
+                mag_item = None
+            self._process_imu(t, g, a)
+        if mag_item is not None:
+            self._process_mag(*mag_item)
+        if not self._healthy():
+            # numerical trouble (should not happen): start over rather than return NaN
+            self.reset()
+        return self._estimate(t_now)
+
+    def _estimate(self, t_now: float) -> AttitudeEstimate:
+        p = self.params
+        if self._t_kf is None:
+            var_a = np.array([kf.P[A, A] for kf in self.kfs])
+            var_w = np.array([kf.P[W, W] for kf in self.kfs])
+            return AttitudeEstimate(np.zeros(3), np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]),
+                                    var_a, var_w, 0.0)
+        delay = max(0.0, t_now - self._t_kf)
+        xs = [kf.x.copy() for kf in self.kfs]
+        ps = [kf.P.copy() for kf in self.kfs]
+        if p.extrapolate and delay > 0.0:
+            horizon = min(delay, p.max_delay_steps * self.dt)
+            for h, u in self._pieces(self._t_kf, self._t_kf + horizon):
+                f, bd, qw, qa = self._disc(h)
+                for i in range(3):
+                    xs[i] = f @ xs[i] + bd * u[i]
+                    q = p.rate_process_var[i] * qw + p.angle_process_var[i] * qa
+                    ps[i] = f @ ps[i] @ f.T + q
+        euler = wrap(np.array([x[A, 0] for x in xs]))
+        rate = np.array([x[W, 0] for x in xs])
+        euler_var = np.array([pp[A, A] for pp in ps])
+        rate_var = np.array([pp[W, W] for pp in ps])
+        if not (np.all(np.isfinite(euler)) and np.all(np.isfinite(rate))):
+            euler, rate = np.zeros(3), np.zeros(3)
+        q = quat_from_euler(*euler)
+        return AttitudeEstimate(euler, rate, q, euler_var, rate_var, float(delay))

@@ -1,0 +1,316 @@
+"""Attitude level of document 000 (flight/attitude_filter.py).
+
+A synthetic vehicle: per axis the double integrator I w' = u of 000 (roll,
+pitch, yaw independent, body rate = Euler rate), integrated exactly between
+samples; the torque is piecewise constant over the 200 Hz control period
+(optionally through a first-order actuator lag).  IMU at 400 Hz:
+gyro = w + noise (variance 1e-5 per sample, the simulator's), accel =
+R^T [0, 0, g] + noise (1e-4 m^2/s^4); magnetometer at 50 Hz: R^T (0, 20, -45)
+uT + 0.5 uT noise.  The filter is called at 200 Hz with the samples that are
+`delay_s` old or older, the torque applied since the last call, and t_now.
+"""
+import math
+
+import numpy as np
+import pytest
+
+from flight.attitude_filter import (AttitudeEstimate, AttitudeFilter, AttitudeFilterParams,
+                                    accel_roll_pitch, mag_yaw, wrap)
+from flight.control import attitude_law
+from flight.quat import quat_from_euler, quat_to_rotation
+
+INERTIA = np.array([7.5e-3, 7.5e-3, 14.2e-3])   # the x250 of 000
+G = 9.81
+FIELD = np.array([0.0, 20.0, -45.0])
+DT = 1.0 / 200.0
+IMU_DT = 1.0 / 400.0
+GAIN = 16.0
+
+
+def simulate(filters, *, t_end, angles0=(0.0, 0.0, 0.0), ref=None, step_t=0.2, control="estimate",
+             delay_s=0.0, seed=0, actuator_tau_s=0.0, gyro_var=1e-5, accel_var=1e-4, mag_std=0.5):
+    """Run the synthetic closed loop; law (8) on filters[0]'s estimate (or on the truth).
+
+    ref: (3,) reference applied from step_t on (before it: angles0).
+    Returns dict of arrays: t (control times), truth (n, 3), rates (n, 3), est[j] (n, 3), rate_est[j],
+    and the last AttitudeEstimate of each filter.
+    """
+    rng = np.random.default_rng(seed)
+    angle = np.array(angles0, dtype=float)
+    w = np.zeros(3)
+    torque_cmd = np.zeros(3)
+    torque_act = np.zeros(3)
+    pending = []          # IMU samples not yet given to the filters
+    mag_pending = None
+    n_ctrl = int(round(t_end / DT))
+    out = {"t": [], "truth": [], "rates": [], "est": [[] for _ in filters], "rate_est": [[] for _ in filters],
+           "last": [None] * len(filters)}
+    sub = 5
+    h = IMU_DT / sub
+    k_imu = 0
+
+    def sample(tt):
+        r = quat_to_rotation(quat_from_euler(*angle))
+        gyro = w + rng.normal(0.0, math.sqrt(gyro_var), 3)
+        acc = r.T @ np.array([0.0, 0.0, G]) + rng.normal(0.0, math.sqrt(accel_var), 3)
+        pending.append((tt, gyro, acc))
+        if k_imu % 8 == 0:
+            return (tt, r.T @ FIELD + rng.normal(0.0, mag_std, 3))
+        return None
+
+    mag_pending = sample(0.0)
+    prev_torque = np.zeros(3)
+    for c in range(n_ctrl + 1):
+        t_now = c * DT
+        ready = [s for s in pending if s[0] <= t_now - delay_s + 1e-9]
+        pending[:] = [s for s in pending if s[0] > t_now - delay_s + 1e-9]
+        mag = mag_pending if (mag_pending is not None and mag_pending[0] <= t_now - delay_s + 1e-9) else None
+        if mag is not None:
+            mag_pending = None
+        ests = [f.update(list(ready), mag, prev_torque, t_now) for f in filters]
+        r = np.asarray(ref if (ref is not None and t_now >= step_t) else angles0, dtype=float)
+        if control == "none":
+            torque_cmd = np.zeros(3)
+        elif control == "truth":
+            torque_cmd = attitude_law(INERTIA, angle, w, r, GAIN, GAIN)
+        else:
+            torque_cmd = attitude_law(INERTIA, ests[0].euler_rad, ests[0].rate_rad_s, r, GAIN, GAIN)
+        out["t"].append(t_now)
+        out["truth"].append(angle.copy())
+        out["rates"].append(w.copy())
+        for j, e in enumerate(ests):
+            out["est"][j].append(e.euler_rad.copy())
+            out["rate_est"][j].append(e.rate_rad_s.copy())
+            out["last"][j] = e
+        prev_torque = torque_cmd.copy()
+        # plant over [t_now, t_now + DT): two IMU periods
+        for _ in range(2):
+            for _ in range(sub):
+                if actuator_tau_s > 0:
+                    torque_act = torque_act + (1.0 - math.exp(-h / actuator_tau_s)) * (torque_cmd - torque_act)
+                else:
+                    torque_act = torque_cmd
+                u = torque_act / INERTIA
+                angle = angle + w * h + 0.5 * u * h * h
+                w = w + u * h
+            k_imu += 1
+            m = sample(round(k_imu * IMU_DT, 9))
+            if m is not None:
+                mag_pending = m
+    for key in ("t", "truth", "rates"):
+        out[key] = np.asarray(out[key])
+    out["est"] = [np.asarray(e) for e in out["est"]]
+    out["rate_est"] = [np.asarray(e) for e in out["rate_est"]]
+    return out
+
+
+def step_metrics(t, y, y0, y1, t_step):
+    """Overshoot (fraction), 5 % settling time after t_step, and the largest reversal (fraction)."""
+    sel = t >= t_step
+    tt, yy = t[sel] - t_step, (y[sel] - y0) / (y1 - y0)
+    overshoot = max(0.0, float(yy.max()) - 1.0)
+    outside = np.nonzero(np.abs(yy - 1.0) > 0.05)[0]
+    settle = float(tt[outside[-1] + 1]) if len(outside) else 0.0
+    # monotone-ish: largest drop below the running maximum before reaching the target
+    run_max = np.maximum.accumulate(yy)
+    reversal = float(np.max(run_max - yy))
+    return overshoot, settle, reversal
+
+
+def rms_deg(a, b):
+    return float(np.degrees(np.sqrt(np.mean(wrap(np.asarray(a) - np.asarray(b)) ** 2))))
+
+
+# ------------------------------------------------------------------ helpers and params
+def test_accel_and_mag_helpers_match_the_frame_convention():
+    for roll, pitch, yaw in [(0.1, -0.2, 0.5), (-0.4, 0.3, -2.5), (0.0, 0.0, 3.0), (0.6, 0.5, -3.1)]:
+        r = quat_to_rotation(quat_from_euler(roll, pitch, yaw))
+        rr, pp = accel_roll_pitch(r.T @ np.array([0.0, 0.0, G]))
+        assert rr == pytest.approx(roll, abs=1e-12) and pp == pytest.approx(pitch, abs=1e-12)
+        assert float(wrap(mag_yaw(r.T @ FIELD, roll, pitch) - yaw)) == pytest.approx(0.0, abs=1e-12)
+    # the brief's signs: nose-down pitch about +y reads ax = -g sin(theta); roll reads ay = g sin(phi)
+    assert accel_roll_pitch([-G * math.sin(0.2), 0.0, G * math.cos(0.2)])[1] == pytest.approx(0.2)
+    assert accel_roll_pitch([0.0, G * math.sin(0.3), G * math.cos(0.3)])[0] == pytest.approx(0.3)
+
+
+def test_params_from_dict():
+    p = AttitudeFilterParams.from_dict({"lpf_tau_s": 0.03, "angle_meas_var": [1e-3, 1e-3, 2e-3],
+                                        "extrapolate": False})
+    assert p.lpf_tau_s == 0.03 and p.angle_meas_var == (1e-3, 1e-3, 2e-3) and p.extrapolate is False
+    assert AttitudeFilterParams.from_dict({}) == AttitudeFilterParams()
+    assert AttitudeFilterParams.from_dict(p.to_dict()) == p
+    with pytest.raises(ValueError, match="unknown"):
+        AttitudeFilterParams.from_dict({"lpf_tau": 0.02})
+    with pytest.raises(ValueError):
+        AttitudeFilterParams.from_dict({"lpf_tau_s": -1.0})
+    with pytest.raises(ValueError):
+        AttitudeFilterParams.from_dict({"rate_meas_var": [1e-5, 1e-5]})
+    with pytest.raises(ValueError):
+        AttitudeFilterParams.from_dict({"model_filter_lag": 1})
+
+
+# ------------------------------------------------------------------ (1) at rest, tilted
+def test_converges_at_rest_tilted():
+    angles = np.radians([5.0, -8.0, 30.0])
+    f = AttitudeFilter(INERTIA)
+    out = simulate([f], t_end=2.0, angles0=angles, control="none", seed=1)
+    err = np.degrees(np.abs(wrap(out["est"][0] - out["truth"])))
+    late = out["t"] >= 1.0
+    print("at rest: max |error| over the last second (deg):", err[late].max(axis=0))
+    assert np.all(err[late] < 0.5)
+    last = out["last"][0]
+    assert isinstance(last, AttitudeEstimate)
+    assert np.degrees(np.abs(wrap(last.euler_rad - angles))).max() < 0.5
+    assert np.allclose(last.quaternion_wxyz, quat_from_euler(*last.euler_rad))
+    assert np.all(last.euler_var > 0) and np.all(last.rate_var > 0)
+    assert np.abs(last.rate_rad_s).max() < 0.01
+
+
+# ------------------------------------------------------------------ (2) closed loop on the estimate
+@pytest.mark.parametrize("seed, actuator_tau_s", [(0, 0.0), (1, 0.0), (2, 0.02)])
+def test_closed_loop_roll_step_on_estimate(seed, actuator_tau_s):
+    """Law (8), k = alpha = 16, on the estimate; the last case adds a 20 ms actuator lag
+    (the simulator's motor time constant) that the filter's model does not know."""
+    f = AttitudeFilter(INERTIA)
+    target = math.radians(10.0)
+    out = simulate([f], t_end=1.2, ref=(target, 0.0, 0.0), step_t=0.2, seed=seed, actuator_tau_s=actuator_tau_s)
+    overshoot, settle, reversal = step_metrics(out["t"], out["truth"][:, 0], 0.0, target, 0.2)
+    # the same loop on the truth, for reference
+    ref_out = simulate([AttitudeFilter(INERTIA)], t_end=1.2, ref=(target, 0.0, 0.0), step_t=0.2,
+                       control="truth", seed=seed, actuator_tau_s=actuator_tau_s)
+    o_t, s_t, _ = step_metrics(ref_out["t"], ref_out["truth"][:, 0], 0.0, target, 0.2)
+    print(f"roll step on estimate (actuator lag {actuator_tau_s * 1e3:.0f} ms): overshoot {overshoot:.3%}, settle {settle:.3f} s, reversal {reversal:.3%}"
+          f" (on truth: overshoot {o_t:.3%}, settle {s_t:.3f} s)")
+    assert overshoot <= 0.05
+    assert settle <= 0.35
+    assert reversal <= 0.05
+    # the other axes stay put
+    # the uncommanded axes drift with the gyro bias while the accelerometer pulls slowly (~3.5 s)
+    assert np.degrees(np.abs(out["truth"][:, 1:])).max() < 1.0
+
+
+# ------------------------------------------------------------------ (3) transport delay, extrapolator
+def test_extrapolator_compensates_transport_delay():
+    target = math.radians(10.0)
+    fx = AttitudeFilter(INERTIA, AttitudeFilterParams(extrapolate=True))
+    fn = AttitudeFilter(INERTIA, AttitudeFilterParams(extrapolate=False))
+    out = simulate([fx, fn], t_end=1.0, ref=(target, 0.0, 0.0), step_t=0.2, control="truth",
+                   delay_s=0.010, seed=3)
+    sel = (out["t"] >= 0.2) & (out["t"] <= 0.7)
+    e_x = rms_deg(out["est"][0][sel, 0], out["truth"][sel, 0])
+    e_n = rms_deg(out["est"][1][sel, 0], out["truth"][sel, 0])
+    r_x = float(np.degrees(np.sqrt(np.mean((out["rate_est"][0][sel, 0] - out["rates"][sel, 0]) ** 2))))
+    r_n = float(np.degrees(np.sqrt(np.mean((out["rate_est"][1][sel, 0] - out["rates"][sel, 0]) ** 2))))
+    print(f"10 ms delay: roll RMS error {e_x:.4f} deg with the extrapolator, {e_n:.4f} deg without;"
+          f" rate RMS {r_x:.3f} vs {r_n:.3f} deg/s; delay_s {out['last'][0].delay_s:.4f}")
+    assert out["last"][0].delay_s == pytest.approx(0.010, abs=1e-6)
+    assert e_x < 0.5 * e_n
+    assert r_x < 0.5 * r_n
+
+
+# ------------------------------------------------------------------ (4) filter lag in the model
+def lag_s(t, est, truth, max_lag=0.05, res=1e-4):
+    """Shift (s) of est behind truth that minimises the RMS difference (linear interpolation)."""
+    best = (float("inf"), 0.0)
+    for lag in np.arange(-0.01, max_lag, res):
+        shifted = np.interp(t - lag, t, truth)
+        e = float(np.mean((est - shifted) ** 2))
+        best = min(best, (e, lag))
+    return best[1]
+
+
+def test_filter_lag_in_model_removes_the_lowpass_lag():
+    target = math.radians(10.0)
+    tau = AttitudeFilterParams().lpf_tau_s
+    f_lag = AttitudeFilter(INERTIA, AttitudeFilterParams(model_filter_lag=True))
+    f_cas = AttitudeFilter(INERTIA, AttitudeFilterParams(model_filter_lag=False))
+    out = simulate([f_lag, f_cas], t_end=1.0, ref=(target, 0.0, 0.0), step_t=0.2, control="truth", seed=4)
+    sel = (out["t"] >= 0.2) & (out["t"] <= 0.7)
+    t = out["t"][sel]
+    lag_model = lag_s(t, out["est"][0][sel, 0], out["truth"][sel, 0])
+    lag_casc = lag_s(t, out["est"][1][sel, 0], out["truth"][sel, 0])
+    rlag_model = lag_s(t, out["rate_est"][0][sel, 0], out["rates"][sel, 0])
+    rlag_casc = lag_s(t, out["rate_est"][1][sel, 0], out["rates"][sel, 0])
+    e_model = rms_deg(out["est"][0][sel, 0], out["truth"][sel, 0])
+    e_casc = rms_deg(out["est"][1][sel, 0], out["truth"][sel, 0])
+    print(f"lag of the roll estimate: {lag_model * 1e3:.1f} ms with the filter lag in the model, "
+          f"{lag_casc * 1e3:.1f} ms without (tau {tau * 1e3:.0f} ms); rate lag {rlag_model * 1e3:.1f} vs "
+          f"{rlag_casc * 1e3:.1f} ms; RMS {e_model:.4f} vs {e_casc:.4f} deg")
+    assert abs(lag_model) < 0.25 * tau
+    assert lag_casc > 0.5 * tau
+    assert lag_model < lag_casc
+    assert abs(rlag_model) < rlag_casc
+    assert e_model < e_casc
+
+
+# ------------------------------------------------------------------ (5) yaw from the magnetometer
+@pytest.mark.parametrize("yaw_deg", [-179.0, -120.0, -45.0, 0.0, 60.0, 135.0, 179.5])
+def test_yaw_from_magnetometer(yaw_deg):
+    angles = np.array([math.radians(4.0), math.radians(-6.0), math.radians(yaw_deg)])
+    f = AttitudeFilter(INERTIA)
+    out = simulate([f], t_end=1.5, angles0=angles, control="none", seed=5)
+    err = np.degrees(np.abs(wrap(out["est"][0][:, 2] - out["truth"][:, 2])))
+    late = out["t"] >= 0.5
+    print(f"yaw {yaw_deg}: max |error| after 0.5 s {err[late].max():.3f} deg")
+    assert err[late].max() < 1.0
+    assert -math.pi <= out["est"][0][:, 2].min() and out["est"][0][:, 2].max() < math.pi
+
+
+def test_yaw_tracks_a_turn_through_180():
+    """A yaw step across +-180 deg: the estimate follows the short way and stays wrapped."""
+    f = AttitudeFilter(INERTIA)
+    out = simulate([f], t_end=1.5, angles0=(0.0, 0.0, math.radians(170.0)),
+                   ref=(0.0, 0.0, math.radians(-170.0)), step_t=0.2, seed=6)
+    err = np.degrees(np.abs(wrap(out["est"][0][:, 2] - out["truth"][:, 2])))
+    print(f"yaw turn 170 -> -170 deg: max |error| {err[out['t'] >= 0.2].max():.3f} deg from t = 0.2 s")
+    assert err[out["t"] >= 0.2].max() < 1.0
+    assert abs(float(wrap(out["truth"][-1, 2] - math.radians(-170.0)))) < math.radians(0.5)
+
+
+# ------------------------------------------------------------------ (6) no NaN, predict only
+def test_no_nan_without_imu_samples():
+    f = AttitudeFilter(INERTIA)
+    e = f.update([], None, np.zeros(3), 0.0)
+    assert not f.initialized
+    assert np.all(np.isfinite(e.euler_rad)) and np.all(np.isfinite(e.quaternion_wxyz))
+    assert np.all(np.isfinite(e.euler_var)) and np.all(np.isfinite(e.rate_var))
+    # initialise from accel/mag, then calls with no IMU samples: predict (extrapolate) only
+    r = quat_to_rotation(quat_from_euler(0.1, -0.05, 1.0))
+    f.update([(0.0, np.zeros(3), r.T @ [0, 0, G])], (0.0, r.T @ FIELD), np.zeros(3), 0.005)
+    assert f.initialized and f.last_sample_t == 0.0
+    torque = np.array([1e-3, -1e-3, 0.0])
+    for k in range(2, 200):
+        e = f.update([], None, torque, k * DT)
+        for v in (e.euler_rad, e.rate_rad_s, e.quaternion_wxyz, e.euler_var, e.rate_var):
+            assert np.all(np.isfinite(v))
+        assert np.all(e.euler_rad >= -math.pi) and np.all(e.euler_rad < math.pi)
+    assert e.delay_s == pytest.approx(199 * DT)
+    # extrapolation is capped at max_delay_steps: the variances stay bounded
+    assert np.all(e.euler_var < 1.0)
+    assert np.all(e.euler_var == f.update([], None, torque, 10.0).euler_var)
+    # garbage in: non-finite samples are dropped, never propagated
+    e = f.update([(1.0, np.array([np.nan, 0, 0]), np.array([0, 0, G]))], (1.0, [np.inf, 0, 0]),
+                 np.array([np.nan, 0, 0]), 1.0)
+    assert np.all(np.isfinite(e.euler_rad)) and np.all(np.isfinite(e.rate_rad_s))
+    # after a long IMU gap the filter re-initialises from the next sample
+    e = f.update([(5.0, np.zeros(3), r.T @ [0, 0, G])], None, np.zeros(3), 5.0)
+    assert np.degrees(np.abs(wrap(e.euler_rad[:2] - [0.1, -0.05]))).max() < 0.01
+
+
+def test_reset_and_free_fall():
+    f = AttitudeFilter(INERTIA)
+    f.update([(0.0, np.zeros(3), np.array([0.0, 0.0, G]))], None, np.zeros(3), 0.0)
+    assert f.initialized
+    f.reset()
+    assert not f.initialized and f.last_sample_t is None
+    # free fall (no specific force): rates still estimated, angles carried by the gyro
+    f.update([(0.0, np.zeros(3), np.array([0.0, 0.0, G]))], None, np.zeros(3), 0.0)
+    t = 0.0
+    for k in range(1, 81):
+        samples = [(t + IMU_DT, np.array([0.5, 0.0, 0.0]), np.zeros(3)),
+                   (t + 2 * IMU_DT, np.array([0.5, 0.0, 0.0]), np.zeros(3))]
+        t += DT
+        e = f.update(samples, None, np.zeros(3), t)
+    assert np.all(np.isfinite(e.euler_rad))
+    assert e.rate_rad_s[0] == pytest.approx(0.5, abs=0.02)
+    assert e.euler_rad[0] == pytest.approx(0.5 * t, abs=0.03)
