@@ -160,7 +160,7 @@ class PositionEKFParams:
     """
 
     q_position_m2_s: float = 1e-6
-    q_velocity_m2_s3: float = 0.005
+    q_velocity_m2_s3: float = 0.02
     q_angles_rad2_s: float = 1e-6
     q_rates_rad2_s3: float = 0.5
     gate_probability: float = 0.999
@@ -423,6 +423,20 @@ class PositionEKF:
         self._t = float(t_s)
         self._x, self._P = x, 0.5 * (P + P.T)
         self._hist = [_Node(self._t, None, x.copy(), self._P.copy())]
+
+    def reset_position(self, position, cov, velocity_std_m_s: float = 1.0) -> None:
+        """Restart the translational states at a camera fix, keeping the attitude:
+        the way out when the gate has refused every fix for a while (the filter
+        has lost the vehicle and would otherwise never take a fix again)."""
+        self._need_init()
+        x, P = self._x.copy(), self._P.copy()
+        x[POSITION] = _vec(position, 3, "position")
+        P[:6, :] = 0.0
+        P[:, :6] = 0.0
+        P[:3, :3] = np.array(cov, dtype=np.float64).reshape(3, 3)
+        P[3:6, 3:6] = np.eye(3) * velocity_std_m_s**2
+        self._x, self._P = x, P
+        self._hist = [_Node(self._t, None, x.copy(), P.copy())]
 
     def predict(self, t_s: float, u) -> None:
         """Advance to t_s with u = [u1 (N), u2, u3, u4 (N m)] held; record the step."""

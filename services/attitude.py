@@ -48,6 +48,7 @@ def run(args) -> None:
         filt = AttitudeFilter(np.asarray(vehicle.inertia_kg_m2), params, dt=1.0 / rt.rate_hz)
         imu = rt.inbox(schemas.IMU, "sim", keep=32)
         mag = rt.inbox(schemas.MAG, "sim", keep=8)
+        motors = rt.inbox(schemas.MOTOR_PWM, "motors")
     else:
         truth = rt.inbox(schemas.TRUTH, "sim")
     setpoint = rt.inbox(schemas.POSITION_SETPOINT, "position")
@@ -69,7 +70,9 @@ def run(args) -> None:
         mag_sample = (mags[-1]["header"]["t_s"], np.asarray(mags[-1]["field_ut"])) if mags else None
         if not samples and filt.initialized is False:
             return None
-        est = filt.update(samples, mag_sample, last_torque["u"], t)
+        out = motors.latest()  # the torque the motors were really asked for (after saturation)
+        applied = (vehicle.allocation @ np.asarray(out["thrust_n"]))[1:] if out is not None else last_torque["u"]
+        est = filt.update(samples, mag_sample, applied, t)
         sample_t = samples[-1][0] if samples else filt.last_sample_t
         return est.quaternion_wxyz, est.euler_rad, est.rate_rad_s, est.euler_var, est.rate_var, sample_t
 

@@ -30,6 +30,15 @@ PARAMS = {
     "max_tilt_deg": 35.0,
     "setpoint_timeout_s": 0.5,   # stale planner setpoint -> hold where we are
     "home_position_m": [0.0, 0.0, 0.0],  # where the EKF starts: the take-off point
+    "position_reset_after": 5,
+    # floors on the attitude level's variances as the EKF sees them: its filter
+    # does not model the accelerometer's error in manoeuvres (angles, rad^2) nor
+    # unmodelled torques (rates, rad^2/s^2)
+    "attitude_var_floor": [3e-4, 3e-4, 3e-3],
+    "rate_var_floor": [2.5e-3, 2.5e-3, 2.5e-3],
+    # floor on a camera fix's variance (m^2): the solver's few-mm covariance ignores
+    # time-stamp and model errors of a fast climb
+    "camera_var_floor": 1e-5,   # refused camera fixes in a row before the EKF restarts at one
     "ekf": {},                   # PositionEKFParams overrides (flight/position_ekf.py)
 }
 STATE_SOURCES = ("truth", "estimate")
@@ -50,9 +59,11 @@ def run(args) -> None:
             raise ValueError(f"{where} ekf: {exc}") from None
         ekf = PositionEKF(vehicle, ekf_params, dt=1.0 / rt.rate_hz)
         attitude = rt.inbox(schemas.ATTITUDE_STATE, "attitude")
-        command = rt.inbox(schemas.ATTITUDE_COMMAND, "attitude")
+        motors = rt.inbox(schemas.MOTOR_PWM, "motors")
         poses = rt.inbox(schemas.VISION_POSE, "vision", keep=16)
-        started = {"ekf": False}
+        started = {"ekf": False, "refused": 0}
+        lagged_u = np.zeros(4)  # motor forces after the motors' first-order lag, as the plant has it
+        lag_gain = 1.0 - np.exp(-1.0 / (rt.rate_hz * vehicle.motor_time_constant_s))
     else:
         truth = rt.inbox(schemas.TRUTH, "sim")
     planner = rt.inbox(schemas.PLANNER_SETPOINT, "planner")
@@ -76,20 +87,30 @@ def run(args) -> None:
         if not started["ekf"]:
             ekf.initialize(t, np.asarray(p["home_position_m"], dtype=float))
             started["ekf"] = True
-        cmd = command.latest()
-        u = np.zeros(4) if cmd is None else np.array([cmd["thrust_n"], *cmd["torque_nm"]])
+        out = motors.latest()  # what the mixer really asked of the motors (after saturation)
+        if out is not None:
+            lagged_u[:] += lag_gain * (vehicle.allocation @ np.asarray(out["thrust_n"]) - lagged_u)
+        u = lagged_u
         if t > ekf.t:
             ekf.predict(t, u)
         att = attitude.latest()
         if att is not None and att["state_source"] == "estimate":
             if not ekf.update_attitude(att["header"]["t_s"], np.asarray(att["euler_rad"]), np.asarray(att["rate_rad_s"]),
-                                       np.asarray(att["euler_var_rad2"]), np.asarray(att["rate_var_rad2_s2"])):
+                                       np.maximum(att["euler_var_rad2"], p["attitude_var_floor"]),
+                                       np.maximum(att["rate_var_rad2_s2"], p["rate_var_floor"])):
                 count("fusion_attitude_gate")
         for pose in poses.take():
-            accepted, _nis = ekf.update_position(pose["header"]["t_s"], np.asarray(pose["position_m"]),
-                                                 np.asarray(pose["position_cov_m2"]).reshape(3, 3))
-            if not accepted:
-                count("fusion_position_rejected")
+            cov = np.asarray(pose["position_cov_m2"]).reshape(3, 3) + np.eye(3) * p["camera_var_floor"]
+            accepted, _nis = ekf.update_position(pose["header"]["t_s"], np.asarray(pose["position_m"]), cov)
+            if accepted:
+                started["refused"] = 0
+                continue
+            count("fusion_position_rejected")
+            started["refused"] += 1
+            if started["refused"] >= p["position_reset_after"]:
+                ekf.reset_position(pose["position_m"], cov)
+                count("fusion_position_reset")
+                started["refused"] = 0
         return ekf.position, ekf.velocity, ekf.euler, ekf.position_cov
 
     def step(t: float) -> None:
