@@ -130,14 +130,14 @@ class AttitudeFilterParams:
     rate_meas_var: tuple = (1e-5, 1e-5, 1e-5)
     # R: low-passed accelerometer / magnetometer angle, rad^2.  The sensor noise
     # alone is ~1e-6 (accel) and ~6e-4 (mag, 0.5 uT over a 20 uT horizontal field);
-    # roll/pitch use a far larger value because in flight a multirotor's specific
-    # force is thrust plus drag: the accelerometer reads "level" whenever the
-    # vehicle tilts to accelerate, so the gyro must carry the angle for seconds
-    # (with 0.05 the accelerometer pulls with a ~3.5 s time constant; with 1e-3,
-    # ~0.5 s, the hover estimate erred by 5 deg in closed-loop flight).
+    # roll/pitch use a larger value so the gyro carries the short term (the
+    # accelerometer pulls with a ~0.5 s time constant). In flight a multirotor's
+    # accelerometer reads "level" whenever it tilts to accelerate: the attitude
+    # service subtracts the position level's acceleration estimate first (without
+    # that, 1e-3 left the hover estimate 5 deg off; 5e-2 only slowed the drift).
     # Yaw: the 50 Hz magnetometer is held over 8 IMU samples, so its per-sample
     # variance is ~8x the sensor's 6e-4.
-    angle_meas_var: tuple = (5e-2, 5e-2, 5e-3)
+    angle_meas_var: tuple = (1e-3, 1e-3, 5e-3)
     # Q: density of the unmodelled angular acceleration (torque error, motor lag,
     # disturbances), rad^2/s^3
     rate_process_var: tuple = (50.0, 50.0, 20.0)

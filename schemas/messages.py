@@ -155,6 +155,8 @@ POSITION_STATE = Message(
         _vec("velocity_m_s", "velocity, world ENU", "m/s"),
         _vec("position_ref_m", "position reference", "m", lo=-1e4, hi=1e4),
         _vec("position_cov_m2", "position covariance, row-major 3x3 (zeros for truth)", "m^2", 9, -1e6, 1e6),
+        _vec("acceleration_m_s2", "acceleration, world ENU (slope of the velocity estimate over ~0.1 s)",
+             "m/s^2", lo=-1e4, hi=1e4),
         F("state_source", "str", "where the state came from", choices=("truth", "estimate")),
     ),
 )

@@ -17,7 +17,7 @@ import numpy as np
 import schemas
 from flight.attitude_filter import AttitudeFilter, AttitudeFilterParams
 from flight.control import attitude_law
-from flight.quat import quat_to_euler
+from flight.quat import quat_to_euler, quat_to_rotation
 from flight.vehicle import load_vehicle
 from services.runtime import Runtime, main_guard, service_parser
 
@@ -28,6 +28,12 @@ PARAMS = {
     "alpha": [16.0, 16.0, 16.0],
     "setpoint_timeout_s": 0.1,    # stale position setpoint -> level, zero thrust
     "filter": {},                 # AttitudeFilterParams overrides (flight/attitude_filter.py)
+    # Subtract the position level's acceleration estimate from the accelerometer
+    # (the V' terms of 004's observation (5)) before deriving roll and pitch: a
+    # multirotor's accelerometer reads "level" whenever it tilts to accelerate, so
+    # 000's plain accelerometer angles pull the estimate toward level in every
+    # manoeuvre. False: 000 as printed.
+    "compensate_acceleration": True,
 }
 STATE_SOURCES = ("truth", "estimate")
 
@@ -49,6 +55,7 @@ def run(args) -> None:
         imu = rt.inbox(schemas.IMU, "sim", keep=32)
         mag = rt.inbox(schemas.MAG, "sim", keep=8)
         motors = rt.inbox(schemas.MOTOR_PWM, "motors")
+        motion = rt.inbox(schemas.POSITION_STATE, "position") if p["compensate_acceleration"] else None
     else:
         truth = rt.inbox(schemas.TRUTH, "sim")
     setpoint = rt.inbox(schemas.POSITION_SETPOINT, "position")
@@ -56,6 +63,7 @@ def run(args) -> None:
     state_out = rt.publisher(schemas.ATTITUDE_STATE)
     k, alpha = np.asarray(p["k"]), np.asarray(p["alpha"])
     last_torque = {"u": np.zeros(3)}
+    filt_state = {"q": np.array([1.0, 0.0, 0.0, 0.0])}
 
     def read_state(t: float):
         """(quaternion, euler, rates, euler_var, rate_var, sample time) or None."""
@@ -66,6 +74,12 @@ def run(args) -> None:
             q = s["quaternion_wxyz"]
             return q, np.array(quat_to_euler(q)), np.asarray(s["rate_rad_s"]), np.zeros(3), np.zeros(3), s["header"]["t_s"]
         samples = [(m["header"]["t_s"], np.asarray(m["gyro_rad_s"]), np.asarray(m["accel_m_s2"])) for m in imu.take()]
+        moving = motion.latest() if motion is not None else None
+        if moving is not None and moving["state_source"] == "estimate" and filt.initialized:
+            # specific force f = R^T (a - g): remove R^T a so that what is left is gravity alone
+            r_t = quat_to_rotation(filt_state["q"]).T
+            a_body = r_t @ np.asarray(moving["acceleration_m_s2"])
+            samples = [(ts, gyro, acc - a_body) for ts, gyro, acc in samples]
         mags = mag.take()
         mag_sample = (mags[-1]["header"]["t_s"], np.asarray(mags[-1]["field_ut"])) if mags else None
         if not samples and filt.initialized is False:
@@ -73,6 +87,7 @@ def run(args) -> None:
         out = motors.latest()  # the torque the motors were really asked for (after saturation)
         applied = (vehicle.allocation @ np.asarray(out["thrust_n"]))[1:] if out is not None else last_torque["u"]
         est = filt.update(samples, mag_sample, applied, t)
+        filt_state["q"] = est.quaternion_wxyz
         sample_t = samples[-1][0] if samples else filt.last_sample_t
         return est.quaternion_wxyz, est.euler_rad, est.rate_rad_s, est.euler_var, est.rate_var, sample_t
 

@@ -13,6 +13,8 @@ is held and the planner's attitude reference passed through.
 
 from __future__ import annotations
 
+from collections import deque
+
 import numpy as np
 
 import schemas
@@ -42,6 +44,7 @@ PARAMS = {
     "ekf": {},                   # PositionEKFParams overrides (flight/position_ekf.py)
 }
 STATE_SOURCES = ("truth", "estimate")
+ACCEL_WINDOW_S = 0.1  # acceleration = slope of the velocity over this window
 
 
 def run(args) -> None:
@@ -72,6 +75,7 @@ def run(args) -> None:
     k, alpha = np.asarray(p["k"]), np.asarray(p["alpha"])
     m, g = vehicle.mass_kg, vehicle.gravity_m_s2
     hold = {"position": None}
+    velocities: deque = deque(maxlen=max(2, round(ACCEL_WINDOW_S * rt.rate_hz) + 1))
 
     def count(reason: str) -> None:
         rt.rejected[reason] = rt.rejected.get(reason, 0) + 1
@@ -135,9 +139,13 @@ def run(args) -> None:
                                          max_tilt_rad=np.radians(p["max_tilt_deg"]))
             att_ref = [r, pt, yaw_ref]
         thrust = float(min(thrust, 4 * vehicle.max_thrust_n))
+        velocities.append((t, vel.copy()))
+        (t0, v0), (t1, v1) = velocities[0], velocities[-1]
+        accel = (v1 - v0) / (t1 - t0) if t1 > t0 else np.zeros(3)
         setpoint_out.put({"attitude_ref_rad": att_ref, "thrust_n": thrust}, t_s=t)
         state_out.put({"position_m": pos, "velocity_m_s": vel, "position_ref_m": ref_pos,
-                       "position_cov_m2": np.asarray(cov).reshape(-1), "state_source": p["state_source"]}, t_s=t)
+                       "position_cov_m2": np.asarray(cov).reshape(-1), "acceleration_m_s2": accel,
+                       "state_source": p["state_source"]}, t_s=t)
 
     rt.run(step)
 
