@@ -19,6 +19,8 @@ class SimConfig:
     truth_rate_hz: float = 100.0
     camera_latency_s: float = 0.05      # publication delay after exposure (rounded up to a tick)
     camera_drop_rate: float = 0.0       # probability a frame is lost
+    camera_outage_start_s: float = -1.0  # the camera is silent from here (negative: never) ...
+    camera_outage_s: float = 0.0        # ... for this long (fault injection)
     camera_pixel_noise_px: float = 0.5  # std of the pixel noise per coordinate
     camera_width_px: int = 640
     camera_height_px: int = 480

@@ -103,7 +103,9 @@ class Simulator:
             out.append(("baro", t, self.baro.sample(float(p.position_m[2]))))
         if self._due("mag"):
             out.append(("mag", t, self.mag.sample(rot)))
-        if self._due("camera"):
+        cfg = self.config
+        silent = 0.0 <= cfg.camera_outage_start_s <= t < cfg.camera_outage_start_s + cfg.camera_outage_s
+        if self._due("camera") and not silent:
             frame = self.camera.sample(p.position_m, p.quaternion)
             if frame is not None:
                 self._pending_frames.append((self.tick + self._camera_delay_ticks, t, frame))
