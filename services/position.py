@@ -33,6 +33,7 @@ PARAMS = {
     "setpoint_timeout_s": 0.5,   # stale planner setpoint -> hold where we are
     "home_position_m": [0.0, 0.0, 0.0],  # where the EKF starts: the take-off point
     "position_reset_after": 5,
+    "fuse_camera_at_exposure": True,  # False: ablation, fuse a camera fix as if it were taken now
     # floors on the attitude level's variances as the EKF sees them: its filter
     # does not model the accelerometer's error in manoeuvres (angles, rad^2) nor
     # unmodelled torques (rates, rad^2/s^2)
@@ -105,7 +106,8 @@ def run(args) -> None:
                 count("fusion_attitude_gate")
         for pose in poses.take():
             cov = np.asarray(pose["position_cov_m2"]).reshape(3, 3) + np.eye(3) * p["camera_var_floor"]
-            accepted, _nis = ekf.update_position(pose["header"]["t_s"], np.asarray(pose["position_m"]), cov)
+            t_fix = pose["header"]["t_s"] if p["fuse_camera_at_exposure"] else ekf.t
+            accepted, _nis = ekf.update_position(t_fix, np.asarray(pose["position_m"]), cov)
             if accepted:
                 started["refused"] = 0
                 continue

@@ -18,6 +18,7 @@ class SimConfig:
     camera_rate_hz: float = 20.0
     truth_rate_hz: float = 100.0
     camera_latency_s: float = 0.05      # publication delay after exposure (rounded up to a tick)
+    imu_latency_s: float = 0.0          # transport delay of the IMU samples (the bus, the driver)
     camera_drop_rate: float = 0.0       # probability a frame is lost
     camera_outage_start_s: float = -1.0  # the camera is silent from here (negative: never) ...
     camera_outage_s: float = 0.0        # ... for this long (fault injection)

@@ -31,6 +31,8 @@ class Simulator:
         self._divisor = {topic: cfg.ticks_per_sample(key) for topic, key in _RATE_KEYS.items()}
         # latency rounded up to whole ticks (tolerance: 0.05 s * 400 Hz is 20.000000000000004)
         self._camera_delay_ticks = math.ceil(cfg.camera_latency_s * cfg.tick_rate_hz - 1e-9)
+        self._imu_delay_ticks = math.ceil(cfg.imu_latency_s * cfg.tick_rate_hz - 1e-9)
+        self._pending_imu: deque = deque()  # (publish_tick, sample_t_s, fields)
 
         # one independent stream per sensor (and the wind) so they never perturb each other
         imu_ss, baro_ss, mag_ss, cam_ss, wind_ss = np.random.SeedSequence(seed).spawn(5)
@@ -98,7 +100,11 @@ class Simulator:
         out: list[tuple[str, float, dict]] = []
         if self._due("imu"):
             acc = p.acceleration_m_s2(self._thrust_cmd_n, self.wind_m_s)
-            out.append(("imu", t, self.imu.sample(rot, p.rate_rad_s, acc, self.vehicle.gravity_m_s2)))
+            sample = self.imu.sample(rot, p.rate_rad_s, acc, self.vehicle.gravity_m_s2)
+            self._pending_imu.append((self.tick + self._imu_delay_ticks, t, sample))
+        while self._pending_imu and self._pending_imu[0][0] <= self.tick:
+            _, sample_t, sample = self._pending_imu.popleft()
+            out.append(("imu", sample_t, sample))
         if self._due("baro"):
             out.append(("baro", t, self.baro.sample(float(p.position_m[2]))))
         if self._due("mag"):

@@ -4,6 +4,8 @@ import json
 
 import pytest
 
+from schemas import REASONS
+
 from .conftest import TRUTH_STATE, fly
 
 pytestmark = pytest.mark.integration
@@ -17,7 +19,8 @@ def test_truth_state_hover_lockstep_holds_within_a_centimetre(hover_lockstep):
     assert m["position_rms_m"] < 0.01
     for service, rate in {"sim": 400, "motors": 400, "attitude": 200, "position": 100, "planner": 50}.items():
         assert m["rates_hz"][service] == pytest.approx(rate, rel=0.01), service
-    assert all(not r for r in m["rejected_messages"].values())
+    # no message was rejected (vision's "pose_*" counts are frames it could not solve)
+    assert all(not set(r) & set(REASONS) for r in m["rejected_messages"].values())
     for plot in ("position.png", "attitude.png", "motors.png"):
         assert (out / plot).stat().st_size > 10_000
 
