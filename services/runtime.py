@@ -124,6 +124,7 @@ class Inbox:
         msg["_n"] = self.arrived
         with self._lock:
             self._items.append((tag, msg))
+        self.runtime._arrival.set()  # wakes event-driven services in real time
 
     def latest(self) -> dict | None:
         """The newest visible message, or None."""
@@ -209,6 +210,7 @@ class Runtime:
         self._clock_queue: deque[dict] = deque()
         self._clock_event = threading.Event()
         self._sync_event = threading.Event()
+        self._arrival = threading.Event()
         self.inboxes: list[Inbox] = []
         try:
             self.session = zenoh.open(self.conf)
@@ -331,10 +333,16 @@ class Runtime:
 
     def _run_realtime(self, step: Callable[[float], None], triggers: tuple[str, ...]) -> None:
         self.state = "running"
-        if self.rate_hz <= 0:  # event driven: the step polls its inboxes
-            period = 0.002
-        else:
-            period = 1.0 / self.rate_hz
+        if self.rate_hz <= 0:  # event driven: run when a message arrives, not on a timer
+            while not self.stop_event.is_set():
+                if self._arrival.wait(HEALTH_PERIOD_S / 2):
+                    self._arrival.clear()
+                    self._t = time.time()
+                    self._safe_step(step, self._t)
+                self._t = time.time()
+                self.publish_health()
+            return
+        period = 1.0 / self.rate_hz
         t_next = time.time()
         while not self.stop_event.is_set():
             delay = t_next - time.time()
