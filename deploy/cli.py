@@ -84,7 +84,9 @@ def cmd_fly(args) -> int:
                             "seed": args.seed, "vehicle": mission.vehicle})
     print(f"zenpilot: {metrics['duration_s']:.1f} s flown in {wall:.1f} s of wall time; "
           f"log, plots and metrics.json in {out}")
-    return 0 if metrics.get("completed") else 1
+    if metrics.get("crashed"):
+        print("zenpilot: the vehicle crashed (truth on the ground mid-mission, or tilted past 60 deg)", file=sys.stderr)
+    return 0 if metrics.get("completed") and not metrics.get("crashed") else 1
 
 
 def analyse(out: Path, info: dict) -> dict:

@@ -217,6 +217,16 @@ def compute_metrics(log: dict[str, list[dict]], info: dict, vehicle_id: int = 0)
             dt = np.diff(truth_t, append=truth_t[-1])
             m["measured_s"] = _f(np.sum(dt[sel]))
 
+    # a crash: the truth on the ground while the mission flies (the planner's "completed"
+    # comes from the estimate and cannot see it), or a tilt past 60 degrees
+    m["max_tilt_deg"] = _f(np.degrees(np.max(np.arccos(np.clip(
+        np.cos(euler[:, 0]) * np.cos(euler[:, 1]), -1.0, 1.0))))) if truth else None
+    m["crashed"] = False
+    if truth and sp:
+        idx = np.clip(np.searchsorted(sp_t, truth_t, side="right") - 1, 0, len(sp) - 1)
+        flying = np.array([x["phase"] in FLYING_PHASES for x in sp])[idx]
+        m["crashed"] = bool(np.any(landed & flying) or (m["max_tilt_deg"] or 0.0) > 60.0)
+
     # service health
     rates: dict[str, float | None] = {}
     rejected: dict[str, dict] = {}
@@ -259,6 +269,7 @@ def compute_metrics(log: dict[str, list[dict]], info: dict, vehicle_id: int = 0)
 
 
 NEES_BAND_95_3DOF = (0.2158, 9.3484)  # chi-square 2.5 % and 97.5 % points for 3 dof
+FLYING_PHASES = ("settle", "hold", "goto", "attitude")  # mission phases that must be airborne
 
 
 def _estimation(log, p, truth_t, truth_pos, truth_euler, landed) -> dict | None:

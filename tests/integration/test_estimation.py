@@ -20,7 +20,7 @@ def hover_estimate(tmp_path_factory):
 
 def test_hover_on_estimates_meets_the_paper(hover_estimate):
     out, (proc, m) = hover_estimate
-    assert proc.returncode == 0 and m["completed"], proc.stdout + proc.stderr
+    assert proc.returncode == 0 and m["completed"] and not m["crashed"], proc.stdout + proc.stderr
     assert m["position_rms_m"] <= 0.05  # 000: position-hold RMS 0.05 m
     est = m["estimation"]
     assert est["position_rms_m"] < 0.02 and est["attitude_rms_deg"] < 2.0
@@ -30,7 +30,7 @@ def test_hover_on_estimates_meets_the_paper(hover_estimate):
 
 def test_steps_on_estimates_settle_without_overshoot(tmp_path):
     proc, m = fly(tmp_path, "steps")
-    assert m["completed"], proc.stdout
+    assert m["completed"] and not m["crashed"], proc.stdout
     assert {s["axis"] for s in m["position_steps"]} == {"x", "y", "z"}
     for s in m["position_steps"]:
         assert s["settle_s"] is not None and s["settle_s"] <= 4.0, s

@@ -14,7 +14,7 @@ pytestmark = pytest.mark.integration
 def test_truth_state_hover_lockstep_holds_within_a_centimetre(hover_lockstep):
     out, (proc, m) = hover_lockstep
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert m["completed"] and m["mode"] == "lockstep" and m["vehicle"] == "x250"
+    assert m["completed"] and not m["crashed"] and m["mode"] == "lockstep" and m["vehicle"] == "x250"
     assert m["measured_s"] >= 9.9  # the 10 s hold was measured
     assert m["position_rms_m"] < 0.01
     for service, rate in {"sim": 400, "motors": 400, "attitude": 200, "position": 100, "planner": 50}.items():

@@ -308,3 +308,17 @@ def test_flightlog_round_trip_keeps_metrics(tmp_path):
     back = read_log(path)
     assert back == log
     assert compute_metrics(back, INFO) == compute_metrics(log, INFO)
+
+
+def test_crash_is_seen_from_the_truth_not_the_planner():
+    log = hover_log()
+    m = compute_metrics(log, INFO)
+    assert m["crashed"] is False and m["max_tilt_deg"] < 1e-6
+    # the truth sits on the ground during a hold while the planner (on estimates) says completed
+    log[P + "sim/truth"][150] = truth(1.5, 150, (1.0, 2.0, 0.0), landed=True)
+    m = compute_metrics(log, INFO)
+    assert m["completed"] and m["crashed"]
+    log = hover_log()
+    log[P + "sim/truth"][10] = truth(0.1, 10, (1.0, 2.0, 3.0), roll=math.radians(70))
+    m = compute_metrics(log, INFO)
+    assert m["crashed"] and m["max_tilt_deg"] == pytest.approx(70.0)
