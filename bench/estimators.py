@@ -9,7 +9,6 @@ the gyro-vertical.
 
 from __future__ import annotations
 
-import statistics
 import sys
 import time
 from pathlib import Path

@@ -19,10 +19,12 @@ import threading
 import time
 from pathlib import Path
 
+import zenoh
+
 import schemas
 from deploy.flightlog import LOG_NAME, read_log
 from deploy.launcher import Launcher, alive_services, client_session, free_port
-from deploy.stack import LOCKSTEP_PARTICIPANTS, StackError, load_stack
+from deploy.stack import StackError, load_stack
 from flight.mission import MissionError, available_missions, load_mission
 
 DEFAULT_MISSION = "steps"
@@ -127,8 +129,6 @@ def _machine_services(stack, machine: str | None) -> tuple[str, list[str], bool]
 
 def _status_lines(session, stack) -> list[str]:
     alive = alive_services(session, stack.vehicle_id)
-    health: dict[str, dict] = {}
-
     lines = [f"{'service':<10} {'alive':<6} {'state':<9} {'rate Hz':>8} {'target':>7} {'overruns':>8}  rejected"]
     replies = {}
 
@@ -144,9 +144,8 @@ def _status_lines(session, stack) -> list[str]:
     while time.monotonic() < deadline and not alive <= set(replies):
         time.sleep(0.1)
     sub.undeclare()
-    health.update(replies)
     for name in stack.services:
-        h = health.get(name)
+        h = replies.get(name)
         if h:
             rej = ", ".join(f"{k}={v}" for k, v in h["rejected"].items()) or "-"
             lines.append(f"{name:<10} {'yes' if name in alive else 'NO':<6} {h['state']:<9} "
@@ -302,6 +301,9 @@ def main(argv=None) -> None:
         code = args.func(args)
     except (StackError, MissionError, ValueError) as exc:
         print(f"zenpilot: error: {exc}", file=sys.stderr)
+        code = 2
+    except zenoh.ZError as exc:  # e.g. no router where the stack says
+        print(f"zenpilot: error: Zenoh: {str(exc).split(' at ')[0]}", file=sys.stderr)
         code = 2
     except KeyboardInterrupt:
         code = 130

@@ -41,16 +41,10 @@ STATE_SOURCES = ("truth", "estimate")
 def run(args) -> None:
     rt = Runtime(NAME, args, PARAMS)
     p = rt.params
-    where = f"{rt.stack.path}: [services.attitude.params]"
-    if p["state_source"] not in STATE_SOURCES:
-        raise ValueError(f"{where} state_source: {p['state_source']!r} not one of {STATE_SOURCES}")
     vehicle = load_vehicle(rt.vehicle_name)
-    estimate = p["state_source"] == "estimate"
+    estimate = rt.choice("state_source", STATE_SOURCES) == "estimate"
     if estimate:
-        try:
-            params = AttitudeFilterParams.from_dict(p["filter"])
-        except (ValueError, TypeError) as exc:
-            raise ValueError(f"{where} filter: {exc}") from None
+        params = rt.table("filter", AttitudeFilterParams.from_dict)
         filt = AttitudeFilter(np.asarray(vehicle.inertia_kg_m2), params, dt=1.0 / rt.rate_hz)
         imu = rt.inbox(schemas.IMU, "sim", keep=32)
         mag = rt.inbox(schemas.MAG, "sim", keep=8)

@@ -51,17 +51,10 @@ ACCEL_WINDOW_S = 0.1  # acceleration = slope of the velocity over this window
 def run(args) -> None:
     rt = Runtime(NAME, args, PARAMS)
     p = rt.params
-    where = f"{rt.stack.path}: [services.position.params]"
-    if p["state_source"] not in STATE_SOURCES:
-        raise ValueError(f"{where} state_source: {p['state_source']!r} not one of {STATE_SOURCES}")
     vehicle = load_vehicle(rt.vehicle_name)
-    estimate = p["state_source"] == "estimate"
+    estimate = rt.choice("state_source", STATE_SOURCES) == "estimate"
     if estimate:
-        try:
-            ekf_params = PositionEKFParams.from_dict(p["ekf"])
-        except (ValueError, TypeError) as exc:
-            raise ValueError(f"{where} ekf: {exc}") from None
-        ekf = PositionEKF(vehicle, ekf_params, dt=1.0 / rt.rate_hz)
+        ekf = PositionEKF(vehicle, rt.table("ekf", PositionEKFParams.from_dict), dt=1.0 / rt.rate_hz)
         attitude = rt.inbox(schemas.ATTITUDE_STATE, "attitude")
         motors = rt.inbox(schemas.MOTOR_PWM, "motors")
         poses = rt.inbox(schemas.VISION_POSE, "vision", keep=16)

@@ -223,6 +223,22 @@ class Runtime:
             signal.signal(sig, lambda *_: self.stop_event.set())
 
     # -- helpers ---------------------------------------------------------
+    def where(self) -> str:
+        return f"{self.stack.path}: [services.{self.name}.params]"
+
+    def choice(self, key: str, choices: tuple[str, ...]) -> str:
+        """A string parameter that must be one of `choices`."""
+        if self.params[key] not in choices:
+            raise ValueError(f"{self.where()} {key}: {self.params[key]!r} not one of {choices}")
+        return self.params[key]
+
+    def table(self, key: str, from_dict: Callable[[dict], Any]) -> Any:
+        """A nested parameter table, validated by its owner's from_dict."""
+        try:
+            return from_dict(self.params[key])
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"{self.where()} {key}: {exc}") from None
+
     def key(self, topic: str) -> str:
         return f"zp/{self.vehicle_id}/{topic}"
 
