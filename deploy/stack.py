@@ -40,8 +40,10 @@ SERVICE_MODULES = {
     "planner": "services.planner",
     "vision": "services.vision",
     "recorder": "services.recorder",
+    "mavlink": "services.mavlink",
 }
-# services that take part in lockstep (the recorder only listens)
+# services that take part in lockstep (the recorder only listens; the MAVLink
+# bridge is real time in every mode: a ground station lives on the wall clock)
 LOCKSTEP_PARTICIPANTS = ("motors", "attitude", "position", "planner", "vision")
 
 

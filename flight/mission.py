@@ -224,3 +224,68 @@ class MissionRunner:
             sp.mode, sp.armed, sp.phase = "idle", False, "landed"
             return True
         return False
+
+
+# ---------------------------------------------------------------- commands
+COMMANDS = ("arm", "disarm", "takeoff", "land", "hold", "goto", "flip")
+FOREVER_S = 1e9  # "until the next command"
+
+
+def command_items(command: str, altitude_m: float = 0.0, position_m=(0.0, 0.0, 0.0),
+                  yaw_rad: float = 0.0) -> tuple[dict, ...]:
+    """The mission items a command stands for. Raises MissionError for a command
+    this planner cannot fly (a flip needs a `flip` item type)."""
+    def item(kind, **over):
+        return {"type": kind, **ITEM_KEYS[kind], **over}
+
+    forever = item("hold", settle_s=0.0, duration_s=FOREVER_S)
+    if command == "arm":
+        return (item("arm", wait_s=FOREVER_S),)
+    if command == "takeoff":
+        if not 0.0 < altitude_m <= 100.0:
+            raise MissionError(f"takeoff altitude {altitude_m} m outside (0, 100]")
+        return (item("takeoff", altitude_m=float(altitude_m)), forever)
+    if command == "hold":
+        return (forever,)
+    if command == "goto":
+        return (item("goto", position_m=[float(v) for v in position_m], yaw_deg=math.degrees(yaw_rad),
+                     settle_s=0.0, hold_s=FOREVER_S),)
+    if command == "land":
+        return (item("land"),)
+    if command == "flip" and "flip" in ITEM_KEYS:
+        return (item("flip"), forever)
+    raise MissionError(f"command {command!r} not supported by this planner")
+
+
+class Planner:
+    """A mission file (or none: idle, waiting for commands) plus commands from
+    outside (MAVLink) that replace whatever is being flown."""
+
+    def __init__(self, mission: Mission | None):
+        self.runner = MissionRunner(mission) if mission is not None else None
+        self.sp = self.runner.sp if self.runner else Setpoint()
+        self.last_command = ""
+
+    def command(self, command: str, altitude_m: float = 0.0, position_m=(0.0, 0.0, 0.0),
+                yaw_rad: float = 0.0) -> None:
+        """Start flying `command` from the next update. Raises MissionError if it cannot."""
+        prev = self.runner
+        if command == "disarm":
+            self.runner = None
+            self.sp = Setpoint(phase="disarmed", mission_state="completed")
+        else:
+            items = command_items(command, altitude_m, position_m, yaw_rad)
+            runner = MissionRunner(Mission(f"command-{command}", "", "", math.inf, items))
+            if prev is not None:
+                runner.yaw = prev.yaw
+                runner.sp.mode, runner.sp.armed = prev.sp.mode, prev.sp.armed
+            elif command == "arm" or self.sp.armed:
+                runner.sp.armed = self.sp.armed
+            self.runner, self.sp = runner, runner.sp
+        self.last_command = command
+
+    def update(self, t: float, position, velocity) -> Setpoint:
+        if self.runner is None:
+            return self.sp
+        self.sp = self.runner.update(t, position, velocity)
+        return self.sp

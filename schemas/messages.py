@@ -212,15 +212,58 @@ HEALTH = Message(
     ),
 )
 
+BATTERY = Message(
+    "battery", "sim/battery", 1,
+    "Flight battery (simulated: open-circuit voltage falling with the charge used, "
+    "sagging with the current the motors draw).",
+    (
+        F("voltage_v", "float", "terminal voltage under load", "V", min=0.0, max=100.0),
+        F("current_a", "float", "current drawn", "A", min=0.0, max=1000.0),
+        F("consumed_mah", "float", "charge used since start", "mAh", min=0.0, max=1e6),
+        F("remaining", "float", "state of charge, 1 full .. 0 empty", "", min=0.0, max=1.0),
+        F("cells", "int", "cells in series", min=1, max=14),
+    ),
+)
+
+PLANNER_COMMAND = Message(
+    "planner_command", "planner/command", 1,
+    "A command for the planner from outside the mission (the MAVLink bridge): it "
+    "replaces whatever the planner is flying. `takeoff` climbs to altitude_m above "
+    "the take-off point; `goto` flies to position_m with yaw_rad; `hold` holds where "
+    "the vehicle is; `land` descends and disarms.",
+    (
+        F("command", "str", "what to do",
+          choices=("arm", "disarm", "takeoff", "land", "hold", "goto", "flip")),
+        F("altitude_m", "float", "takeoff: altitude above the ground", "m", min=0.0, max=1e4),
+        _vec("position_m", "goto: target, world ENU", "m", lo=-1e4, hi=1e4),
+        F("yaw_rad", "float", "goto: yaw reference (ENU, 0 = east)", "rad", min=-7.0, max=7.0),
+        F("origin", "str", "who sent it, for logs (e.g. 'mavlink:255/190')"),
+    ),
+)
+
+PARAM_SET = Message(
+    "param_set", "param/set", 1,
+    "Set a running service's parameter (the MAVLink parameter protocol): the "
+    "service named applies it if the key is one of its numeric parameters and the "
+    "length matches; otherwise it counts the message as rejected.",
+    (
+        F("service", "str", "service the parameter belongs to"),
+        F("key", "str", "parameter key in the stack file"),
+        F("value", "float[]", "new value: one number for a scalar, all elements for an array",
+          min=-1e9, max=1e9),
+    ),
+)
+
 ALL = (
     CLOCK, SYNC_DONE, IMU, BARO, MAG, CAMERA, TRUTH, VISION_POSE, PLANNER_SETPOINT,
     POSITION_SETPOINT, POSITION_STATE, ATTITUDE_COMMAND, ATTITUDE_STATE, MOTOR_PWM, HEALTH,
+    BATTERY, PLANNER_COMMAND, PARAM_SET,
 )
 
 BY_NAME = {m.name: m for m in ALL}
 
 # Simulator topics as named in CLOCK.published and SYNC_DONE.triggers.
-SIM_TOPICS = {"imu": IMU, "baro": BARO, "mag": MAG, "camera": CAMERA, "truth": TRUTH}
+SIM_TOPICS = {"imu": IMU, "baro": BARO, "mag": MAG, "camera": CAMERA, "truth": TRUTH, "battery": BATTERY}
 
 
 def _pattern(topic: str) -> re.Pattern:

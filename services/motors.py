@@ -4,6 +4,11 @@ Turns the attitude level's thrust and torques into rotor forces with the
 mixer F = M^-1 u (saturation keeps attitude authority before collective
 thrust), then into PWM through the motor map of 000. Disarmed (or with no
 command yet) it holds every motor at the minimum pulse.
+
+Output `sim` (default): motors/pwm for the simulator (or ESCs). Output
+`mavlink`: the same, and at the motor rate the mixer's result goes to an
+external autopilot as SET_ACTUATOR_CONTROL_TARGET group 0 (normalised FRD
+torques and thrust, flight/mavframes.actuator_controls) on `mavlink_endpoint`.
 """
 
 from __future__ import annotations
@@ -18,12 +23,17 @@ from services.runtime import Runtime, main_guard, service_parser
 NAME = "motors"
 PARAMS = {
     "command_timeout_s": 0.1,  # no fresh attitude command for this long -> motors to minimum
+    "output": "sim",            # "sim" | "mavlink"
+    "mavlink_endpoint": "udpout:127.0.0.1:14560",  # pymavlink connection string (output = "mavlink")
+    "mavlink_target_system": 1,
 }
+OUTPUTS = ("sim", "mavlink")
 
 
 def run(args) -> None:
     rt = Runtime(NAME, args, PARAMS)
     vehicle = load_vehicle(rt.vehicle_name)
+    link = actuator_link(rt, vehicle) if rt.choice("output", OUTPUTS) == "mavlink" else None
     command = rt.inbox(schemas.ATTITUDE_COMMAND, "attitude")
     setpoint = rt.inbox(schemas.PLANNER_SETPOINT, "planner")
     out = rt.publisher(schemas.MOTOR_PWM)
@@ -35,12 +45,38 @@ def run(args) -> None:
         armed = sp is not None and sp["armed"]
         if not armed or cmd is None or t - cmd["header"]["t_s"] > rt.params["command_timeout_s"]:
             out.put({**idle, "armed": bool(armed)}, t_s=t)
+            if link:
+                link(t, idle["thrust_n"])
             return
         forces, saturated = mix(vehicle, cmd["thrust_n"], cmd["torque_nm"])
+        if link:
+            link(t, forces)
         out.put({"pwm_us": thrust_to_pwm(vehicle, forces), "thrust_n": np.asarray(forces),
                  "armed": True, "saturated": bool(saturated), "imu_t_s": cmd["imu_t_s"]}, t_s=t)
 
     rt.run(step)
+
+
+def actuator_link(rt: Runtime, vehicle):
+    """A sender of the mixer's result to an external autopilot: link(t_s, forces_n)."""
+    import os
+    os.environ.setdefault("MAVLINK20", "1")
+    from pymavlink import mavutil
+
+    from flight.mavframes import actuator_controls
+    try:
+        conn = mavutil.mavlink_connection(rt.params["mavlink_endpoint"], source_system=rt.params["mavlink_target_system"],
+                                          source_component=mavutil.mavlink.MAV_COMP_ID_ONBOARD_COMPUTER)
+    except Exception as exc:
+        raise ValueError(f"{rt.where()} mavlink_endpoint: cannot open {rt.params['mavlink_endpoint']!r}: "
+                         f"{exc}") from None
+    target = rt.params["mavlink_target_system"]
+    t0 = rt.now()
+
+    def send(t_s: float, forces_n) -> None:
+        controls = actuator_controls(vehicle.allocation, vehicle.max_thrust_n, forces_n)
+        conn.mav.set_actuator_control_target_send(int(max(0.0, t_s - t0) * 1e6), 0, target, 1, controls)
+    return send
 
 
 def main(argv=None) -> None:

@@ -66,7 +66,7 @@ def run(args) -> None:
     planner = rt.inbox(schemas.PLANNER_SETPOINT, "planner")
     setpoint_out = rt.publisher(schemas.POSITION_SETPOINT)
     state_out = rt.publisher(schemas.POSITION_STATE)
-    k, alpha = np.asarray(p["k"]), np.asarray(p["alpha"])
+    k, alpha = rt.live_array("k"), rt.live_array("alpha")  # param/set applies them live
     m, g = vehicle.mass_kg, vehicle.gravity_m_s2
     hold = {"position": None}
     velocities: deque = deque(maxlen=max(2, round(ACCEL_WINDOW_S * rt.rate_hz) + 1))

@@ -39,7 +39,7 @@ from typing import Any, Callable
 import zenoh
 
 import schemas
-from deploy.stack import Stack, StackError, load_stack, parse_overrides, resolve_params
+from deploy.stack import LOCKSTEP_PARTICIPANTS, Stack, StackError, load_stack, parse_overrides, resolve_params
 
 HEALTH_PERIOD_S = 1.0
 READY_RESEND_S = 0.2
@@ -105,6 +105,9 @@ class Inbox:
         self.message = message
         self.key = key
         self.upstream = upstream  # "sim" or the producing service
+        # not on the lockstep clock (e.g. the MAVLink bridge): visible from the
+        # next tick after arrival, like a simulator message
+        self.clocked = upstream == "sim" or upstream not in LOCKSTEP_PARTICIPANTS
         self.keep = keep
         self._items: deque[tuple[int, dict]] = deque(maxlen=keep)
         self._taken_seq = -1
@@ -212,6 +215,7 @@ class Runtime:
         self._sync_event = threading.Event()
         self._arrival = threading.Event()
         self.inboxes: list[Inbox] = []
+        self._param_callbacks: dict[str, list[Callable[[Any], None]]] = {}
         try:
             self.session = zenoh.open(self.conf)
         except zenoh.ZError as exc:
@@ -219,6 +223,7 @@ class Runtime:
         self._token = self.session.liveliness().declare_token(self.key(f"alive/{name}"))
         self._health = Publisher(self, schemas.HEALTH, schemas.HEALTH.key(self.vehicle_id, name))
         self._next_health = 0.0
+        self.subscribe(schemas.PARAM_SET.key(self.vehicle_id), self._on_param_set)
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: self.stop_event.set())
 
@@ -260,7 +265,7 @@ class Runtime:
         """Subscribe to `message` from `upstream` ("sim" or a service name)."""
         key = key or message.key(self.vehicle_id)
         box = Inbox(self, message, key, upstream, keep)
-        if self.lockstep and upstream != "sim":
+        if self.lockstep and not box.clocked:
             self.follow(upstream)
         self.subscribe(key, box._on_sample)
         self.inboxes.append(box)
@@ -281,9 +286,45 @@ class Runtime:
     def publisher(self, message: schemas.Message, key: str | None = None) -> Publisher:
         return Publisher(self, message, key or message.key(self.vehicle_id))
 
+    # -- live parameters (param/set, e.g. from the MAVLink parameter protocol) --------
+    def on_param(self, key: str, callback: Callable[[Any], None]) -> None:
+        """Call `callback(new_value)` (on a Zenoh thread) when param/set changes `key`."""
+        self._param_callbacks.setdefault(key, []).append(callback)
+
+    def live_array(self, key: str):
+        """A numpy copy of a numeric parameter that param/set updates in place: pass it
+        to the law each step and a new gain applies from the next step."""
+        import numpy as np
+        arr = np.array(self.params[key], dtype=float)
+        self.on_param(key, lambda v: arr.__setitem__(slice(None), v))
+        return arr
+
+    def _on_param_set(self, sample: zenoh.Sample) -> None:
+        try:
+            msg = schemas.PARAM_SET.decode(sample.payload.to_bytes())
+        except schemas.SchemaError as exc:
+            self.reject("param/set", exc)
+            return
+        if msg["service"] != self.name:
+            return
+        key, value, current = msg["key"], msg["value"], self.params.get(msg["key"])
+        if isinstance(current, bool) or not (
+                (isinstance(current, (int, float)) and len(value) == 1)
+                or (isinstance(current, list) and len(current) == len(value)
+                    and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in current))):
+            self.rejected["param_rejected"] = self.rejected.get("param_rejected", 0) + 1
+            self.problem(f"param/set {key}={value}: not a numeric parameter of this length")
+            return
+        new = [float(v) for v in value] if isinstance(current, list) else (
+            int(value[0]) if isinstance(current, int) else float(value[0]))
+        self.params[key] = new
+        for cb in self._param_callbacks.get(key, []):
+            cb(new)
+        print(f"zenpilot-{self.name}: param {key} = {new} (from {msg['header']['source']})", flush=True)
+
     # -- lockstep bookkeeping (called from Zenoh threads) ---------------------
     def _sync_tick(self, upstream: str) -> int:
-        if upstream == "sim":
+        if upstream == "sim" or upstream not in LOCKSTEP_PARTICIPANTS:
             return self._sim_tick
         u = self._upstreams.get(upstream)
         return u.last_done if u else -2
@@ -406,7 +447,7 @@ class Runtime:
             if not self._wait_upstreams(k, done_before):
                 break
             for box in self.inboxes:
-                box.limit = k if box.upstream == "sim" else done_before.get(box.upstream, -2)
+                box.limit = k if box.clocked else done_before.get(box.upstream, -2)
             self.count_run(self._t)
             self._safe_step(step, self._t)
             self.publish_health()

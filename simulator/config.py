@@ -43,6 +43,12 @@ class SimConfig:
     gust_tau_s: float = 2.0             # gust correlation time
     initial_position_m: Vec3 = (0.0, 0.0, 0.0)
     initial_yaw_rad: float = 0.0
+    battery_rate_hz: float = 10.0
+    battery_capacity_mah: float = 1300.0   # 3S 1300 mAh: the usual pack of a 250 frame
+    battery_cells: int = 3
+    battery_internal_resistance_ohm: float = 0.05  # whole pack: the voltage sags 0.4 V in hover
+    battery_current_a_per_n: float = 2.0   # current per newton of total thrust (~8 A hovering 0.4 kg)
+    battery_idle_current_a: float = 0.3    # electronics
 
     @classmethod
     def from_dict(cls, d: dict) -> "SimConfig":
@@ -68,7 +74,13 @@ class SimConfig:
         for key in ("tick_rate_hz", "camera_focal_px", "marker_size_m", "marker_spacing_m", "gust_tau_s"):
             if getattr(self, key) <= 0:
                 raise ValueError(f"simulator.{key}: must be > 0")
-        for key in ("physics_substeps", "camera_width_px", "camera_height_px"):
+        for key in ("battery_capacity_mah",):
+            if getattr(self, key) <= 0:
+                raise ValueError(f"simulator.{key}: must be > 0")
+        for key in ("battery_internal_resistance_ohm", "battery_current_a_per_n", "battery_idle_current_a"):
+            if getattr(self, key) < 0:
+                raise ValueError(f"simulator.{key}: must be >= 0")
+        for key in ("physics_substeps", "camera_width_px", "camera_height_px", "battery_cells"):
             if getattr(self, key) < 1:
                 raise ValueError(f"simulator.{key}: must be >= 1")
         for key in ("camera_latency_s", "camera_pixel_noise_px", "marker_grid_half_extent_m",
@@ -83,7 +95,8 @@ class SimConfig:
             raise ValueError("simulator.marker_size_m: markers would overlap (must be < marker_spacing_m)")
         if self.initial_position_m[2] < 0:
             raise ValueError("simulator.initial_position_m: z must be >= 0 (ground is z = 0)")
-        for key in ("imu_rate_hz", "baro_rate_hz", "mag_rate_hz", "camera_rate_hz", "truth_rate_hz"):
+        for key in ("imu_rate_hz", "baro_rate_hz", "mag_rate_hz", "camera_rate_hz", "truth_rate_hz",
+                    "battery_rate_hz"):
             self.ticks_per_sample(key)  # raises if not an integer ratio
 
     def ticks_per_sample(self, rate_key: str) -> int:

@@ -11,16 +11,17 @@ import numpy as np
 
 from flight.mixer import pwm_to_thrust
 from flight.vehicle import Vehicle
+from simulator.battery import Battery
 from simulator.config import SimConfig
 from simulator.plant import Plant
 from simulator.sensors import Barometer, Imu, Magnetometer, MarkerCamera
 
 _RATE_KEYS = {"imu": "imu_rate_hz", "baro": "baro_rate_hz", "mag": "mag_rate_hz",
-              "camera": "camera_rate_hz", "truth": "truth_rate_hz"}
+              "camera": "camera_rate_hz", "truth": "truth_rate_hz", "battery": "battery_rate_hz"}
 
 
 class Simulator:
-    TOPICS = ("imu", "baro", "mag", "camera", "truth")
+    TOPICS = ("imu", "baro", "mag", "camera", "truth", "battery")
 
     def __init__(self, vehicle: Vehicle, config: SimConfig | None = None, seed: int = 0):
         self.vehicle = vehicle
@@ -54,6 +55,8 @@ class Simulator:
         self._pending_frames: deque = deque()   # (publish_tick, exposure_t_s, fields)
         self._outputs_tick = -1
         self._outputs: list = []
+        self.battery = Battery(cfg.battery_capacity_mah, cfg.battery_cells, cfg.battery_internal_resistance_ohm,
+                               cfg.battery_current_a_per_n, cfg.battery_idle_current_a)
 
     @property
     def t(self) -> float:
@@ -120,6 +123,8 @@ class Simulator:
             out.append(("camera", exposure_t, frame))
         if self._due("truth"):
             out.append(("truth", t, self.state))
+        if self._due("battery"):
+            out.append(("battery", t, self.battery.fields()))
         self._outputs_tick = self.tick
         self._outputs = out
         return list(out)
@@ -136,6 +141,7 @@ class Simulator:
         dt = self._dt_tick_s / n
         for _ in range(n):
             self.plant.step(dt, self._thrust_cmd_n, wind)
+        self.battery.step(self._dt_tick_s, self.plant.motor_thrust_n)
         self.tick += 1
         # Gauss-Markov gust, exact discretisation over one tick
         cfg = self.config

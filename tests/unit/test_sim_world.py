@@ -109,6 +109,7 @@ def test_outputs_plain_python_and_exact_fields():
         "camera": {"marker_ids", "corners_px"},
         "truth": {"position_m", "velocity_m_s", "quaternion_wxyz", "rate_rad_s",
                   "acceleration_m_s2", "motor_thrust_n", "wind_m_s", "landed"},
+        "battery": {"voltage_v", "current_a", "consumed_mah", "remaining", "cells"},
     }
 
     def plain(x):
@@ -157,3 +158,13 @@ def test_closed_loop_laws_on_truth_reach_target():
         forces, _ = mix(v, thrust, tau)
         sim.step(thrust_to_pwm(v, forces), True)
     np.testing.assert_allclose(sim.state["position_m"], ref, atol=0.03)
+
+
+def test_battery_drains_and_sags_under_thrust():
+    """Hovering draws current: the charge falls and the voltage sags below the resting one."""
+    sim = Simulator(X250, SimConfig(initial_position_m=(0, 0, 1.0)), seed=0)
+    rest = sim.battery.voltage_v
+    run(sim, 400, hover_pwm(X250))  # 1 s hovering
+    b = sim.battery.fields()
+    assert 5.0 < b["current_a"] < 15.0 and b["voltage_v"] < rest - 0.2
+    assert 1.0 < b["consumed_mah"] < 5.0 and b["remaining"] < 1.0

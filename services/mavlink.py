@@ -1,0 +1,210 @@
+"""zenpilot-mavlink: the MAVLink 2 bridge to a ground station (QGroundControl, MAVSDK).
+
+Like an autopilot it sends to the GCS port (`udpout:127.0.0.1:14550` by
+default) and answers whoever talks to it on that socket. Telemetry comes from
+the stack's messages (attitude and position state, IMU/baro/mag, battery,
+health of every service, planner setpoint); commands go to the planner as
+planner/command and parameter changes to the services as param/set. The
+logic lives in services/mavlink_logic.py; this shell owns the socket.
+
+It is a real-time service: it never takes part in lockstep (a GCS lives on
+the wall clock), so in `fly --lockstep` it only watches. Signing is on when
+`signing_key_file` names a key (32 raw bytes, 64 hex digits, or a passphrase
+hashed with SHA-256 as MAVProxy does): unsigned and replayed messages are
+rejected and counted.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib
+import time
+from pathlib import Path
+
+import zenoh
+
+import schemas
+from deploy.stack import SERVICE_MODULES
+from services.mavlink_logic import (
+    STREAMS,
+    TUNABLE,
+    Bridge,
+    BridgeConfig,
+    ParamTable,
+    latency_summary,
+    mavutil,
+)
+from services.runtime import Inbox, Runtime, main_guard, service_parser
+
+NAME = "mavlink"
+PARAMS = {
+    "endpoint": "udpout:127.0.0.1:14550",  # pymavlink connection string
+    "system_id": 1,
+    "component_id": 1,
+    "home_lat_deg": 47.397742,
+    "home_lon_deg": 8.545594,
+    "home_alt_m": 488.0,
+    "gcs_timeout_s": 5.0,
+    "failsafe_hold_s": 3.0,
+    "health_timeout_s": 3.0,
+    "signing_key_file": "",
+    "rates_hz": {},  # per stream overrides, e.g. {ATTITUDE = 50.0}
+    "max_messages_per_step": 200,  # bounded work per loop under a flood
+}
+INPUTS = {  # bridge input name -> (message, upstream)
+    "att": (schemas.ATTITUDE_STATE, "attitude"), "pos": (schemas.POSITION_STATE, "position"),
+    "battery": (schemas.BATTERY, "sim"), "setpoint": (schemas.PLANNER_SETPOINT, "planner"),
+}
+
+
+def read_key(path: str) -> bytes:
+    """A signing key: 32 raw bytes, 64 hex digits, or a passphrase (SHA-256 of it)."""
+    raw = Path(path).read_bytes()
+    if len(raw) == 32:
+        return raw
+    text = raw.decode(errors="replace").strip()
+    try:
+        if len(text) == 64:
+            return bytes.fromhex(text)
+    except ValueError:
+        pass
+    if not text:
+        raise ValueError(f"signing key file {path} is empty")
+    return hashlib.sha256(text.encode()).digest()
+
+
+def rates(value: dict, where: str) -> dict:
+    for name, hz in value.items():
+        if name not in STREAMS:
+            raise ValueError(f"{where} rates_hz: unknown stream {name!r} (known: {', '.join(STREAMS)})")
+        if isinstance(hz, bool) or not isinstance(hz, (int, float)) or not 0 <= hz <= 400:
+            raise ValueError(f"{where} rates_hz.{name}: expected a rate in [0, 400] Hz, got {hz!r}")
+    return dict(value)
+
+
+def current_params(rt: Runtime) -> dict:
+    """The stack's values of the tunable parameters (the stack file over each service's defaults)."""
+    out = {}
+    for service, key, *_ in TUNABLE:
+        if service not in rt.stack.services:
+            continue
+        spec = rt.stack.services[service].params
+        if key in spec:
+            out[(service, key)] = spec[key]
+        else:
+            defaults = getattr(importlib.import_module(SERVICE_MODULES[service]), "PARAMS", {})
+            if key in defaults:
+                out[(service, key)] = defaults[key]
+    return out
+
+
+def run(args) -> None:
+    rt = Runtime(NAME, args, PARAMS)
+    if args.endpoint:
+        rt.params["endpoint"] = args.endpoint
+    lockstep = rt.lockstep
+    rt.lockstep = False  # a real-time service in every mode: it watches, the clock is not its business
+    rt.rate_hz = rt.rate_hz or 50.0
+    p = rt.params
+    config = BridgeConfig(p["system_id"], p["component_id"], p["home_lat_deg"], p["home_lon_deg"], p["home_alt_m"],
+                          p["gcs_timeout_s"], p["failsafe_hold_s"], p["health_timeout_s"],
+                          rates_hz=rates(p["rates_hz"], rt.where()))
+    try:
+        conn = mavutil.mavlink_connection(p["endpoint"], source_system=p["system_id"],
+                                          source_component=p["component_id"], autoreconnect=True)
+    except Exception as exc:
+        raise ValueError(f"{rt.where()} endpoint: cannot open {p['endpoint']!r}: {exc}") from None
+    signing = bool(p["signing_key_file"])
+    if signing:
+        try:
+            key = read_key(p["signing_key_file"])
+        except OSError as exc:
+            raise ValueError(f"{rt.where()} signing_key_file: {exc}") from None
+        conn.setup_signing(key, sign_outgoing=True, allow_unsigned_callback=lambda mav, msg_id: False)
+    boxes = {name: rt.inbox(msg, upstream) for name, (msg, upstream) in INPUTS.items()}
+    # sensor inputs (the IMU at 400 Hz) cost CPU on a small computer: subscribed only while
+    # HIGHRES_IMU is streamed or was requested
+    sensors = {name: Inbox(rt, msg, msg.key(rt.vehicle_id), "sim", keep=1)
+               for name, msg in (("imu", schemas.IMU), ("baro", schemas.BARO), ("mag", schemas.MAG))}
+    subs: dict = {}
+    command_out = rt.publisher(schemas.PLANNER_COMMAND)
+    param_out = rt.publisher(schemas.PARAM_SET)
+    bridge = Bridge(conn.mav, config, ParamTable(current_params(rt)), tuple(rt.stack.services), rt.rejected,
+                    t_origin_s=0.0 if lockstep else time.time(), problem=rt.problem)
+
+    def on_health(sample: zenoh.Sample) -> None:
+        try:
+            msg = schemas.HEALTH.decode(sample.payload.to_bytes())
+        except schemas.SchemaError as exc:
+            rt.reject(str(sample.key_expr), exc)
+            return
+        bridge.health[msg["header"]["source"]] = (time.time(), msg)
+
+    rt.subscribe(rt.key("*/health"), on_health)
+
+    def act(actions) -> None:
+        for kind, fields in actions:
+            if kind == "command":
+                command_out.put(fields)
+            else:
+                param_out.put(fields)
+
+    def follow_sensors() -> None:
+        wanted = bridge.intervals_s["HIGHRES_IMU"] > 0 or bridge.imu_requested
+        if wanted and not subs:
+            subs.update({name: rt.subscribe(box.key, box._on_sample) for name, box in sensors.items()})
+        elif not wanted and subs:
+            for name, sub in subs.items():
+                sub.undeclare()
+                bridge.inputs.pop(name, None)
+            subs.clear()
+        for name in subs:
+            if (msg := sensors[name].latest()) is not None:
+                bridge.inputs[name] = msg
+
+    def step(now_wall: float) -> None:
+        follow_sensors()
+        for name, box in boxes.items():
+            msg = box.latest()
+            if msg is not None:
+                bridge.inputs[name] = msg
+        # the stack's clock: wall time, or in lockstep the newest simulated sample time
+        now = max((m["header"]["t_s"] for m in bridge.inputs.values()), default=0.0) if lockstep else now_wall
+        act(bridge.tick(now, now_wall))
+        for _ in range(p["max_messages_per_step"]):
+            try:
+                msg = conn.recv_msg()
+            except Exception as exc:  # a socket error must not end the bridge
+                rt.rejected["mavlink_recv_error"] = rt.rejected.get("mavlink_recv_error", 0) + 1
+                rt.problem(f"receive failed: {type(exc).__name__}: {exc}")
+                break
+            if msg is None:
+                break
+            act(bridge.handle(msg, now, now_wall))
+        if signing:  # pymavlink counts signature failures itself (bad or replayed: badsig)
+            s = conn.mav.signing
+            for reason, value in (("mavlink_unsigned", s.reject_count - s.badsig_count),
+                                  ("mavlink_bad_signature", s.badsig_count)):
+                if value:
+                    rt.rejected[reason] = value
+
+    print(f"zenpilot-mavlink: {p['endpoint']} as system {p['system_id']}"
+          f"{', signed' if signing else ''}; {len(bridge.params.rows)} parameters", flush=True)
+    try:
+        rt.run(step)
+    finally:
+        for name, (p50, p99, n) in latency_summary(bridge).items():
+            print(f"zenpilot-mavlink: {name} sample->send p50 {p50:.2f} ms p99 {p99:.2f} ms (n={n})", flush=True)
+        conn.close()
+
+
+def main(argv=None) -> None:
+    parser = service_parser(NAME, __doc__.splitlines()[0])
+    parser.add_argument("--endpoint", help="MAVLink connection, e.g. udpout:127.0.0.1:14550 or udpin:0.0.0.0:14540 "
+                        "(default: the stack's mavlink.endpoint)")
+    args = parser.parse_args(argv)
+    main_guard(NAME, lambda: run(args))
+
+
+if __name__ == "__main__":
+    main()

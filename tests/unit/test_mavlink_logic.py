@@ -1,0 +1,303 @@
+"""The MAVLink bridge's logic against a pymavlink "ground station", over a byte buffer."""
+
+import math
+import random
+
+import pytest
+
+from flight.quat import quat_from_euler
+from services.mavlink_logic import (
+    MODE_NUMBERS,
+    STREAMS,
+    Bridge,
+    BridgeConfig,
+    LinkFailsafe,
+    ParamTable,
+    mavlink,
+)
+
+NOW = 1000.0
+
+
+class Wire:
+    def __init__(self):
+        self.buf = bytearray()
+
+    def write(self, b):
+        self.buf += b
+
+
+def header(t=NOW):
+    return {"t_s": t, "seq": 0, "source": "test"}
+
+
+def setpoint(armed=False, phase="waiting", z=0.0):
+    return {"header": header(), "mode": "position" if armed else "idle", "armed": armed,
+            "position_m": [0.0, 0.0, z], "attitude_rad": [0.0, 0.0, 0.3], "item": 0, "phase": phase,
+            "measure": False, "mission_state": "running"}
+
+
+def healthy(bridge, services=("sim", "attitude", "position", "motors", "planner", "vision")):
+    for s in services:
+        bridge.health[s] = (NOW, {"state": "running"})
+
+
+@pytest.fixture
+def link():
+    wire = Wire()
+    mav = mavlink.MAVLink(wire, srcSystem=1, srcComponent=1)
+    counts = {}
+    params = ParamTable({("attitude", "k"): [16.0, 16.0, 16.0], ("attitude", "alpha"): [16.0] * 3,
+                         ("position", "k"): [4.0] * 3, ("position", "alpha"): [4.0] * 3,
+                         ("position", "max_tilt_deg"): 35.0})
+    bridge = Bridge(mav, BridgeConfig(gcs_timeout_s=2.0, failsafe_hold_s=1.0), params,
+                    ("sim", "attitude", "position", "motors", "planner", "vision"), counts, t_origin_s=900.0)
+    gcs = mavlink.MAVLink(None, srcSystem=255, srcComponent=190)
+    vehicle_parser = mavlink.MAVLink(None)
+
+    def send(msg):
+        """GCS -> bridge: pack with the GCS, parse as the vehicle would, handle."""
+        parsed = vehicle_parser.parse_buffer(msg.pack(gcs))
+        actions = []
+        for m in parsed or []:
+            actions += bridge.handle(m, NOW, NOW)
+        return actions
+
+    def received():
+        msgs = gcs.parse_buffer(bytes(wire.buf)) or []
+        wire.buf.clear()
+        return msgs
+
+    bridge.inputs["att"] = {"header": header(NOW - 0.005), "quaternion_wxyz": list(quat_from_euler(0.1, -0.2, 0.0)),
+                            "rate_rad_s": [0.01, 0.02, 0.03]}
+    bridge.inputs["pos"] = {"header": header(NOW - 0.01), "position_m": [1.0, 2.0, 0.0],
+                            "velocity_m_s": [0.1, 0.2, 0.3]}
+    bridge.inputs["setpoint"] = setpoint()
+    return bridge, gcs, send, received, counts
+
+
+def long(gcs, command, *params):
+    p = list(params) + [0.0] * (7 - len(params))
+    return gcs.command_long_encode(1, 1, command, 0, *p)
+
+
+def acks(msgs):
+    return [m for m in msgs if m.get_type() == "COMMAND_ACK"]
+
+
+def test_streams_carry_ned_frd_telemetry(link):
+    bridge, gcs, send, received, _ = link
+    bridge.tick(NOW, NOW)
+    got = {m.get_type(): m for m in received()}
+    hb = got["HEARTBEAT"]
+    assert hb.type == mavlink.MAV_TYPE_QUADROTOR and hb.autopilot == mavlink.MAV_AUTOPILOT_GENERIC
+    assert not hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED and hb.custom_mode == MODE_NUMBERS["IDLE"]
+    att = got["ATTITUDE"]
+    assert att.roll == pytest.approx(0.1) and att.pitch == pytest.approx(0.2)  # nose-up: + in FRD
+    assert att.yaw == pytest.approx(math.pi / 2)  # ENU yaw 0 = east = 90 deg in NED
+    assert att.pitchspeed == pytest.approx(-0.02) and att.yawspeed == pytest.approx(-0.03)
+    assert att.time_boot_ms == 99995
+    lp = got["LOCAL_POSITION_NED"]
+    assert (lp.x, lp.y, lp.z) == pytest.approx((2.0, 1.0, -0.0)) and lp.vz == pytest.approx(-0.3)
+    assert got["GLOBAL_POSITION_INT"].lat > 473977420 and got["GLOBAL_POSITION_INT"].hdg == 9000
+    assert got["EXTENDED_SYS_STATE"].landed_state == mavlink.MAV_LANDED_STATE_ON_GROUND
+    assert "HOME_POSITION" in got and "SYS_STATUS" in got
+
+
+def test_sys_status_health_bits_follow_service_health(link):
+    bridge, gcs, send, received, _ = link
+    healthy(bridge)
+    bridge.health["attitude"] = (NOW - 10.0, {"state": "running"})  # stale estimator
+    bridge.send_stream("SYS_STATUS", NOW, NOW)
+    st = [m for m in received() if m.get_type() == "SYS_STATUS"][0]
+    ahrs = mavlink.MAV_SYS_STATUS_AHRS
+    assert st.onboard_control_sensors_present & ahrs and not st.onboard_control_sensors_health & ahrs
+    gyro = mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO
+    assert st.onboard_control_sensors_health & gyro
+
+
+def test_arm_takeoff_land_disarm_commands(link):
+    bridge, gcs, send, received, _ = link
+    # estimator unhealthy: arming refused with the reason
+    assert send(long(gcs, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)) == []
+    msgs = received()
+    assert acks(msgs)[0].result == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    assert any(m.get_type() == "STATUSTEXT" and b"not healthy" in m.text.encode() for m in msgs)
+    healthy(bridge)
+    # takeoff before arming: rejected
+    send(long(gcs, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0))
+    assert acks(received())[0].result == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    actions = send(long(gcs, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0))
+    assert acks(received())[0].result == mavlink.MAV_RESULT_ACCEPTED
+    assert actions == [("command", {"command": "arm", "altitude_m": 0.0, "position_m": [0.0, 0.0, 0.0],
+                                    "yaw_rad": 0.0, "origin": "mavlink:255/190"})]
+    bridge.inputs["setpoint"] = setpoint(armed=True, phase="arm")
+    actions = send(long(gcs, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0))
+    assert acks(received())[0].result == mavlink.MAV_RESULT_ACCEPTED
+    assert actions[0][1]["command"] == "takeoff" and actions[0][1]["altitude_m"] == 2.0
+    bridge.inputs["setpoint"] = setpoint(armed=True, phase="hold", z=2.0)
+    bridge.inputs["pos"]["position_m"] = [0.0, 0.0, 2.0]
+    # disarm in the air: denied unless forced
+    send(long(gcs, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0.0))
+    assert acks(received())[0].result == mavlink.MAV_RESULT_DENIED
+    assert send(long(gcs, mavlink.MAV_CMD_NAV_LOITER_UNLIM))[0][1]["command"] == "hold"
+    assert send(long(gcs, mavlink.MAV_CMD_NAV_LAND))[0][1]["command"] == "land"
+    assert send(long(gcs, mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                     MODE_NUMBERS["LAND"]))[0][1]["command"] == "land"
+    received()
+    send(long(gcs, mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 99))
+    assert acks(received())[0].result == mavlink.MAV_RESULT_DENIED
+    forced = send(long(gcs, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0.0, 21196.0))
+    assert forced[0][1]["command"] == "disarm"
+
+
+def test_unknown_command_is_unsupported_and_others_not_for_us_ignored(link):
+    bridge, gcs, send, received, _ = link
+    send(long(gcs, 31337))
+    ack = acks(received())[0]
+    assert ack.command == 31337 and ack.result == mavlink.MAV_RESULT_UNSUPPORTED
+    assert ack.target_system == 255 and ack.target_component == 190
+    send(gcs.command_long_encode(7, 1, mavlink.MAV_CMD_NAV_LAND, 0, 0, 0, 0, 0, 0, 0, 0))  # system 7
+    assert acks(received()) == []
+    # COMMAND_INT goes through the same table
+    send(gcs.command_int_encode(1, 1, 0, 4242, 0, 0, 0, 0, 0, 0, 0, 0, 0.0))
+    assert acks(received())[0].result == mavlink.MAV_RESULT_UNSUPPORTED
+
+
+def test_message_interval_and_request_message(link):
+    bridge, gcs, send, received, _ = link
+    send(long(gcs, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 30, 100000))  # ATTITUDE at 10 Hz
+    assert acks(received())[0].result == mavlink.MAV_RESULT_ACCEPTED
+    assert bridge.intervals_s["ATTITUDE"] == pytest.approx(0.1)
+    send(long(gcs, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 32, -1))  # LOCAL_POSITION_NED off
+    received()
+    bridge.next_due = {n: 0.0 for n in STREAMS}
+    bridge.tick(NOW, NOW)
+    assert "LOCAL_POSITION_NED" not in {m.get_type() for m in received()}
+    send(long(gcs, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 9999, 1000))
+    assert acks(received())[0].result == mavlink.MAV_RESULT_UNSUPPORTED
+    send(long(gcs, mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION))
+    msgs = received()
+    assert acks(msgs)[0].result == mavlink.MAV_RESULT_ACCEPTED
+    version = [m for m in msgs if m.get_type() == "AUTOPILOT_VERSION"][0]
+    assert version.capabilities & mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+    send(long(gcs, mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_HOME_POSITION))
+    assert "HOME_POSITION" in {m.get_type() for m in received()}
+
+
+def test_parameter_protocol(link):
+    bridge, gcs, send, received, counts = link
+    send(gcs.param_request_list_encode(1, 1))
+    values = [m for m in received() if m.get_type() == "PARAM_VALUE"]
+    names = [v.param_id for v in values]
+    assert len(values) == 13 and "ATT_K_R" in names and "POS_ALPHA_Z" in names and "POS_MAX_TILT" in names
+    assert all(v.param_count == 13 for v in values) and [v.param_index for v in values] == list(range(13))
+    send(gcs.param_request_read_encode(1, 1, b"POS_K_Y", -1))
+    v = received()[0]
+    assert v.param_id == "POS_K_Y" and v.param_value == 4.0
+    actions = send(gcs.param_set_encode(1, 1, b"ATT_K_P", 12.0, mavlink.MAV_PARAM_TYPE_REAL32))
+    assert actions == [("param", {"service": "attitude", "key": "k", "value": [16.0, 12.0, 16.0]})]
+    v = received()[0]
+    assert v.param_id == "ATT_K_P" and v.param_value == 12.0
+    # out of bounds: refused, the old value echoed
+    assert send(gcs.param_set_encode(1, 1, b"ATT_K_P", -5.0, mavlink.MAV_PARAM_TYPE_REAL32)) == []
+    assert [m.param_value for m in received() if m.get_type() == "PARAM_VALUE"] == [12.0]
+    assert send(gcs.param_set_encode(1, 1, b"NO_SUCH", 1.0, mavlink.MAV_PARAM_TYPE_REAL32)) == []
+    assert counts["mavlink_unknown_param"] == 1 and counts["mavlink_bad_value"] == 1
+
+
+def test_offboard_position_target(link):
+    bridge, gcs, send, received, counts = link
+    target = gcs.set_position_target_local_ned_encode(0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, 0b110111111000,
+                                                      1.0, 2.0, -3.0, 0, 0, 0, 0, 0, 0, 0, 0)
+    assert send(target) == [] and counts["mavlink_target_not_flying"] == 1
+    bridge.inputs["setpoint"] = setpoint(armed=True, phase="hold", z=2.0)
+    bridge.inputs["pos"]["position_m"] = [0.0, 0.0, 2.0]
+    (kind, cmd), = send(target)
+    assert kind == "command" and cmd["command"] == "goto"
+    assert cmd["position_m"] == pytest.approx([2.0, 1.0, 3.0]) and cmd["yaw_rad"] == pytest.approx(0.3)
+    nan = gcs.set_position_target_local_ned_encode(0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, 0, math.nan, 0, 0,
+                                                   0, 0, 0, 0, 0, 0, 0, 0)
+    assert send(nan) == [] and counts["mavlink_bad_value"] == 1
+
+
+def test_link_failsafe_holds_then_lands():
+    fs = LinkFailsafe(timeout_s=2.0, hold_s=1.0)
+    assert fs.update(0.0, flying=True) is None  # no GCS ever heard: no failsafe
+    fs.heartbeat(10.0)
+    assert fs.update(11.9, flying=True) is None
+    assert fs.update(12.1, flying=True) == "hold"
+    assert fs.update(12.5, flying=True) is None
+    assert fs.update(13.2, flying=True) == "land"
+    assert fs.update(20.0, flying=True) is None  # once
+    fs.heartbeat(21.0)
+    assert fs.state == "ok" and fs.update(21.5, flying=True) is None
+    assert fs.update(30.0, flying=False) is None  # on the ground: nothing to do
+
+
+def test_bridge_failsafe_sends_hold_then_land(link):
+    bridge, gcs, send, received, _ = link
+    bridge.inputs["setpoint"] = setpoint(armed=True, phase="hold", z=2.0)
+    bridge.inputs["pos"]["position_m"] = [0.0, 0.0, 2.0]
+    bridge.failsafe.heartbeat(NOW - 2.5)
+    actions = bridge.tick(NOW, NOW)
+    assert actions[0][1]["command"] == "hold" and actions[0][1]["origin"] == "failsafe"
+    assert bridge.tick(NOW + 1.1, NOW + 1.1)[0][1]["command"] == "land"
+
+
+def test_garbage_and_random_crc_valid_messages_never_crash(link):
+    """Random bytes and random (CRC-valid) messages of every type: counted, never raised."""
+    bridge, gcs, send, received, counts = link
+    rng = random.Random(0)
+    parser = mavlink.MAVLink(None)
+    parser.robust_parsing = True
+    for _ in range(200):
+        for m in parser.parse_buffer(bytes(rng.getrandbits(8) for _ in range(64))) or []:
+            bridge.handle(m, NOW, NOW)
+    ids = list(mavlink.mavlink_map)
+    for _ in range(3000):
+        cls = mavlink.mavlink_map[rng.choice(ids)]
+        payload = bytes(rng.getrandbits(8) for _ in range(cls.unpacker.size))
+        for m in parser.parse_buffer(_crc_valid_frame(cls, payload, rng)) or []:
+            bridge.handle(m, NOW, NOW)
+    # commands addressed to us with random numbers (NaN, inf, huge) in every parameter
+    for _ in range(500):
+        import struct
+        params = [struct.unpack("<f", struct.pack("<I", rng.getrandbits(32)))[0] for _ in range(7)]
+        cmd = rng.choice([400, 22, 21, 17, 176, 511, 512, 510, 520, rng.randrange(65536)])
+        for m in parser.parse_buffer(gcs.command_long_encode(1, 1, cmd, 0, *params).pack(gcs)) or []:
+            bridge.handle(m, NOW, NOW)
+    bridge.tick(NOW, NOW)
+    assert counts.get("mavlink_bad_data", 0) > 0
+    assert counts.get("mavlink_handler_error", 0) == 0, counts
+    assert len(acks(received())) >= 500  # every command answered
+
+
+def _crc_valid_frame(cls, payload: bytes, rng) -> bytes:
+    """A MAVLink 2 frame with a random payload for message `cls` and a correct CRC."""
+    import struct
+
+    from pymavlink.generator.mavcrc import x25crc
+    hdr = struct.pack("<BBBBBBBHB", 0xFD, len(payload), 0, 0, rng.randrange(256), 255, 190,
+                      cls.id & 0xFFFF, cls.id >> 16)
+    crc = x25crc(hdr[1:] + payload)
+    crc.accumulate(bytes([cls.crc_extra]))
+    return hdr + payload + struct.pack("<H", crc.crc)
+
+
+def test_highres_imu_and_battery_in_frd_and_si(link):
+    bridge, gcs, send, received, _ = link
+    assert bridge.send_stream("HIGHRES_IMU", NOW, NOW) is False  # off and no IMU yet
+    send(long(gcs, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 105, 50000))
+    assert bridge.intervals_s["HIGHRES_IMU"] == pytest.approx(0.05)
+    bridge.inputs["imu"] = {"header": header(NOW - 0.002), "gyro_rad_s": [0.1, 0.2, 0.3],
+                            "accel_m_s2": [0.0, 0.0, 9.81]}
+    bridge.inputs["baro"] = {"header": header(), "pressure_pa": 100000.0, "temperature_k": 293.15}
+    bridge.inputs["battery"] = {"header": header(), "voltage_v": 11.1, "current_a": 8.0, "consumed_mah": 100.0,
+                                "remaining": 0.9, "cells": 3}
+    received()
+    assert bridge.send_stream("HIGHRES_IMU", NOW, NOW) and bridge.send_stream("BATTERY_STATUS", NOW, NOW)
+    imu, bat = received()
+    assert imu.zacc == pytest.approx(-9.81) and imu.ygyro == pytest.approx(-0.2) and imu.abs_pressure == 1000.0
+    assert imu.time_usec == 99998000
+    assert bat.voltages[:4] == [3700, 3700, 3700, 65535] and bat.current_battery == 800 and bat.battery_remaining == 90
