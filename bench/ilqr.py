@@ -1,0 +1,89 @@
+"""iLQR solve time: the project's solver against the thesis's code, same process.
+
+    .venv/bin/python bench/ilqr.py
+
+Both solve the same problem (THESIS setting: dt 0.1 s, horizon 10, 5 iterations, from
+a hover 0.5 m below and 0.3 m beside the target). The thesis's solver is forced to its
+5 iterations (tol 0) so both do the same amount of work; the project's runs its
+5 iterations (relative tolerance 0). Prints compile times, median solve times (best
+of rounds), their ratio, and the PROJECT configuration's solve time and MPC rate.
+"""
+from __future__ import annotations
+
+import dataclasses
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench.ilqr_thesis import make_thesis_ilqr
+from flight.ilqr import PROJECT, THESIS, Planner, hover_state, warm_start
+from flight.vehicle import load_vehicle
+
+
+def median_time(fn, calls: int = 20) -> float:
+    times = []
+    for _ in range(calls):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def problem(horizon: int):
+    x0 = hover_state([0.3, 0.0, 4.5])
+    targets = np.repeat(hover_state([0.0, 0.0, 5.0])[None], horizon + 1, axis=0)
+    return x0, targets
+
+
+def main() -> None:
+    print("$ .venv/bin/python bench/ilqr.py")
+    print(f"jax {jax.__version__} on {jax.devices()[0].platform}")
+    vehicle = load_vehicle("q820")
+    fixed_thesis = dataclasses.replace(THESIS, relative_tolerance=0.0)
+
+    t0 = time.perf_counter()
+    planner = Planner(vehicle, fixed_thesis)
+    compile_project_s = time.perf_counter() - t0
+    x0, targets = problem(THESIS.horizon)
+    u_hover = planner.hover_controls()
+    project_s = median_time(lambda: planner.solve(x0, targets))
+    iterations = planner.solve(x0, targets).iterations
+
+    thesis_solve = make_thesis_ilqr(vehicle, THESIS.dt_s, THESIS.horizon)
+    args = (jnp.asarray(x0, jnp.float32), jnp.asarray(u_hover, jnp.float32),
+            jnp.asarray(targets, jnp.float32), jnp.asarray(u_hover, jnp.float32))
+
+    def thesis_once():
+        *_, cost = thesis_solve(*args, tol=0.0)
+        cost.block_until_ready()
+
+    t0 = time.perf_counter()
+    thesis_once()
+    compile_thesis_s = time.perf_counter() - t0
+    thesis_s = median_time(thesis_once)
+
+    print(f"THESIS setting (dt {THESIS.dt_s} s, horizon {THESIS.horizon}, {iterations} iterations):")
+    print(f"  compile: project {compile_project_s:.1f} s (target < 5 s), thesis code {compile_thesis_s:.1f} s")
+    print(f"  solve:   project {1e3 * project_s:.2f} ms, thesis code {1e3 * thesis_s:.2f} ms, "
+          f"ratio {thesis_s / project_s:.1f}x (target >= 10x)")
+
+    t0 = time.perf_counter()
+    project = Planner(vehicle, PROJECT)
+    compile_s = time.perf_counter() - t0
+    x0, targets = problem(PROJECT.horizon)
+    plan = project.solve(x0, targets)
+    warm_s = median_time(lambda: project.solve(x0, targets, warm=warm_start(plan, PROJECT.dt_s)))
+    cold_s = median_time(lambda: project.solve(x0, targets))
+    print(f"PROJECT (dt {PROJECT.dt_s} s, horizon {PROJECT.horizon}, <= {PROJECT.max_iterations} iterations, "
+          f"{PROJECT.integrator}): compile {compile_s:.1f} s, solve cold {1e3 * cold_s:.2f} ms, "
+          f"warm {1e3 * warm_s:.2f} ms -> MPC up to {1.0 / cold_s:.0f} Hz (cold) / {1.0 / warm_s:.0f} Hz (warm)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,475 @@
+"""iLQR in JAX for the quadrotor of document 001 (the flip planner).
+
+Contracts (trajax style, stated once here):
+    dynamics(x, u) -> x_next        one step of dt_s; x (13,), u (4,)
+    stage_cost(x, u, x_target, u_target) -> scalar
+    terminal_cost(x, x_target) -> scalar
+    x = [position_m (3, world ENU), velocity_m_s (3), quaternion (4, [w,x,y,z]
+         body->world, flight/quat.py), rate_rad_s (3, body FLU)]
+    u = rotor speeds, rad/s (as the thesis: thrust_i = kf * u_i**2, Appendix A)
+    plans: states (H+1, 13), controls (H, 4), gains K (H, 4, 13), feedforward (H, 4);
+    the feedback law is u = u_plan + K (x - x_plan).
+
+Everything over the horizon is lax.scan (rollout, backward pass, forward pass)
+and the iterations are one lax.while_loop, so a solve is one jitted call that
+is compiled once when the Planner is built. Rotor limits [0, max_rotor_speed]
+are enforced by clamping in the forward pass rather than inside f (the thesis
+clips inside f, which zeroes f's Jacobian at the limits and stalls the solver).
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from flight.vehicle import Vehicle
+
+BODY_DIM = 13
+STATE_DIM = BODY_DIM  # without the motor model; Planner.state_dim is 17 with it
+CONTROL_DIM = 4
+POS, VEL, QUAT, RATE = slice(0, 3), slice(3, 6), slice(6, 10), slice(10, 13)
+MOTOR = slice(13, 17)  # rotor forces, N, when ILQRConfig.motor_time_constant_s is set
+
+
+@dataclass(frozen=True)
+class ILQRConfig:
+    """Solver settings. Weights are per error component: position (3), velocity (3),
+    attitude (1, on the squared geodesic angle 2*arccos|<q, q*>|, rad^2), body rate (3).
+    """
+    name: str
+    dt_s: float
+    horizon: int
+    max_iterations: int
+    integrator: str  # "euler" (the thesis's Appendix A update) or "rk4"
+    state_weight: tuple[float, ...]      # 10 values: p(3), v(3), attitude, rate(3)
+    terminal_weight: tuple[float, ...]   # 10 values, same order
+    control_weight: float                # R = control_weight * I, per (rad/s)^2
+    relative_tolerance: float = 1e-3     # stop when the cost falls by less than this fraction
+    line_search_alphas: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1, 0.03)
+    regularisation_init: float = 1e-6    # Levenberg-Marquardt mu on Quu
+    regularisation_min: float = 1e-8
+    regularisation_max: float = 1e4
+    regularisation_factor: float = 10.0
+    # None: the thesis's model, rotor speeds act at once. A value: the rotor forces are
+    # states lagging the command by this time constant (the plant's 20 ms motors).
+    motor_time_constant_s: float | None = None
+
+    def __post_init__(self):
+        if self.integrator not in ("euler", "rk4"):
+            raise ValueError(f"integrator must be 'euler' or 'rk4', got {self.integrator!r}")
+        if len(self.state_weight) != 10 or len(self.terminal_weight) != 10:
+            raise ValueError("state_weight and terminal_weight need 10 values")
+        if self.dt_s <= 0 or self.horizon < 1 or self.max_iterations < 1:
+            raise ValueError("dt_s > 0, horizon >= 1 and max_iterations >= 1 required")
+
+
+# The thesis's Q diag(1,1,10, 1,1,1, 0,50,50,0, 5,5,1) weights qx, qy by 50; for a
+# rotation e about x or y, qx = sin(e/2) ~ e/2, so the same small-angle curvature on
+# the geodesic angle is 50/4 = 12.5 (Qf: 100/4 = 25).
+THESIS = ILQRConfig(
+    name="thesis", dt_s=0.1, horizon=10, max_iterations=5, integrator="euler",
+    state_weight=(1.0, 1.0, 10.0, 1.0, 1.0, 1.0, 12.5, 5.0, 5.0, 1.0),
+    terminal_weight=(1.0, 1.0, 10.0, 0.1, 0.1, 0.1, 25.0, 10.0, 10.0, 1.0),
+    control_weight=1e-3,
+)
+
+PROJECT = ILQRConfig(
+    name="project", dt_s=0.025, horizon=32, max_iterations=8, integrator="rk4",
+    state_weight=(80.0, 80.0, 40.0, 4.0, 4.0, 4.0, 60.0, 10.0, 10.0, 5.0),
+    terminal_weight=(80.0, 80.0, 40.0, 4.0, 4.0, 4.0, 60.0, 10.0, 10.0, 5.0),
+    control_weight=1e-5, motor_time_constant_s=0.02,
+)
+
+
+# --- model ---------------------------------------------------------------------------
+
+def _quat_multiply(a, b):
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return jnp.stack([
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    ])
+
+
+def _body_z_in_world(q):
+    """Third column of R(q) (flight/quat.py's body->world matrix)."""
+    w, x, y, z = q
+    return jnp.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)])
+
+
+def hover_rotor_speed_rad_s(vehicle: Vehicle) -> float:
+    return float(np.sqrt(vehicle.hover_thrust_per_motor_n / _thrust_coefficient(vehicle)))
+
+
+def _thrust_coefficient(vehicle: Vehicle) -> float:
+    if vehicle.thrust_coefficient_kf is None or vehicle.max_rotor_speed_rad_s is None:
+        raise ValueError(f"vehicle {vehicle.name!r} lacks thrust_coefficient_kf / max_rotor_speed_rad_s")
+    return vehicle.thrust_coefficient_kf
+
+
+def make_derivative(vehicle: Vehicle) -> Callable:
+    """Continuous model xdot(x, u) of 001 with the vehicle's allocation (thrust kf*u^2).
+    derivative.with_forces(x, forces_n) is the same rigid body driven by rotor forces."""
+    kf = _thrust_coefficient(vehicle)
+    mass = vehicle.mass_kg
+    inertia = jnp.asarray(vehicle.inertia_kg_m2)
+    allocation = jnp.asarray(vehicle.allocation)
+    drag = vehicle.drag_n_per_m_s
+    gravity = jnp.array([0.0, 0.0, vehicle.gravity_m_s2])
+
+    def wrench(u):
+        return allocation @ (kf * u * u)  # [thrust_n, torque_x, torque_y, torque_z]
+
+    def with_forces(x, forces_n):
+        v, q, w = x[VEL], x[QUAT], x[RATE]
+        thrust_torque = allocation @ forces_n
+        accel = (_body_z_in_world(q) * thrust_torque[0] - drag * v) / mass - gravity
+        q_dot = 0.5 * _quat_multiply(q, jnp.concatenate([jnp.zeros(1), w]))
+        w_dot = (thrust_torque[1:] - jnp.cross(w, inertia * w)) / inertia
+        return jnp.concatenate([v, accel, q_dot, w_dot])
+
+    def derivative(x, u):
+        return with_forces(x, kf * u * u)
+
+    derivative.wrench = wrench
+    derivative.with_forces = with_forces
+    return derivative
+
+
+def make_dynamics(vehicle: Vehicle, dt_s: float, integrator: str = "euler",
+                  motor_time_constant_s: float | None = None) -> Callable:
+    """Discrete f(x, u) -> x_next. "euler" is the thesis's update (Appendix A): velocity
+    and rate by Euler, position with the dt^2/2 term, quaternion with the new rate.
+
+    With motor_time_constant_s the state has 4 more components, the rotor forces (N),
+    which follow the commanded kf u^2 with that first-order lag (the plant's motors):
+    they are advanced exactly (zero-order hold on the command) and the rigid body is
+    integrated with their mean over the step."""
+    derivative = make_derivative(vehicle)
+    body = derivative.with_forces
+
+    def euler(x, forces):
+        xdot = body(x, forces)
+        p, v, q, w = x[POS], x[VEL], x[QUAT], x[RATE]
+        accel, w_dot = xdot[VEL], xdot[RATE]
+        w_new = w + w_dot * dt_s
+        q_new = q + 0.5 * _quat_multiply(q, jnp.concatenate([jnp.zeros(1), w_new])) * dt_s
+        return jnp.concatenate([p + v * dt_s + 0.5 * accel * dt_s ** 2, v + accel * dt_s,
+                                q_new / jnp.linalg.norm(q_new), w_new])
+
+    def rk4(x, forces):
+        k1 = body(x, forces)
+        k2 = body(x + 0.5 * dt_s * k1, forces)
+        k3 = body(x + 0.5 * dt_s * k2, forces)
+        k4 = body(x + dt_s * k3, forces)
+        x_new = x + dt_s / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+        return x_new.at[QUAT].set(x_new[QUAT] / jnp.linalg.norm(x_new[QUAT]))
+
+    step = {"euler": euler, "rk4": rk4}[integrator]
+    kf = _thrust_coefficient(vehicle)
+    if motor_time_constant_s is None:
+        return lambda x, u: step(x, kf * u * u)
+
+    decay = float(np.exp(-dt_s / motor_time_constant_s))
+    mean_weight = float(motor_time_constant_s / dt_s * (1.0 - decay))
+
+    def lagged(x, u):
+        command = kf * u * u
+        forces = x[MOTOR]
+        mean = command + (forces - command) * mean_weight
+        return jnp.concatenate([step(x[:BODY_DIM], mean), command + (forces - command) * decay])
+
+    return lagged
+
+
+def motor_forces_update(forces_n, command_n, dt_s: float, motor_time_constant_s: float) -> np.ndarray:
+    """The rotor forces of the lag model after dt_s under a held command: the estimate to
+    append to the body state when the plan models the motors (no force sensor needed)."""
+    decay = np.exp(-dt_s / motor_time_constant_s)
+    return np.asarray(command_n) + (np.asarray(forces_n) - np.asarray(command_n)) * decay
+
+
+# --- cost --------------------------------------------------------------------------
+
+def attitude_error_sq_rad2(q, q_target):
+    """(2 arccos|<q, q*>|)^2: the squared rotation angle between q and q* (0 at q* and -q*).
+
+    arccos has an infinite slope at 1, so within 1e-3 of it the square is taken from its
+    series 4 (2 s + s^2 / 3), s = 1 - |<q, q*>|, which is smooth with finite derivatives
+    of every order; the other branch sees a harmless argument there (double-where)."""
+    d = jnp.abs(jnp.dot(q, q_target)) / (jnp.linalg.norm(q) * jnp.linalg.norm(q_target))
+    s = 1.0 - d
+    near = s < 1e-3
+    series = 4.0 * (2.0 * s + s * s / 3.0)
+    d_far = jnp.where(near, 0.5, jnp.clip(d, 0.0, 1.0))
+    return jnp.where(near, series, 4.0 * jnp.arccos(d_far) ** 2)
+
+
+def _weighted_state_error(x, x_target, weight):
+    w = jnp.asarray(weight)
+    dp = x[POS] - x_target[POS]
+    dv = x[VEL] - x_target[VEL]
+    dw = x[RATE] - x_target[RATE]
+    return (jnp.dot(w[0:3] * dp, dp) + jnp.dot(w[3:6] * dv, dv)
+            + w[6] * attitude_error_sq_rad2(x[QUAT], x_target[QUAT]) + jnp.dot(w[7:10] * dw, dw))
+
+
+def make_cost(config: ILQRConfig) -> tuple[Callable, Callable]:
+    """(stage_cost, terminal_cost) of the thesis: quadratic in p, v, rate and u, the
+    attitude through the geodesic angle."""
+    def stage_cost(x, u, x_target, u_target):
+        du = u - u_target
+        return _weighted_state_error(x, x_target, config.state_weight) + config.control_weight * jnp.dot(du, du)
+
+    def terminal_cost(x, x_target):
+        return _weighted_state_error(x, x_target, config.terminal_weight)
+
+    return stage_cost, terminal_cost
+
+
+# --- solver ------------------------------------------------------------------------
+
+class Solution(NamedTuple):
+    states: jax.Array        # (H+1, 13)
+    controls: jax.Array      # (H, 4) rotor speeds, rad/s
+    gains: jax.Array         # (H, 4, 13) feedback K at the returned plan
+    feedforward: jax.Array   # (H, 4) k of the last backward pass (~0 when converged)
+    cost: jax.Array          # final cost
+    initial_cost: jax.Array  # cost of the initial (warm-start) rollout
+    iterations: jax.Array    # iterations used
+    converged: jax.Array     # relative cost decrease fell below the tolerance
+
+
+def rollout(dynamics, x0, controls):
+    """States (H+1, 13) from x0 under the open-loop controls."""
+    def step(x, u):
+        x_next = dynamics(x, u)
+        return x_next, x_next
+    _, xs = jax.lax.scan(step, x0, controls)
+    return jnp.concatenate([x0[None], xs])
+
+
+def trajectory_cost(stage_cost, terminal_cost, states, controls, x_targets, u_targets):
+    stage = jax.vmap(stage_cost)(states[:-1], controls, x_targets[:-1], u_targets)
+    return jnp.sum(stage) + terminal_cost(states[-1], x_targets[-1])
+
+
+def _backward_pass(derivs, mu):
+    """Riccati recursion with Quu + mu I; returns K, k, expected decrease terms, all-PD flag."""
+    A, B, lx, lu, lxx, luu, lux, vx_final, vxx_final = derivs
+    n_u = B.shape[-1]
+
+    def step(carry, d):
+        vx, vxx, ok = carry
+        a, b, cx, cu, cxx, cuu, cux = d
+        qx = cx + a.T @ vx
+        qu = cu + b.T @ vx
+        qxx = cxx + a.T @ vxx @ a
+        quu = cuu + b.T @ vxx @ b
+        qux = cux + b.T @ vxx @ a
+        quu_reg = quu + mu * jnp.eye(n_u)
+        chol = jnp.linalg.cholesky(quu_reg)
+        pd = jnp.all(jnp.isfinite(chol))
+        chol = jnp.where(pd, chol, jnp.eye(n_u))
+        solve = lambda rhs: jax.scipy.linalg.cho_solve((chol, True), rhs)
+        gain = -solve(qux)
+        ff = -solve(qu)
+        vx_new = qx + gain.T @ quu @ ff + gain.T @ qu + qux.T @ ff
+        vxx_new = qxx + gain.T @ quu @ gain + gain.T @ qux + qux.T @ gain
+        vxx_new = 0.5 * (vxx_new + vxx_new.T)
+        decrease = jnp.stack([ff @ qu, 0.5 * ff @ quu @ ff])
+        return (vx_new, vxx_new, ok & pd), (gain, ff, decrease)
+
+    (_, _, ok), (gains, ffs, decrease) = jax.lax.scan(
+        step, (vx_final, vxx_final, jnp.array(True)), (A, B, lx, lu, lxx, luu, lux), reverse=True)
+    return gains, ffs, decrease.sum(axis=0), ok
+
+
+def make_solver(dynamics, stage_cost, terminal_cost, config: ILQRConfig, u_min, u_max) -> Callable:
+    """solve(x0, controls_init, x_targets, u_targets) -> Solution; pure, jit it once."""
+    alphas = jnp.asarray(config.line_search_alphas)
+    jac_x = jax.vmap(jax.jacfwd(dynamics, argnums=0))
+    jac_u = jax.vmap(jax.jacfwd(dynamics, argnums=1))
+    c_x = jax.vmap(jax.grad(stage_cost, argnums=0))
+    c_u = jax.vmap(jax.grad(stage_cost, argnums=1))
+    c_xx = jax.vmap(jax.hessian(stage_cost, argnums=0))
+    c_uu = jax.vmap(jax.hessian(stage_cost, argnums=1))
+    c_ux = jax.vmap(jax.jacfwd(jax.grad(stage_cost, argnums=1), argnums=0))
+    t_x = jax.grad(terminal_cost)
+    t_xx = jax.hessian(terminal_cost)
+    mu_min, mu_max, factor = config.regularisation_min, config.regularisation_max, config.regularisation_factor
+
+    def cost_of(states, controls, x_targets, u_targets):
+        return trajectory_cost(stage_cost, terminal_cost, states, controls, x_targets, u_targets)
+
+    def derivatives(states, controls, x_targets, u_targets):
+        xs, xt = states[:-1], x_targets[:-1]
+        return (jac_x(xs, controls), jac_u(xs, controls),
+                c_x(xs, controls, xt, u_targets), c_u(xs, controls, xt, u_targets),
+                c_xx(xs, controls, xt, u_targets), c_uu(xs, controls, xt, u_targets),
+                c_ux(xs, controls, xt, u_targets),
+                t_x(states[-1], x_targets[-1]), t_xx(states[-1], x_targets[-1]))
+
+    def forward(states, controls, gains, ffs, alpha):
+        def step(x, d):
+            x_ref, u_ref, gain, ff = d
+            u = jnp.clip(u_ref + alpha * ff + gain @ (x - x_ref), u_min, u_max)
+            x_next = dynamics(x, u)
+            return x_next, (x_next, u)
+        _, (xs, us) = jax.lax.scan(step, states[0], (states[:-1], controls, gains, ffs))
+        return jnp.concatenate([states[:1], xs]), us
+
+    def solve(x0, controls_init, x_targets, u_targets):
+        controls0 = jnp.clip(controls_init, u_min, u_max)
+        states0 = rollout(dynamics, x0, controls0)
+        cost0 = cost_of(states0, controls0, x_targets, u_targets)
+
+        def improve(states, controls, cost, mu, it, gains, ffs, pd):
+            cand_states, cand_controls = jax.vmap(forward, in_axes=(None, None, None, None, 0))(
+                states, controls, gains, ffs, alphas)
+            cand_costs = jax.vmap(cost_of, in_axes=(0, 0, None, None))(
+                cand_states, cand_controls, x_targets, u_targets)
+            cand_costs = jnp.where(jnp.isfinite(cand_costs), cand_costs, jnp.inf)
+            best = jnp.argmin(cand_costs)
+            accept = pd & (cand_costs[best] < cost)
+            rel_decrease = (cost - cand_costs[best]) / jnp.maximum(jnp.abs(cost), 1e-12)
+            converged = accept & (rel_decrease < config.relative_tolerance)
+            mu = jnp.where(accept, jnp.maximum(mu / factor, mu_min), jnp.minimum(mu * factor, mu_max))
+            return (jnp.where(accept, cand_states[best], states), jnp.where(accept, cand_controls[best], controls),
+                    jnp.where(accept, cand_costs[best], cost), mu, it + 1, converged)
+
+        # Each pass linearises and runs the backward pass at the current plan, then the
+        # line search; once the solve is over, one more pass only refreshes the gains, so
+        # the returned K belong to the returned plan and the model is traced once.
+        def iterate(carry):
+            states, controls, cost, mu, it, converged, _, _, over, _ = carry
+            gains, ffs, _, pd = _backward_pass(derivatives(states, controls, x_targets, u_targets), mu)
+            states, controls, cost, mu, it, converged = jax.lax.cond(
+                over, lambda: (states, controls, cost, mu, it, converged),
+                lambda: improve(states, controls, cost, mu, it, gains, ffs, pd))
+            gains = jnp.where(pd, gains, 0.0)
+            now_over = converged | (it >= config.max_iterations) | (mu >= mu_max)
+            return states, controls, cost, mu, it, converged, gains, ffs, now_over, over
+
+        init = (states0, controls0, cost0, jnp.asarray(config.regularisation_init, cost0.dtype),
+                jnp.array(0), jnp.array(False), jnp.zeros(controls0.shape + (x0.shape[0],), cost0.dtype),
+                jnp.zeros_like(controls0), jnp.array(False), jnp.array(False))
+        states, controls, cost, _, it, converged, gains, ffs, _, _ = jax.lax.while_loop(
+            lambda carry: ~carry[-1], iterate, init)
+        return Solution(states, controls, gains, ffs, cost, cost0, it, converged)
+
+    return solve
+
+
+# --- planner (compiled once) -------------------------------------------------------
+
+@dataclass(frozen=True)
+class Plan:
+    """A solved plan in numpy, time 0 = the state it was solved from."""
+    states: np.ndarray       # (H+1, 13)
+    controls: np.ndarray     # (H, 4) rad/s
+    gains: np.ndarray        # (H, 4, 13)
+    feedforward: np.ndarray  # (H, 4)
+    cost: float
+    initial_cost: float      # of the warm start's rollout: no decrease means the solve failed
+    iterations: int
+    converged: bool
+    dt_s: float
+
+    @property
+    def usable(self) -> bool:
+        """Finite, and either converged or better than its warm start (else keep the old plan)."""
+        finite = bool(np.isfinite(self.cost) and np.all(np.isfinite(self.controls))
+                      and np.all(np.isfinite(self.gains)))
+        return finite and (self.converged or self.cost < self.initial_cost)
+
+
+class Planner:
+    """iLQR for one vehicle and config; compiles at construction (the warm-up), so that
+    solve() in flight never compiles (same shapes every call)."""
+
+    def __init__(self, vehicle: Vehicle, config: ILQRConfig, warm_up: bool = True):
+        self.vehicle = vehicle
+        self.config = config
+        self.dynamics = make_dynamics(vehicle, config.dt_s, config.integrator, config.motor_time_constant_s)
+        self.stage_cost, self.terminal_cost = make_cost(config)
+        self.u_max_rad_s = float(vehicle.max_rotor_speed_rad_s)
+        self.u_hover_rad_s = hover_rotor_speed_rad_s(vehicle)
+        self.models_motors = config.motor_time_constant_s is not None
+        self.state_dim = BODY_DIM + (CONTROL_DIM if self.models_motors else 0)
+        self._solve = jax.jit(make_solver(self.dynamics, self.stage_cost, self.terminal_cost,
+                                          config, 0.0, self.u_max_rad_s))
+        if warm_up:
+            x0 = hover_state(np.zeros(3))
+            self.solve(x0, np.repeat(x0[None], config.horizon + 1, axis=0))
+
+    def hover_controls(self) -> np.ndarray:
+        return np.full((self.config.horizon, CONTROL_DIM), self.u_hover_rad_s)
+
+    def full_state(self, x, motor_forces_n=None) -> np.ndarray:
+        """The planner's state from a body state (13,): with the motor model the rotor
+        forces are appended (given, else hover; a 17-vector is passed through)."""
+        x = np.asarray(x, dtype=np.float64)
+        if not self.models_motors or x.shape[-1] == self.state_dim:
+            return x
+        forces = (np.full(CONTROL_DIM, self.vehicle.hover_thrust_per_motor_n) if motor_forces_n is None
+                  else np.asarray(motor_forces_n, dtype=np.float64))
+        return np.concatenate([x, np.broadcast_to(forces, x.shape[:-1] + (CONTROL_DIM,))], axis=-1)
+
+    def solve(self, x0, x_targets, u_targets=None, warm=None) -> Plan:
+        """x0 (13,) or (state_dim,) (with the motor model, the rotor forces: pass the
+        estimate of motor_forces_update, else hover is assumed); x_targets (H+1, 13) or
+        (H+1, state_dim) (rotor forces carry no cost); u_targets (H, 4) (default hover);
+        warm (H, 4) initial controls (default hover; pass warm_start(previous plan, elapsed))."""
+        u_targets = self.hover_controls() if u_targets is None else u_targets
+        warm = self.hover_controls() if warm is None else warm
+        x0, x_targets = self.full_state(x0), self.full_state(x_targets)
+        sol = self._solve(jnp.asarray(x0, jnp.float32), jnp.asarray(warm, jnp.float32),
+                          jnp.asarray(x_targets, jnp.float32), jnp.asarray(u_targets, jnp.float32))
+        sol = jax.device_get(sol)
+        return Plan(np.asarray(sol.states, np.float64), np.asarray(sol.controls, np.float64),
+                    np.asarray(sol.gains, np.float64), np.asarray(sol.feedforward, np.float64),
+                    float(sol.cost), float(sol.initial_cost), int(sol.iterations), bool(sol.converged), self.config.dt_s)
+
+    def compiled_count(self) -> int:
+        """Number of compiled versions of the solve (1 after warm-up if shapes never change)."""
+        return self._solve._cache_size()
+
+
+def hover_state(position_m) -> np.ndarray:
+    x = np.zeros(STATE_DIM)
+    x[POS] = position_m
+    x[6] = 1.0
+    return x
+
+
+def warm_start(plan: Plan, elapsed_s: float) -> np.ndarray:
+    """The previous plan's controls re-sampled from elapsed_s on (zero-order hold, last
+    control repeated): for elapsed_s = dt this is the shift by one step."""
+    horizon = plan.controls.shape[0]
+    idx = np.floor(elapsed_s / plan.dt_s + 1e-9).astype(int) + np.arange(horizon)
+    return plan.controls[np.clip(idx, 0, horizon - 1)]
+
+
+def feedback_control(plan: Plan, elapsed_s: float, x, u_max_rad_s: float) -> np.ndarray:
+    """u = u_plan(t) + K(t) (x - x_plan(t)), clipped to [0, u_max]; the controls and
+    gains are held over each step, the planned state interpolated linearly. The
+    quaternion of x is sign-aligned with the plan's (q and -q are the same attitude).
+    x has the plan's state size (with the motor model: body state + rotor forces)."""
+    horizon = plan.controls.shape[0]
+    s = min(max(elapsed_s / plan.dt_s, 0.0), horizon - 1e-9)
+    k = int(s)
+    frac = s - k
+    x_plan = (1 - frac) * plan.states[k] + frac * plan.states[k + 1]
+    x = np.array(x, dtype=np.float64)
+    if np.dot(x[QUAT], x_plan[QUAT]) < 0:
+        x[QUAT] = -x[QUAT]
+    u = plan.controls[k] + plan.gains[k] @ (x - x_plan)
+    return np.clip(u, 0.0, u_max_rad_s)

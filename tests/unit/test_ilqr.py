@@ -1,0 +1,166 @@
+"""iLQR behaviour: model, cost, convergence, gains, warm start, compile-once."""
+import dataclasses
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from flight.ilqr import (
+    THESIS,
+    Planner,
+    attitude_error_sq_rad2,
+    feedback_control,
+    hover_rotor_speed_rad_s,
+    hover_state,
+    make_cost,
+    make_dynamics,
+    motor_forces_update,
+    warm_start,
+)
+from flight.quat import quat_from_euler
+from flight.vehicle import load_vehicle
+
+VEHICLE = load_vehicle("q820")
+
+
+@pytest.fixture(scope="module")
+def planner():
+    return Planner(VEHICLE, THESIS)
+
+
+def test_hover_is_an_equilibrium_of_both_integrators():
+    x = jnp.asarray(hover_state([1.0, 2.0, 5.0]))
+    u = jnp.full(4, hover_rotor_speed_rad_s(VEHICLE))
+    for integrator in ("euler", "rk4"):
+        np.testing.assert_allclose(make_dynamics(VEHICLE, 0.1, integrator)(x, u), x, atol=1e-5)
+
+
+def test_roll_torque_sign_matches_vehicle_allocation():
+    """Rotor 2 (left, +y) faster rolls right-side down: +x body rate (FLU)."""
+    u = jnp.full(4, hover_rotor_speed_rad_s(VEHICLE)).at[1].add(100.0)
+    x1 = make_dynamics(VEHICLE, 0.02, "rk4")(jnp.asarray(hover_state([0, 0, 5])), u)
+    assert x1[10] > 0 and abs(x1[11]) < 1e-6
+
+
+@pytest.mark.parametrize("q", [quat_from_euler(0.3, -0.2, 1.0), quat_from_euler(3.0, 0.1, 0.0)])
+def test_attitude_error_zero_at_q_and_minus_q_with_finite_gradient(q):
+    q = jnp.asarray(q, jnp.float32)
+    for target in (q, -q):
+        assert float(attitude_error_sq_rad2(q, target)) == pytest.approx(0.0, abs=1e-6)
+        g = jax.grad(attitude_error_sq_rad2)(q, target)
+        h = jax.hessian(attitude_error_sq_rad2)(q, target)
+        assert np.all(np.isfinite(g)) and np.all(np.isfinite(h))
+
+
+def test_attitude_error_is_the_rotation_angle():
+    for angle in (0.01, 0.5, 2.0, 3.0):
+        e2 = attitude_error_sq_rad2(jnp.asarray(quat_from_euler(angle, 0, 0)), jnp.array([1.0, 0, 0, 0]))
+        assert np.sqrt(float(e2)) == pytest.approx(angle, rel=5e-3)  # float32 near 0
+
+
+def test_solver_cost_decreases_monotonically_with_iterations(planner):
+    x0 = hover_state([0.3, -0.2, 4.5])
+    targets = np.repeat(hover_state([0, 0, 5])[None], THESIS.horizon + 1, axis=0)
+    costs = []
+    for iterations in range(1, 6):
+        p = Planner(VEHICLE, dataclasses.replace(THESIS, max_iterations=iterations, relative_tolerance=0.0),
+                    warm_up=False)
+        costs.append(p.solve(x0, targets).cost)
+    initial = planner.solve(x0, targets).initial_cost
+    assert costs[0] < initial
+    assert all(b <= a + 1e-6 * a for a, b in itertools.pairwise(costs))
+
+
+def test_converges_to_hover_thrust_from_a_perturbed_state(planner):
+    x0 = hover_state([0.2, -0.1, 4.8])
+    x0[6:10] = quat_from_euler(0.1, -0.05, 0.0)
+    targets = np.repeat(hover_state([0, 0, 5])[None], THESIS.horizon + 1, axis=0)
+    plan = planner.solve(x0, targets)
+    for _ in range(150):  # receding horizon on the model itself (the thesis's weights are slow)
+        x0 = np.asarray(planner.dynamics(jnp.asarray(x0, jnp.float32), jnp.asarray(plan.controls[0], jnp.float32)))
+        plan = planner.solve(x0, targets, warm=warm_start(plan, THESIS.dt_s))
+    assert plan.usable
+    np.testing.assert_allclose(x0[0:3], [0, 0, 5], atol=0.03)
+    np.testing.assert_allclose(plan.controls[0], hover_rotor_speed_rad_s(VEHICLE), rtol=0.01)
+
+
+def test_gains_have_shape_and_stabilise_the_linearisation():
+    """With the thesis's motor-node horizon (50) the first gain is close to the stationary one."""
+    config = dataclasses.replace(THESIS, horizon=50)
+    planner = Planner(VEHICLE, config, warm_up=False)
+    targets = np.repeat(hover_state([0, 0, 5])[None], config.horizon + 1, axis=0)
+    plan = planner.solve(hover_state([0, 0, 5]), targets)
+    assert plan.gains.shape == (config.horizon, 4, 13) and plan.feedforward.shape == (config.horizon, 4)
+    x, u = jnp.asarray(plan.states[0], jnp.float32), jnp.asarray(plan.controls[0], jnp.float32)
+    a = np.asarray(jax.jacfwd(planner.dynamics, 0)(x, u))
+    b = np.asarray(jax.jacfwd(planner.dynamics, 1)(x, u))
+    closed = a + b @ plan.gains[0]
+    # the quaternion's norm direction is a unit (neutral) mode; everything else contracts
+    radius = np.sort(np.abs(np.linalg.eigvals(closed)))
+    assert radius[-1] <= 1.0 + 1e-3 and radius[-2] < 1.0
+
+
+def test_warm_start_shifts_by_one_step():
+    plan_controls = np.arange(40.0).reshape(10, 4)
+    plan = dataclasses.make_dataclass("P", ["controls", "dt_s"])(plan_controls, 0.1)
+    shifted = warm_start(plan, 0.1)
+    np.testing.assert_array_equal(shifted[:-1], plan_controls[1:])
+    np.testing.assert_array_equal(shifted[-1], plan_controls[-1])
+    np.testing.assert_array_equal(warm_start(plan, 0.05), plan_controls)
+
+
+def test_feedback_control_at_the_plan_is_the_plan(planner):
+    targets = np.repeat(hover_state([0, 0, 5])[None], THESIS.horizon + 1, axis=0)
+    plan = planner.solve(hover_state([0.2, 0, 4.9]), targets)
+    np.testing.assert_allclose(feedback_control(plan, 0.0, plan.states[0], planner.u_max_rad_s),
+                               np.clip(plan.controls[0], 0, planner.u_max_rad_s), atol=1e-6)
+    x = plan.states[0].copy()
+    x[6:10] *= -1  # the same attitude
+    np.testing.assert_allclose(feedback_control(plan, 0.0, x, planner.u_max_rad_s),
+                               feedback_control(plan, 0.0, plan.states[0], planner.u_max_rad_s), atol=1e-6)
+
+
+def test_second_solve_does_not_recompile(planner):
+    before = planner.compiled_count()
+    targets = np.repeat(hover_state([1, 1, 3])[None], THESIS.horizon + 1, axis=0)
+    planner.solve(hover_state([0, 0, 2]), targets, warm=planner.hover_controls() * 1.01)
+    planner.solve(hover_state([0, 1, 2]), targets)
+    assert planner.compiled_count() == before == 1
+
+
+def test_cost_is_thesis_quadratic_away_from_attitude():
+    stage, terminal = make_cost(THESIS)
+    x, xt = hover_state([1.0, 0, 0]), hover_state([0, 0, 0])
+    u = np.full(4, 1000.0)
+    assert float(stage(jnp.asarray(x), jnp.asarray(u), jnp.asarray(xt), jnp.asarray(u))) == pytest.approx(1.0)
+    assert float(terminal(jnp.asarray(x), jnp.asarray(xt))) == pytest.approx(1.0)
+
+
+def test_motor_lag_model_forces_follow_the_command_exactly():
+    """With motor_time_constant_s the rotor forces are states: hover is an equilibrium and a
+    step of the command is followed as exp(-t / tau) (the plant's motors)."""
+    tau, dt = 0.02, 0.025
+    f = make_dynamics(VEHICLE, dt, "rk4", motor_time_constant_s=tau)
+    hover_n = VEHICLE.hover_thrust_per_motor_n
+    x = jnp.concatenate([jnp.asarray(hover_state([0, 0, 5])), jnp.full(4, hover_n)])
+    u = jnp.full(4, hover_rotor_speed_rad_s(VEHICLE))
+    np.testing.assert_allclose(f(x, u), x, atol=1e-5)
+    x_step = f(x, u * np.sqrt(2.0))
+    np.testing.assert_allclose(x_step[13:17], hover_n * (2 - np.exp(-dt / tau)), rtol=1e-6)
+    np.testing.assert_allclose(motor_forces_update(np.full(4, hover_n), np.full(4, 2 * hover_n), dt, tau),
+                               x_step[13:17], rtol=1e-6)
+    assert 0 < x_step[5] < 2 * 9.81 * dt  # accelerates up, less than with the thrust at once
+
+
+def test_planner_with_motor_model_pads_13_state_inputs():
+    config = dataclasses.replace(THESIS, motor_time_constant_s=0.02, max_iterations=2)
+    p = Planner(VEHICLE, config, warm_up=False)
+    targets = np.repeat(hover_state([0, 0, 5])[None], config.horizon + 1, axis=0)
+    plan = p.solve(hover_state([0, 0, 4.9]), targets)
+    assert p.state_dim == 17 and plan.states.shape == (config.horizon + 1, 17)
+    assert plan.gains.shape == (config.horizon, 4, 17)
+    np.testing.assert_allclose(plan.states[0, 13:], VEHICLE.hover_thrust_per_motor_n)
+    u = feedback_control(plan, 0.0, p.full_state(hover_state([0, 0, 4.9])), p.u_max_rad_s)
+    assert np.all(np.isfinite(u))
