@@ -6,6 +6,7 @@
   zenpilot down                          stop what `zenpilot up -d` started
   zenpilot report DIR                    redraw a flight's plots and print its metrics
   zenpilot missions                      list the shipped missions
+  zenpilot train-gyrovertical [--seed N] train the adaptive gyro-vertical (004) on simulator flights
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from pathlib import Path
 import zenoh
 
 import schemas
+from deploy import gyrovertical_training
 from deploy.flightlog import LOG_NAME, read_log
 from deploy.launcher import Launcher, alive_services, client_session, free_port
 from deploy.stack import StackError, load_stack
@@ -98,7 +100,7 @@ def analyse(out: Path, info: dict) -> dict:
     log = read_log(out / LOG_NAME)
     metrics = compute_metrics(log, info)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
-    make_plots(log, out)
+    make_plots(log, out, vehicle=info.get("vehicle"))
     print(format_table(metrics))
     return metrics
 
@@ -292,6 +294,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     mis = sub.add_parser("missions", help="list the shipped missions")
     mis.set_defaults(func=cmd_missions)
+
+    gyrovertical_training.add_parser(sub)
     return p
 
 

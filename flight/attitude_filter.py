@@ -460,7 +460,7 @@ class AttitudeFilter:
         self._yaw_hold = yaw
         self._yaw_hold_t = t_m
 
-    def _process_imu(self, t: float, gyro: np.ndarray, accel: np.ndarray) -> None:
+    def _process_imu(self, t: float, gyro: np.ndarray, accel: np.ndarray, tilt=None) -> None:
         if self._t_kf is None:
             self._initialise(t, gyro, accel)
             return
@@ -479,7 +479,7 @@ class AttitudeFilter:
         c = 1.0 - math.exp(-h / self.params.lpf_tau_s)
         self._wf += c * (0.5 * (self._g_prev + gyro) - self._wf)
         self._g_prev = gyro.copy()
-        rp = self._accel_angles(accel)
+        rp = self._accel_angles(accel) if tilt is None else tilt
         angle_ok = [rp is not None, rp is not None, False]
         if rp is not None:
             for i in range(2):
@@ -522,7 +522,9 @@ class AttitudeFilter:
     def update(self, imu_samples, mag, torque_nm, t_now: float) -> AttitudeEstimate:
         """One attitude-level step.
 
-        imu_samples: list of (t_s, gyro (3,) rad/s, accel (3,) m/s^2) since the last call (any order);
+        imu_samples: list of (t_s, gyro (3,) rad/s, accel (3,) m/s^2) since the last call (any order),
+        or (t_s, gyro, accel, (roll, pitch)) where another estimator (the gyro-vertical of 004)
+        gives the angle measurement in place of the accelerometer angles;
         mag: (t_s, field_ut (3,)) or None; torque_nm: the torque applied since the last call
         (the one commanded at the previous call); t_now: the current time, s.
         Returns the estimate at t_now (extrapolated over the delay when ``extrapolate``).
@@ -532,24 +534,27 @@ class AttitudeFilter:
         self._t_prev_call = t_now
         samples = []
         for s in imu_samples or ():
-            t, g, a = s
+            t, g, a = s[:3]
+            tilt = s[3] if len(s) > 3 else None
             g = np.asarray(g, dtype=np.float64).reshape(-1)
             a = np.asarray(a, dtype=np.float64).reshape(-1)
             t = float(t)
+            if tilt is not None and not all(math.isfinite(v) for v in tilt):
+                tilt = None
             if g.shape == (3,) and a.shape == (3,) and math.isfinite(t) and np.all(np.isfinite(g)) \
                     and np.all(np.isfinite(a)):
-                samples.append((t, g, a))
+                samples.append((t, g, a, tilt))
         samples.sort(key=lambda s: s[0])
         mag_item = None
         if mag is not None:
             t_m, field = mag
             if t_m is not None and math.isfinite(float(t_m)):
                 mag_item = (float(t_m), field)
-        for t, g, a in samples:
+        for t, g, a, tilt in samples:
             if mag_item is not None and mag_item[0] <= t:
                 self._process_mag(*mag_item)
                 mag_item = None
-            self._process_imu(t, g, a)
+            self._process_imu(t, g, a, tilt)
         if mag_item is not None:
             self._process_mag(*mag_item)
         if not self._healthy():

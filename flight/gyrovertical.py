@@ -89,13 +89,16 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import tomllib
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
 from flight.quat import quat_from_euler, quat_normalize
 
+DEFAULT_PARAMS_FILE = Path(__file__).resolve().parent / "params" / "gyrovertical_x250.toml"
 G = 9.80665                 # m/s^2, normalises specific force to the load factor
 DT_REF = 1.0 / 400.0        # s, rate at which the parameters are per-sample variances
 
@@ -494,30 +497,63 @@ def evaluate(params: GyroVerticalParams, sequences: Sequence[TrainingSequence], 
     return cost if math.isfinite(cost) else 1e6
 
 
+def fixed(params: GyroVerticalParams) -> GyroVerticalParams:
+    """The same variances at every n* (each function held at its n* = 0 value): the non-adaptive baseline."""
+    return dataclasses.replace(params, **{f"{fn}_var2": getattr(params, f"{fn}_var0") for fn in _FUNCS})
+
+
+FIXED_FREE = tuple(i for i, k in enumerate(GyroVerticalParams.names()) if k.endswith("_var0"))
+
+
 def train(sequences: Sequence[TrainingSequence], initial: GyroVerticalParams | None = None,
           dt: float = DT_REF, maxiter: int = 100, seed: int = 0,
           progress: Callable[[int, float, GyroVerticalParams], None] | None = None,
           weights: tuple[float, float] = (0.5, 0.5), method: str = "Nelder-Mead",
-          step: float = 0.7) -> GyroVerticalParams:
-    """Minimise (10) over the 12 log-parameters with scipy.optimize (Nelder-Mead or Powell).
+          step: float = 0.7, adaptive: bool = True) -> GyroVerticalParams:
+    """Minimise (10) over the log-parameters with scipy.optimize (Nelder-Mead or Powell).
 
-    The Nelder-Mead initial simplex is the initial point plus 12 vertices
-    displaced by +-``step`` (natural log) along each coordinate with signs drawn
-    from ``seed``, so the result is deterministic for a seed.  ``progress(k,
+    adaptive=True: the 12 parameters of (7).  adaptive=False: the fixed-variance
+    baseline, trained the same way over its 4 free parameters (the ``*_var0``;
+    the result has ``var2 = var0``).  Sequences of one length are evaluated by
+    the batched JAX filter (:mod:`flight.gyrovertical_jax`, tested equal to
+    :class:`GyroVertical`), others by the reference one sample at a time.
+    The Nelder-Mead initial simplex is the initial point plus one vertex per
+    free coordinate displaced by +-``step`` (natural log) with signs drawn from
+    ``seed``, so the result is deterministic for a seed.  ``progress(k,
     best_cost, best_params)`` is called after every iteration.  Returns the
     best parameters evaluated (never worse than ``initial`` on these sequences).
     """
     from scipy.optimize import minimize
 
     initial = initial if initial is not None else GyroVerticalParams()
-    x0 = initial.to_vector()
+    if not adaptive:
+        initial = fixed(initial)
+    full0 = initial.to_vector()
+    free = np.arange(12) if adaptive else np.array(FIXED_FREE)
+
+    def expand(v) -> np.ndarray:
+        full = full0.copy()
+        full[free] = v
+        if not adaptive:   # var2 follows var0: the functions are flat
+            full[free + 2] = v
+        return full
+
+    if len({len(s.roll) for s in sequences}) == 1:
+        from flight.gyrovertical_jax import BatchEvaluator
+        batch = BatchEvaluator(sequences, dt, weights, adaptive)
+        evaluate_full = batch
+    else:
+        def evaluate_full(full):
+            return evaluate(GyroVerticalParams.from_vector(full), sequences, dt, weights, adaptive)
+
+    x0 = full0[free]
     best = {"cost": math.inf, "x": x0.copy()}
     cache: dict[bytes, float] = {}
 
     def cost(v):
         key = np.asarray(v, dtype=np.float64).tobytes()
         if key not in cache:
-            c = evaluate(GyroVerticalParams.from_vector(v), sequences, dt, weights)
+            c = float(evaluate_full(expand(v)))
             cache[key] = c
             if c < best["cost"]:
                 best["cost"], best["x"] = c, np.array(v, dtype=np.float64)
@@ -528,7 +564,7 @@ def train(sequences: Sequence[TrainingSequence], initial: GyroVerticalParams | N
     def callback(*_args, **_kw):
         it[0] += 1
         if progress is not None:
-            progress(it[0], best["cost"], GyroVerticalParams.from_vector(best["x"]))
+            progress(it[0], best["cost"], GyroVerticalParams.from_vector(expand(best["x"])))
 
     cost(x0)
     if method == "Nelder-Mead":
@@ -543,4 +579,28 @@ def train(sequences: Sequence[TrainingSequence], initial: GyroVerticalParams | N
                  options={"maxiter": int(maxiter), "xtol": 1e-3, "ftol": 1e-4})
     else:
         raise ValueError(f"gyrovertical: method must be 'Nelder-Mead' or 'Powell', got {method!r}")
-    return GyroVerticalParams.from_vector(best["x"])
+    return GyroVerticalParams.from_vector(expand(best["x"]))
+
+
+@dataclass(frozen=True)
+class TrainedParams:
+    """A trained parameter file: the adaptive filter's parameters, the fixed-variance
+    baseline trained on the same data, and how they were made (``meta``)."""
+
+    adaptive: GyroVerticalParams
+    fixed: GyroVerticalParams
+    meta: dict
+
+
+def load_trained(path: str | Path = DEFAULT_PARAMS_FILE) -> TrainedParams:
+    """Read a file written by `zenpilot train-gyrovertical`; errors name the file."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: cannot read gyro-vertical parameters: {exc}") from None
+    try:
+        return TrainedParams(GyroVerticalParams.from_dict(data.get("adaptive", {})),
+                             GyroVerticalParams.from_dict(data.get("fixed", {})), dict(data.get("meta", {})))
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None

@@ -4,7 +4,11 @@ State source `estimate` (default): every IMU sample goes through the
 low-pass filters (12) and a linear Kalman filter per axis on
 [w, w_f, angle, angle_f] with the torque input (13), (16)-(20); the analytic
 extrapolator (15) carries the estimate over the measured transport delay
-(newest IMU sample time to now) with the stored torques. State source
+(newest IMU sample time to now) with the stored torques. With
+`estimator = "gyro-vertical"` the adaptive gyro-vertical of 004 runs on every
+raw IMU sample and its roll/pitch replace the accelerometer angles as the
+filter's angle measurement (trained parameters from `gyrovertical_params`,
+written by `zenpilot train-gyrovertical`). State source
 `truth`: the simulator's ground truth (an explicit ablation setting).
 Law (8) u = I [-(alpha+k) w - alpha k (angle - ref)] tracks the position
 level's reference; the collective thrust is passed on to the motor driver.
@@ -15,9 +19,10 @@ from __future__ import annotations
 import numpy as np
 
 import schemas
-from flight.attitude_filter import AttitudeFilter, AttitudeFilterParams
+from flight.attitude_filter import AttitudeFilter, AttitudeFilterParams, accel_roll_pitch
 from flight.control import attitude_law
-from flight.quat import quat_to_euler, quat_to_rotation
+from flight.gyrovertical import DEFAULT_PARAMS_FILE, GyroVertical, load_trained
+from flight.quat import quat_from_euler, quat_to_euler, quat_to_rotation
 from flight.vehicle import load_vehicle
 from services.runtime import Runtime, main_guard, service_parser
 
@@ -34,8 +39,30 @@ PARAMS = {
     # 000's plain accelerometer angles pull the estimate toward level in every
     # manoeuvre. False: 000 as printed.
     "compensate_acceleration": True,
+    # Angle measurement of the filter: "kalman-000" the accelerometer angles of
+    # 000; "gyro-vertical" the adaptive gyro-vertical of 004 (raw IMU in, its own
+    # adaptive accelerometer trust; compensate_acceleration does not apply).
+    "estimator": "kalman-000",
+    "gyrovertical_params": "",    # trained parameter file; "" = the shipped one for the x250
+    "imu_rate_hz": 400.0,         # the gyro-vertical's sample period (its variances are per sample)
 }
 STATE_SOURCES = ("truth", "estimate")
+ESTIMATORS = ("kalman-000", "gyro-vertical")
+
+
+def load_gyrovertical(rt: Runtime):
+    """A maker of the gyro-vertical (trained parameters, IMU period) from an initial quaternion.
+
+    A missing or bad parameter file is refused at start-up with its name."""
+    path = rt.params["gyrovertical_params"] or DEFAULT_PARAMS_FILE
+    try:
+        trained = load_trained(path)
+    except ValueError as exc:
+        raise ValueError(f"{rt.where()} gyrovertical_params: {exc}") from None
+    rate = rt.params["imu_rate_hz"]
+    if not (isinstance(rate, (int, float)) and rate > 0):
+        raise ValueError(f"{rt.where()} imu_rate_hz: must be a positive number, got {rate!r}")
+    return lambda q0: GyroVertical(trained.adaptive, dt=1.0 / rate, q0=q0)
 
 
 def run(args) -> None:
@@ -49,15 +76,31 @@ def run(args) -> None:
         imu = rt.inbox(schemas.IMU, "sim", keep=32)
         mag = rt.inbox(schemas.MAG, "sim", keep=8)
         motors = rt.inbox(schemas.MOTOR_PWM, "motors")
-        motion = rt.inbox(schemas.POSITION_STATE, "position") if p["compensate_acceleration"] else None
+        make_gyrovertical = load_gyrovertical(rt) if rt.choice("estimator", ESTIMATORS) == "gyro-vertical" else None
+        compensate = p["compensate_acceleration"] and make_gyrovertical is None
+        print(f"zenpilot-attitude: estimator {p['estimator']}"
+              + (f" ({p['gyrovertical_params'] or DEFAULT_PARAMS_FILE.name})" if make_gyrovertical else ""), flush=True)
+        motion = rt.inbox(schemas.POSITION_STATE, "position") if compensate else None
     else:
         truth = rt.inbox(schemas.TRUTH, "sim")
     setpoint = rt.inbox(schemas.POSITION_SETPOINT, "position")
     command = rt.publisher(schemas.ATTITUDE_COMMAND)
     state_out = rt.publisher(schemas.ATTITUDE_STATE)
-    k, alpha = np.asarray(p["k"]), np.asarray(p["alpha"])
+    k, alpha = rt.live_array("k"), rt.live_array("alpha")
     last_torque = {"u": np.zeros(3)}
     filt_state = {"q": np.array([1.0, 0.0, 0.0, 0.0])}
+
+    gyrovertical = {"filter": None, "last_t": None}
+
+    def gyrovertical_update(t_s: float, gyro, accel) -> tuple[float, float]:
+        """Feed one raw IMU sample to the gyro-vertical (once, in time order); its (roll, pitch)."""
+        gv = gyrovertical["filter"]
+        if gv is None:   # start from the accelerometer's vertical, as the 000 filter does
+            gv = gyrovertical["filter"] = make_gyrovertical(quat_from_euler(*accel_roll_pitch(accel), 0.0))
+        elif t_s <= gyrovertical["last_t"]:
+            return gv.roll, gv.pitch
+        gyrovertical["last_t"] = t_s
+        return gv.update(gyro, accel)
 
     def read_state(t: float):
         """(quaternion, euler, rates, euler_var, rate_var, sample time) or None."""
@@ -68,6 +111,9 @@ def run(args) -> None:
             q = s["quaternion_wxyz"]
             return q, np.array(quat_to_euler(q)), np.asarray(s["rate_rad_s"]), np.zeros(3), np.zeros(3), s["header"]["t_s"]
         samples = [(m["header"]["t_s"], np.asarray(m["gyro_rad_s"]), np.asarray(m["accel_m_s2"])) for m in imu.take()]
+        if make_gyrovertical is not None:
+            samples.sort(key=lambda s: s[0])
+            samples = [(ts, gyro, acc, gyrovertical_update(ts, gyro, acc)) for ts, gyro, acc in samples]
         moving = motion.latest() if motion is not None else None
         if moving is not None and moving["state_source"] == "estimate" and filt.initialized:
             # specific force f = R^T (a - g): remove R^T a so that what is left is gravity alone

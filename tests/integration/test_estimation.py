@@ -66,3 +66,13 @@ def test_camera_silent_for_2_s_in_hover(tmp_path):
     assert np.max(np.linalg.norm(pos[window] - [0.0, 0.0, 1.0], axis=1)) < 0.5
     poses = [p for p in log["zp/0/vision/pose"] if start + 0.1 <= p["header"]["t_s"] < start + length]
     assert not poses
+
+
+def test_hover_with_the_gyro_vertical_as_angle_measurement(tmp_path):
+    """estimator = "gyro-vertical": the trained 004 filter feeds the attitude level (the stack flies on it)."""
+    proc, m = fly(tmp_path / "gv", "hover", "--set", 'attitude.estimator="gyro-vertical"')
+    assert proc.returncode == 0 and m["completed"] and not m["crashed"], proc.stdout + proc.stderr
+    assert m["position_rms_m"] < 0.1
+    assert m["estimation"]["roll_rms_deg"] < 3.0 and m["estimation"]["pitch_rms_deg"] < 3.0
+    log = (tmp_path / "gv" / "logs" / "attitude.log").read_text()
+    assert "estimator gyro-vertical" in log and "Traceback" not in log

@@ -129,7 +129,7 @@ def takeoff(gcs, altitude_m):
     gcs.wait("HEARTBEAT", lambda m: m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
     ack = gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, altitude_m)
     assert ack.result == mavlink.MAV_RESULT_ACCEPTED, ack
-    gcs.wait("LOCAL_POSITION_NED", lambda m: abs(m.z + altitude_m) < 0.05, timeout=20.0)
+    gcs.wait("LOCAL_POSITION_NED", lambda m: abs(m.z + altitude_m) < 0.08, timeout=40.0)
 
 
 def land(gcs):

@@ -1,0 +1,197 @@
+"""`zenpilot train-gyrovertical`: train the adaptive gyro-vertical of 004 on simulator flights.
+
+Steps (004, section "training"):
+
+1. fly ``--flights`` manoeuvre flights of ``--duration-s`` in the simulator
+   (simulator/scenarios.py, the "training" menu: steps, circles, yaw turns,
+   attitude steps, a flip), seeds drawn from ``--seed``;
+2. from each, the 9 sequences of 004: the 8 sign combinations of
+   +-``--bias-deg-s`` on the three gyros, plus the exact one;
+3. minimise criterion (10), the weighted mean RMS pitch/roll error, over the
+   12 parameters of (7) (Nelder-Mead, deterministic for a seed), printing
+   progress; the fixed-variance baseline is trained the same way on the same
+   data, so the comparison with it is fair;
+4. write both parameter sets to a TOML file the attitude service reads
+   (``[services.attitude.params] gyrovertical_params = FILE``).
+
+Same arguments and seed give the same file.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+
+from flight.gyrovertical import (DT_REF, GyroVerticalParams, TrainedParams, TrainingSequence,
+                                 make_training_sequences, train)
+from flight.vehicle import load_vehicle
+from simulator.scenarios import FlightData, record
+
+def training_flights(vehicle_name: str, seed: int, flights: int, duration_s: float) -> list[FlightData]:
+    """``flights`` training-menu flights, cut to exactly ``duration_s`` (equal lengths batch together)."""
+    vehicle = load_vehicle(vehicle_name)
+    n = int(round(duration_s / DT_REF))
+    out = []
+    for i in range(flights):
+        data = record(vehicle, "training", duration_s, seed=seed * 1000 + i)
+        out.append(data.slice(n))
+    return out
+
+
+def sequences_of(flights: list[FlightData], bias_deg_s: float) -> list[TrainingSequence]:
+    seqs: list[TrainingSequence] = []
+    for f in flights:
+        seqs += make_training_sequences(f.gyro_rad_s, f.accel_m_s2, f.roll_rad, f.pitch_rad, bias_deg_s=bias_deg_s)
+    return seqs
+
+
+def save(path: Path, trained: TrainedParams) -> None:
+    """A small TOML file: a header comment, [meta], [adaptive] and [fixed] tables."""
+    def table(name: str, d: dict) -> str:
+        lines = [f"[{name}]"]
+        for k, v in d.items():
+            lines.append(f"{k} = {v!r}" if not isinstance(v, str) else f'{k} = "{v}"')
+        return "\n".join(lines)
+
+    text = "\n\n".join([
+        "# Adaptive gyro-vertical (004), trained by `zenpilot train-gyrovertical`.\n"
+        "# [adaptive]: the 12 parameters of (7), read by the attitude service.\n"
+        "# [fixed]: the fixed-variance baseline trained on the same data (comparison only).",
+        table("meta", trained.meta), table("adaptive", trained.adaptive.to_dict()),
+        table("fixed", trained.fixed.to_dict())]) + "\n"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+
+
+def run_training(vehicle: str, seed: int, flights: int, duration_s: float, bias_deg_s: float,
+                 maxiter: int, log=print) -> TrainedParams:
+    t0 = time.monotonic()
+    log(f"recording {flights} training flight(s) of {duration_s:g} s ({vehicle}, seed {seed}) ...")
+    data = training_flights(vehicle, seed, flights, duration_s)
+    seqs = sequences_of(data, bias_deg_s)
+    log(f"  {len(seqs)} sequences of {len(seqs[0].roll)} samples ({time.monotonic() - t0:.1f} s)")
+    results = {}
+    for adaptive in (True, False):
+        name = "adaptive" if adaptive else "fixed-variance"
+        start = time.monotonic()
+
+        def progress(k, cost, _params, name=name, start=start):
+            if k == 1 or k % 10 == 0:
+                log(f"  {name:14s} iteration {k:4d}  criterion (10) {cost:.4f} deg  ({time.monotonic() - start:.0f} s)")
+
+        log(f"training the {name} filter (up to {maxiter} iterations) ...")
+        results[adaptive] = train(seqs, GyroVerticalParams(), DT_REF, maxiter=maxiter, seed=seed,
+                                  progress=progress, adaptive=adaptive)
+    from flight.gyrovertical_jax import BatchEvaluator
+    costs = {a: BatchEvaluator(seqs, adaptive=a)(results[a].to_vector()) for a in (True, False)}
+    default_cost = BatchEvaluator(seqs)(GyroVerticalParams().to_vector())
+    log(f"criterion (10) on the training sequences: default {default_cost:.4f}, "
+        f"adaptive {costs[True]:.4f}, fixed {costs[False]:.4f} deg")
+    meta = {"vehicle": vehicle, "seed": seed, "flights": flights, "duration_s": float(duration_s),
+            "bias_deg_s": float(bias_deg_s), "maxiter": maxiter,
+            "training_cost_deg": round(float(costs[True]), 6),
+            "fixed_training_cost_deg": round(float(costs[False]), 6),
+            "command": (f"zenpilot train-gyrovertical --vehicle {vehicle} --seed {seed} --flights {flights} "
+                        f"--duration-s {duration_s:g} --bias-deg-s {bias_deg_s:g} --maxiter {maxiter}")}
+    return TrainedParams(results[True], results[False], meta)
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("train-gyrovertical", help="train the adaptive gyro-vertical (004) on simulator flights",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--vehicle", default="x250", help="vehicle profile (default x250)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the flights and the optimiser (default 0)")
+    p.add_argument("--flights", type=int, default=3, help="number of training flights (default 3)")
+    p.add_argument("--duration-s", type=float, default=120.0, help="length of each flight, s (default 120)")
+    p.add_argument("--bias-deg-s", type=float, default=0.05, help="gyro bias of the sequences, deg/s (default 0.05)")
+    p.add_argument("--maxiter", type=int, default=400, help="optimiser iterations per filter (default 400)")
+    p.add_argument("--out", help="parameter file to write (default runs/gyrovertical-<vehicle>-seed<N>.toml)")
+    p.set_defaults(func=cmd_train)
+
+
+def cmd_train(args) -> int:
+    for name, value, ok in (("--flights", args.flights, args.flights >= 1),
+                            ("--duration-s", args.duration_s, math.isfinite(args.duration_s) and args.duration_s >= 5),
+                            ("--bias-deg-s", args.bias_deg_s, math.isfinite(args.bias_deg_s) and args.bias_deg_s >= 0),
+                            ("--maxiter", args.maxiter, args.maxiter >= 1)):
+        if not ok:
+            raise ValueError(f"train-gyrovertical: {name} {value!r} is out of range "
+                             "(flights >= 1, duration >= 5 s, bias >= 0, maxiter >= 1)")
+    load_vehicle(args.vehicle)   # refuse a bad vehicle before minutes of flying
+    out = Path(args.out or f"runs/gyrovertical-{args.vehicle}-seed{args.seed}.toml")
+    trained = run_training(args.vehicle, args.seed, args.flights, args.duration_s, args.bias_deg_s,
+                           args.maxiter, log=lambda s: print(s, flush=True))
+    save(out, trained)
+    print(f"wrote {out}; use it with --set attitude.gyrovertical_params={out}", file=sys.stdout)
+    return 0
+
+
+# ---------------------------------------------------------------- evaluation on control flights
+ESTIMATORS = ("integration", "fixed", "adaptive", "kalman-000")
+
+
+def control_flight(vehicle_name: str, seed: int, duration_s: float) -> FlightData:
+    """A control-menu flight (figure-eights, sprints, doublets, climbs, a flip) never used in training."""
+    n = int(round(duration_s / DT_REF))
+    return record(load_vehicle(vehicle_name), "control", duration_s, seed=10_000 + seed).slice(n)
+
+
+def estimate(flight: FlightData, estimator: str, trained: TrainedParams,
+             bias_rad_s=(0.0, 0.0, 0.0), vehicle_name: str = "x250"):
+    """(roll, pitch) estimates (N,) of one estimator on a flight whose gyros carry ``bias_rad_s``.
+
+    Every estimator starts from the true attitude and sees the same samples;
+    'kalman-000' is the attitude filter of 000 as printed (raw accelerometer
+    angles, the recorded torques, 200 Hz calls with the two samples since the last).
+    """
+    import numpy as np
+
+    from flight.gyrovertical import GyroIntegrator, run_sequence
+    from flight.quat import quat_from_euler
+
+    gyro = flight.gyro_rad_s + np.asarray(bias_rad_s, dtype=np.float64)
+    q0 = quat_from_euler(float(flight.roll_rad[0]), float(flight.pitch_rad[0]), float(flight.yaw_rad[0]))
+    if estimator == "integration":
+        return run_sequence(GyroIntegrator(DT_REF, q0), gyro, flight.accel_m_s2)
+    if estimator in ("fixed", "adaptive"):
+        import jax.numpy as jnp
+
+        from flight.gyrovertical_jax import run_batch
+        params = trained.adaptive if estimator == "adaptive" else trained.fixed
+        r, p = run_batch(jnp.asarray(params.to_vector()), jnp.asarray(gyro[None]),
+                         jnp.asarray(flight.accel_m_s2[None]), jnp.asarray(q0[None]),
+                         adaptive=estimator == "adaptive")
+        return np.asarray(r[0], dtype=np.float64), np.asarray(p[0], dtype=np.float64)
+    if estimator == "kalman-000":
+        from flight.attitude_filter import AttitudeFilter
+        filt = AttitudeFilter(load_vehicle(vehicle_name).inertia_kg_m2)
+        roll, pitch = np.empty(len(gyro)), np.empty(len(gyro))
+        for i in range(1, len(gyro), 2):   # one 200 Hz call per two IMU samples, estimate at the newer one
+            t = float(flight.t_s[i])
+            samples = [(float(flight.t_s[j]), gyro[j], flight.accel_m_s2[j]) for j in (i - 1, i)]
+            est = filt.update(samples, None, flight.torque_nm[i - 1], t)
+            roll[i - 1:i + 1], pitch[i - 1:i + 1] = est.euler_rad[0], est.euler_rad[1]
+        if len(gyro) % 2:
+            roll[-1], pitch[-1] = roll[-2], pitch[-2]
+        return roll, pitch
+    raise ValueError(f"gyrovertical: estimator must be one of {ESTIMATORS}, got {estimator!r}")
+
+
+def manoeuvring(flight: FlightData, threshold: float = 0.05):
+    """Samples where the load factor is more than ``threshold`` away from 1 g (low-passed over 0.1 s)."""
+    import numpy as np
+
+    n = np.linalg.norm(flight.accel_m_s2, axis=1) / 9.80665
+    k = int(0.1 / DT_REF)
+    smooth = np.convolve(n, np.ones(k) / k, mode="same")
+    return np.abs(smooth - 1.0) > threshold
+
+
+def tilt_error_deg(flight: FlightData, roll, pitch):
+    """Per-sample (roll, pitch) errors, degrees, wrapped."""
+    import numpy as np
+
+    from flight.gyrovertical import wrap
+    return np.degrees(wrap(roll - flight.roll_rad)), np.degrees(wrap(pitch - flight.pitch_rad))
