@@ -20,7 +20,6 @@ pitch and its error over a flight (004 fig. 2), RMS error against gyro bias
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from pathlib import Path

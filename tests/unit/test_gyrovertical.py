@@ -15,7 +15,7 @@ from flight.gyrovertical import (DT_REF, FLU_TO_DOC, G, GyroIntegrator, GyroVert
                                  GyroVerticalParams, doc_jacobian, doc_observation, doc_to_flu,
                                  evaluate, flu_to_doc, make_training_sequences, piecewise_variance,
                                  rms_error_deg, run_sequence, train, wrap)
-from flight.quat import quat_from_euler, quat_multiply, quat_to_euler, quat_to_rotation
+from flight.quat import quat_from_euler, quat_to_euler, quat_to_rotation
 
 BIAS = math.radians(0.05)  # 0.05 deg/s = 180 deg/h, the document's bias
 
@@ -194,7 +194,6 @@ def test_bias_bounded_with_correction_grows_without():
     ra, pa = run_sequence(GyroVertical(dt=dt, q0=q0), gyro, accel)
     ri, pi_ = run_sequence(GyroIntegrator(dt, q0), gyro, accel)
     rf, pf = run_sequence(GyroVertical(dt=dt, q0=q0, adaptive=False), gyro, accel)
-    tilt_a = np.degrees(np.hypot(wrap(ra - roll), wrap(pa - pitch)))
     tilt_i = np.degrees(np.hypot(wrap(ri - roll), wrap(pi_ - pitch)))
     rms = {"adaptive": (rms_error_deg(ra, roll), rms_error_deg(pa, pitch)),
            "fixed": (rms_error_deg(rf, roll), rms_error_deg(pf, pitch)),
