@@ -218,14 +218,24 @@ def compute_metrics(log: dict[str, list[dict]], info: dict, vehicle_id: int = 0)
             m["measured_s"] = _f(np.sum(dt[sel]))
 
     # a crash: the truth on the ground while the mission flies (the planner's "completed"
-    # comes from the estimate and cannot see it), or a tilt past 60 degrees
-    m["max_tilt_deg"] = _f(np.degrees(np.max(np.arccos(np.clip(
-        np.cos(euler[:, 0]) * np.cos(euler[:, 1]), -1.0, 1.0))))) if truth else None
+    # comes from the estimate and cannot see it), or a tilt past 60 degrees (outside flips)
+    tilt = np.degrees(np.arccos(np.clip(np.cos(euler[:, 0]) * np.cos(euler[:, 1]), -1.0, 1.0)))
+    sp_idx = np.clip(np.searchsorted(sp_t, truth_t, side="right") - 1, 0, len(sp) - 1) if sp else None
+    in_flip = (np.array([x["phase"].startswith("flip") for x in sp])[sp_idx] if sp
+               else np.zeros(truth_t.size, dtype=bool))
+    m["max_tilt_deg"] = _f(np.max(tilt[~in_flip])) if truth and np.any(~in_flip) else None
     m["crashed"] = False
     if truth and sp:
-        idx = np.clip(np.searchsorted(sp_t, truth_t, side="right") - 1, 0, len(sp) - 1)
-        flying = np.array([x["phase"] in FLYING_PHASES for x in sp])[idx]
+        flying = np.array([x["phase"] in FLYING_PHASES or x["phase"].startswith("flip") for x in sp])[sp_idx]
         m["crashed"] = bool(np.any(landed & flying) or (m["max_tilt_deg"] or 0.0) > 60.0)
+    m["flip"] = _flip(log, p, sp, truth, truth_t, sp_idx) if truth and in_flip.any() else None
+    if m["flip"] is not None:  # a flip that reaches the ground is a crash, whatever the flags say
+        low = float(np.min(pos[in_flip, 2]))
+        m["flip"]["min_altitude_m"] = _f(low)
+        m["flip"]["hit_ground"] = bool(low < GROUND_Z_M)
+        if low < GROUND_Z_M:
+            m["crashed"] = True
+            m["flip"]["completed"] = False
 
     # service health
     rates: dict[str, float | None] = {}
@@ -266,6 +276,38 @@ def compute_metrics(log: dict[str, list[dict]], info: dict, vehicle_id: int = 0)
     m["position_steps_unsettled"] = sum(1 for s in ps if s["settle_s"] is None)
     m["estimation"] = _estimation(log, p, truth_t, pos, euler, landed)
     return m
+
+
+GROUND_Z_M = 0.05  # truth altitude below this during a flip item: it hit the ground
+FLIP_PHASES = {"flip": "flip", "flip-recovery": "recovery"}  # setpoint phase -> flip.Phase
+
+
+def _flip(log, p, sp, truth, truth_t, sp_idx) -> dict:
+    """The flip object: flight.flip.flip_metrics on the truth (its first flip), the method,
+    and the planner's re-solves as they ran (rate, compute time, failures)."""
+    from flight.flip import flip_metrics
+
+    phases = [FLIP_PHASES.get(sp[i]["phase"], "idle") for i in sp_idx]
+    fm = flip_metrics(truth_t, [x["position_m"] for x in truth], [x["quaternion_wxyz"] for x in truth],
+                      [x["rate_rad_s"] for x in truth], phases)
+    out: dict[str, Any] = {k: (v if isinstance(v, bool) else _f(v)) for k, v in fm.__dict__.items()}
+    flip_sp = [x for x in sp if x["phase"].startswith("flip")]
+    out["aborted"] = any(x["phase"] == "flip-aborted" for x in sp)
+    plans = _sorted(log.get(p + "planner/plan", []))
+    out["method"] = plans[-1]["method"] if plans else None
+    out["solves"] = plans[-1]["solves"] if plans else 0
+    out["failed_solves"] = plans[-1]["failed_solves"] if plans else 0
+    out["overrun_solves"] = plans[-1]["overrun_solves"] if plans else 0
+    ms = np.array([x["solve_ms"] for x in plans], dtype=np.float64)
+    out["solve_ms_p50"], out["solve_ms_p99"] = _pct(ms, 50), _pct(ms, 99)
+    out["solve_ms_max"] = _f(ms.max()) if ms.size else None
+    span = (flip_sp[-1]["header"]["t_s"] - flip_sp[0]["header"]["t_s"]) if len(flip_sp) > 1 else 0.0
+    out["plan_rate_hz"] = _f(len(plans) / span) if span > 0 else None  # plans sent per second of flip item
+    fallbacks: dict[str, int] = {}
+    for h in _sorted(log.get(p + "motors/health", []))[-1:]:
+        fallbacks = {k: int(v) for k, v in h["rejected"].items() if k.startswith("plan_fallback")}
+    out["motor_fallbacks"] = fallbacks
+    return out
 
 
 NEES_BAND_95_3DOF = (0.2158, 9.3484)  # chi-square 2.5 % and 97.5 % points for 3 dof
@@ -332,6 +374,8 @@ def format_table(metrics: dict) -> str:
             rows.append((k, _fmt(v)))
     for k, v in metrics.get("latency_ms", {}).items():
         rows.append((f"latency_ms.{k}", _fmt(v)))
+    for k, v in (metrics.get("flip") or {}).items():
+        rows.append((f"flip.{k}", _fmt(v) if not isinstance(v, dict) else str(v)))
     for k, v in (metrics.get("estimation") or {}).items():
         rows.append((f"estimation.{k}", _fmt(v) if not isinstance(v, list) else str(v)))
     rej = metrics.get("rejected_messages", {})

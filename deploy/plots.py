@@ -170,9 +170,69 @@ def _estimation_plot(log, p, t0, out: Path) -> Path | None:
     return _save(fig, out / "estimation.png")
 
 
-def make_plots(log: dict, out_dir: Path, vehicle_id: int = 0) -> list[Path]:
+def _flip_plot(log, p, t0, out: Path, kf: float) -> Path | None:
+    """The flip: accumulated roll against the phase machine's adaptive target, altitude,
+    XY, rotor speeds and the planner's solve times, around the flip item."""
+    plans = sorted(log.get(p + "planner/plan", []), key=lambda m: m["header"]["t_s"])
+    truth = sorted(log.get(p + "sim/truth", []), key=lambda m: m["header"]["t_s"])
+    sp = sorted(log.get(p + "planner/setpoint", []), key=lambda m: m["header"]["t_s"])
+    flip_t = [m["header"]["t_s"] for m in sp if m["phase"].startswith("flip")]
+    if not plans or not truth or not flip_t:
+        return None
+    lo, hi = flip_t[0] - 1.0, flip_t[-1] + 1.0
+    truth = [m for m in truth if lo <= m["header"]["t_s"] <= hi]
+    tt, pos = _series(truth, "position_m")
+    _, q = _series(truth, "quaternion_wxyz")
+    roll = np.unwrap(euler_from_quaternions(q)[:, 0])
+    tp = np.array([m["header"]["t_s"] for m in plans])
+    plan_roll = np.array([m["roll_rad"] for m in plans])
+    # the truth's roll accumulated from the same origin as the phase machine's
+    offset = np.interp(tp[0], tt, roll) - plan_roll[0]
+    fig, axes = plt.subplots(5, 1, sharex=True, figsize=(10, 13))
+    ax = axes[0]
+    ax.plot(tt - t0, np.degrees(roll - offset), label="roll (truth, accumulated)", color="tab:blue")
+    ax.plot(tp - t0, np.degrees(plan_roll), label="roll (planner's estimate)", color="tab:green", lw=0.8, ls=":")
+    ax.step(tp - t0, np.degrees([m["target_roll_rad"][min(1, len(m["target_roll_rad"]) - 1)] for m in plans]),
+            where="post", label="adaptive target (next plan step)", color="tab:orange", ls="--")
+    ax.step(tp - t0, np.degrees([m["target_roll_rad"][-1] for m in plans]), where="post",
+            label="adaptive target (horizon end)", color="tab:red", ls="--", lw=0.8)
+    ax.axhline(360.0, color="grey", lw=0.6)
+    ax.set_ylabel("roll [deg]")
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title(f"Flip ({plans[-1]['method']}): roll against the adaptive target")
+    axes[1].plot(tt - t0, pos[:, 2], color="tab:blue")
+    axes[1].set_ylabel("altitude z [m]")
+    _min_span(axes[1], 0.2)
+    axes[2].plot(tt - t0, pos[:, 0], label="x")
+    axes[2].plot(tt - t0, pos[:, 1], label="y")
+    axes[2].set_ylabel("position [m]")
+    axes[2].legend(loc="best")
+    _min_span(axes[2], 0.2)
+    _, thrust = _series(truth, "motor_thrust_n")
+    speeds = np.sqrt(np.maximum(thrust, 0.0) / kf)
+    for i in range(speeds.shape[1]):
+        axes[3].plot(tt - t0, speeds[:, i], lw=0.8, label=f"rotor {i + 1}")
+    axes[3].set_ylabel("rotor speed [rad/s]")
+    axes[3].legend(loc="best", ncol=4, fontsize=8)
+    axes[4].plot(tp - t0, [m["solve_ms"] for m in plans], ".", ms=3, color="tab:purple", label="solve")
+    dts = np.diff(tp)
+    if dts.size:
+        axes[4].axhline(1e3 * float(np.median(dts)), color="grey", ls="--", lw=0.8, label="re-solve period")
+    axes[4].set_ylabel("solve time [ms]")
+    axes[4].legend(loc="best", fontsize=8)
+    axes[-1].set_xlabel("time since start of log [s]")
+    for a in axes:
+        a.grid(True, alpha=0.4)
+        for name, color in (("flip", "tab:red"), ("flip-recovery", "tab:green")):
+            ts = [m["header"]["t_s"] - t0 for m in sp if m["phase"] == name]
+            if ts:
+                a.axvspan(ts[0], ts[-1], color=color, alpha=0.08, lw=0)
+    return _save(fig, out / "flip.png")
+
+
+def make_plots(log: dict, out_dir: Path, vehicle_id: int = 0, vehicle: str | None = None) -> list[Path]:
     """Write position.png, attitude.png, motors.png (and estimation.png when a state
-    estimate was flown) into out_dir; plots whose topics are missing are skipped."""
+    estimate was flown, flip.png when the mission flew a flip) into out_dir; plots whose topics are missing are skipped."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     p = f"zp/{vehicle_id}/"
@@ -183,4 +243,18 @@ def make_plots(log: dict, out_dir: Path, vehicle_id: int = 0) -> list[Path]:
         path = fn(log, p, t0, out)
         if path is not None:
             written.append(path)
+    kf = _thrust_coefficient(vehicle)
+    if kf is not None:
+        path = _flip_plot(log, p, t0, out, kf)
+        if path is not None:
+            written.append(path)
     return written
+
+
+def _thrust_coefficient(vehicle: str | None) -> float | None:
+    """kf of the flight's airframe (rotor speed = sqrt(thrust / kf)); None without one."""
+    from flight.vehicle import VehicleError, load_vehicle
+    try:
+        return load_vehicle(vehicle).thrust_coefficient_kf if vehicle else None
+    except VehicleError:
+        return None

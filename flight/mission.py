@@ -19,6 +19,11 @@ Item types and their keys (defaults in ITEM_KEYS):
   goto      position_m yaw_deg settle_s hold_s    step the reference; measured after settle_s
   attitude  roll_deg pitch_deg yaw_deg duration_s attitude reference, altitude held
   land      descent_rate_m_s            descend until landed, then disarm
+  flip      method altitude_m settle_s timeout_s   a 360-degree roll flip (document 001):
+            method "ilqr-project" | "ilqr-thesis" | "baseline"; the flip controller
+            (given by the planner service, see MissionRunner.flip) flies it from the
+            altitude altitude_m (>= 5 m) and holds settle_s after recovery; the mission
+            goes on from where it recovered. Without a flip controller the mission fails.
 """
 
 from __future__ import annotations
@@ -39,7 +44,10 @@ ITEM_KEYS: dict[str, dict] = {
     "goto": {"position_m": None, "yaw_deg": 0.0, "settle_s": 4.0, "hold_s": 2.0},
     "attitude": {"roll_deg": 0.0, "pitch_deg": 0.0, "yaw_deg": 0.0, "duration_s": 1.0},
     "land": {"descent_rate_m_s": 0.5},
+    "flip": {"method": "ilqr-project", "altitude_m": 5.0, "settle_s": 1.0, "timeout_s": 15.0},
 }
+FLIP_METHODS = ("ilqr-project", "ilqr-thesis", "baseline")
+FLIP_MIN_ALTITUDE_M = 5.0  # a safe altitude, as in 001
 LANDED_Z_M = 0.03      # below this, slow and with the reference under ground: landed
 LANDED_FOR_S = 0.5
 LAND_TARGET_Z_M = -0.3  # the reference goes below the floor so the vehicle sits down firmly
@@ -99,9 +107,14 @@ def load_mission(name_or_path: str) -> Mission:
                 if not (isinstance(value, list) and len(value) == 3 and all(isinstance(v, (int, float)) for v in value)):
                     raise MissionError(f"{where}: position_m must be 3 numbers")
                 value = [float(v) for v in value]
+            elif key == "method":
+                if value not in FLIP_METHODS:
+                    raise MissionError(f"{where}: method {value!r} not one of {', '.join(FLIP_METHODS)}")
             elif not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
                 raise MissionError(f"{where}: {key} must be a finite number, got {value!r}")
             item[key] = value
+        if kind == "flip" and item["altitude_m"] < FLIP_MIN_ALTITUDE_M:
+            raise MissionError(f"{where}: a flip needs altitude_m >= {FLIP_MIN_ALTITUDE_M:g} (got {item['altitude_m']})")
         if any(v is None for v in item.values()):
             raise MissionError(f"{where}: {kind} needs " + ", ".join(k for k, v in item.items() if v is None))
         items.append(item)
@@ -132,8 +145,11 @@ class Setpoint:
 class MissionRunner:
     """Phase machine: feed it the time and the state, get the setpoint."""
 
-    def __init__(self, mission: Mission):
+    def __init__(self, mission: Mission, flip=None):
         self.mission = mission
+        # flip(item, t_s, starting) -> (phase, done, failed, position_ref_m): the flip
+        # controller (the planner service's iLQR or baseline), None when there is none
+        self.flip = flip
         self.index = 0
         self.item_start_t: float | None = None
         self.start_t: float | None = None
@@ -212,6 +228,22 @@ class MissionRunner:
                            math.radians(item["yaw_deg"])]
         return dt >= item["duration_s"]
 
+    def _flip(self, item, dt, t, pos, vel) -> bool:
+        sp = self.sp
+        sp.mode, sp.armed, sp.measure = "plan", True, False
+        if self.flip is None:
+            sp.mode, sp.phase, sp.mission_state = "position", "flip-unavailable", "failed"
+            return False
+        phase, done, failed, ref = self.flip(item, t, dt == 0.0)
+        sp.phase = "flip" if phase == "flip" else f"flip-{phase}"
+        self.ref = np.array(ref, dtype=float)
+        if failed or dt > item["timeout_s"]:  # abort: the position level takes over where it is
+            sp.mode, sp.phase, sp.mission_state = "position", "flip-aborted", "failed"
+            return False
+        if done:
+            sp.mode = "position"
+        return done
+
     def _land(self, item, dt, t, pos, vel) -> bool:
         sp = self.sp
         sp.mode, sp.armed, sp.phase, sp.measure = "position", True, "land", False
@@ -261,8 +293,9 @@ class Planner:
     """A mission file (or none: idle, waiting for commands) plus commands from
     outside (MAVLink) that replace whatever is being flown."""
 
-    def __init__(self, mission: Mission | None):
-        self.runner = MissionRunner(mission) if mission is not None else None
+    def __init__(self, mission: Mission | None, flip=None):
+        self.flip = flip  # the flip controller for flip items (see MissionRunner.flip)
+        self.runner = MissionRunner(mission, flip) if mission is not None else None
         self.sp = self.runner.sp if self.runner else Setpoint()
         self.last_command = ""
 
@@ -274,8 +307,11 @@ class Planner:
             self.runner = None
             self.sp = Setpoint(phase="disarmed", mission_state="completed")
         else:
+            if command == "flip" and self.flip is None:
+                raise MissionError("command 'flip': this planner has no flip controller "
+                                   "(fly a mission with a flip item)")
             items = command_items(command, altitude_m, position_m, yaw_rad)
-            runner = MissionRunner(Mission(f"command-{command}", "", "", math.inf, items))
+            runner = MissionRunner(Mission(f"command-{command}", "", "", math.inf, items), self.flip)
             if prev is not None:
                 runner.yaw = prev.yaw
                 runner.sp.mode, runner.sp.armed = prev.sp.mode, prev.sp.armed

@@ -110,9 +110,10 @@ PLANNER_SETPOINT = Message(
     "planner_setpoint", "planner/setpoint", 1,
     "What the mission asks for now. mode `position`: hold position_m and yaw; "
     "mode `attitude`: hold roll/pitch/yaw with altitude position_m[2]; `idle`: "
-    "motors off.",
+    "motors off; `plan`: the motor driver flies planner/plan while it is valid, the "
+    "position and attitude levels holding position_m as its fallback.",
     (
-        F("mode", "str", "control mode", choices=("idle", "position", "attitude")),
+        F("mode", "str", "control mode", choices=("idle", "position", "attitude", "plan")),
         F("armed", "bool", "motors may spin"),
         _vec("position_m", "position reference, world ENU", "m", lo=-1e4, hi=1e4),
         _vec("attitude_rad", "[roll, pitch, yaw] reference", "rad", lo=-7.0, hi=7.0),
@@ -241,6 +242,52 @@ PLANNER_COMMAND = Message(
     ),
 )
 
+FLIP_METHODS = ("ilqr-project", "ilqr-thesis", "baseline")
+FLIP_PHASES = ("takeoff", "flip", "recovery", "settle")
+
+
+def _plan_lengths(doc: dict) -> str | None:
+    h, n = doc["horizon"], doc["state_dim"]
+    for name, expected in (("states", (h + 1) * n), ("controls_rad_s", 4 * h), ("gains", 4 * h * n),
+                           ("target_roll_rad", h)):
+        if len(doc[name]) != expected:
+            return f"{name} has {len(doc[name])} values, expected {expected} (horizon {h}, state_dim {n})"
+    return None
+
+
+PLANNER_PLAN = Message(
+    "planner_plan", "planner/plan", 1,
+    "A rotor-speed plan for the motor driver (the flip of 001), solved from the state "
+    "estimate at t0_s. The driver applies u = u_plan(t) + K(t) (x - x_plan(t)) at its rate "
+    "while t0_s <= t < t0_s + horizon dt_s (controls and gains held over each step, states "
+    "interpolated); x = [position_m, velocity_m_s (world ENU), quaternion_wxyz (body to "
+    "world), rate_rad_s (body FLU)] and, when state_dim is 17, the 4 rotor forces (N). "
+    "Sizes are fixed per method. The baseline flip sends its rotor commands as a plan of "
+    "horizon 1 with zero gains.",
+    (
+        F("method", "str", "flip method", choices=FLIP_METHODS),
+        F("phase", "str", "phase of the flip's phase machine", choices=FLIP_PHASES),
+        F("t0_s", "float", "time of the plan's first state", "s", min=0.0),
+        F("dt_s", "float", "plan step", "s", min=1e-4, max=10.0),
+        F("horizon", "int", "plan steps H", min=1, max=1000),
+        F("state_dim", "int", "state size n: 13, or 17 with the rotor forces", min=13, max=17),
+        F("states", "float[]", "planned states, (H+1) x n row-major", "", min=-BIG, max=BIG),
+        F("controls_rad_s", "float[]", "planned rotor speeds, H x 4 row-major", "rad/s", min=0.0, max=1e5),
+        F("gains", "float[]", "feedback gains K, H x 4 x n row-major", "", min=-BIG, max=BIG),
+        F("roll_rad", "float", "accumulated roll of the phase machine at t0_s", "rad", min=-100.0, max=100.0),
+        F("target_roll_rad", "float[]", "the phase machine's (adaptive) accumulated roll target at each "
+          "of the H plan steps", "rad", min=-100.0, max=100.0),
+        F("solve_ms", "float", "compute time of this solve (0 for the baseline)", "ms", min=0.0),
+        F("iterations", "int", "solver iterations", min=0),
+        F("cost", "float", "plan cost", "", min=0.0),
+        F("converged", "bool", "the solver met its tolerance"),
+        F("solves", "int", "solves since the flip started", min=0),
+        F("failed_solves", "int", "solves not usable (previous plan kept, or the hover laws)", min=0),
+        F("overrun_solves", "int", "solves longer than the re-solve period", min=0),
+    ),
+    check=_plan_lengths,
+)
+
 PARAM_SET = Message(
     "param_set", "param/set", 1,
     "Set a running service's parameter (the MAVLink parameter protocol): the "
@@ -257,7 +304,7 @@ PARAM_SET = Message(
 ALL = (
     CLOCK, SYNC_DONE, IMU, BARO, MAG, CAMERA, TRUTH, VISION_POSE, PLANNER_SETPOINT,
     POSITION_SETPOINT, POSITION_STATE, ATTITUDE_COMMAND, ATTITUDE_STATE, MOTOR_PWM, HEALTH,
-    BATTERY, PLANNER_COMMAND, PARAM_SET,
+    BATTERY, PLANNER_COMMAND, PARAM_SET, PLANNER_PLAN,
 )
 
 BY_NAME = {m.name: m for m in ALL}

@@ -5,6 +5,16 @@ mixer F = M^-1 u (saturation keeps attitude authority before collective
 thrust), then into PWM through the motor map of 000. Disarmed (or with no
 command yet) it holds every motor at the minimum pulse.
 
+Plans (the flip of 001): while the planner's setpoint is in mode `plan` and a
+plan (planner/plan) is valid at t (t0_s <= t < t0_s + horizon dt_s), the driver
+applies u = u_plan(t) + K(t) (x - x_plan(t)) (flight/plan.py) on the latest
+estimate x (pos/state position/velocity and att/state quaternion/rates, each
+carried forward over its age; with a 17-state plan, the rotor forces its own
+commands imply through the motor lag), clipped to the rotor limits, as thrust
+kf u^2 through the motor map. The newest plan is used; when it has expired the
+previous one while it lasts ("plan_fallback_previous"), then the attitude
+level's command ("plan_fallback_hover"): both counted per output in health.
+
 Output `sim` (default): motors/pwm for the simulator (or ESCs). Output
 `mavlink`: the same, and at the motor rate the mixer's result goes to an
 external autopilot as SET_ACTUATOR_CONTROL_TARGET group 0 (normalised FRD
@@ -16,7 +26,8 @@ from __future__ import annotations
 import numpy as np
 
 import schemas
-from flight.mixer import mix, thrust_to_pwm
+from flight.mixer import mix, pwm_to_thrust, thrust_to_pwm
+from flight.plan import RotorPlan, body_state, motor_forces_update
 from flight.vehicle import load_vehicle
 from services.runtime import Runtime, main_guard, service_parser
 
@@ -36,7 +47,40 @@ def run(args) -> None:
     link = actuator_link(rt, vehicle) if rt.choice("output", OUTPUTS) == "mavlink" else None
     command = rt.inbox(schemas.ATTITUDE_COMMAND, "attitude")
     setpoint = rt.inbox(schemas.PLANNER_SETPOINT, "planner")
+    plans = rt.inbox(schemas.PLANNER_PLAN, "planner", keep=4)
+    att_state = rt.inbox(schemas.ATTITUDE_STATE, "attitude")
+    pos_state = rt.inbox(schemas.POSITION_STATE, "position")
     out = rt.publisher(schemas.MOTOR_PWM)
+    kf = vehicle.thrust_coefficient_kf
+    u_max = vehicle.max_rotor_speed_rad_s
+    dt_tick = 1.0 / rt.rate_hz if rt.rate_hz > 0 else 1.0 / rt.tick_rate
+    held = {"plans": [], "seen": -1, "forces": np.zeros(4), "mode": ""}
+
+    def count(reason: str) -> None:
+        rt.rejected[reason] = rt.rejected.get(reason, 0) + 1
+
+    def plan_forces(t: float, sp: dict):
+        """Rotor forces from a valid plan, or None (fall back to the attitude command)."""
+        for m in plans.take():
+            if m["_n"] > held["seen"]:
+                held["seen"] = m["_n"]
+                held["plans"] = (held["plans"] + [RotorPlan.from_message(m)])[-2:]  # newest two
+        if sp is None or sp["mode"] != "plan":
+            held["plans"] = []
+            return None
+        att, pos = att_state.latest(), pos_state.latest()
+        valid = [p for p in held["plans"] if p.valid_at(t)]
+        if not valid or att is None or pos is None or kf is None:
+            count("plan_fallback_hover")
+            return None
+        plan = valid[-1]
+        if plan is not held["plans"][-1]:
+            count("plan_fallback_previous")
+        x = body_state(t, att, pos)
+        if plan.state_dim == 17:
+            x = np.concatenate([x, held["forces"]])
+        u = plan.control(t, x, u_max)
+        return kf * u * u
     idle = {"pwm_us": [vehicle.pwm_min_us] * 4, "thrust_n": [0.0] * 4, "armed": False,
             "saturated": False, "imu_t_s": -1.0}
 
@@ -44,14 +88,23 @@ def run(args) -> None:
         cmd, sp = command.latest(), setpoint.latest()
         armed = sp is not None and sp["armed"]
         if not armed or cmd is None or t - cmd["header"]["t_s"] > rt.params["command_timeout_s"]:
+            held["forces"] = motor_forces_update(held["forces"], np.zeros(4), dt_tick, vehicle.motor_time_constant_s)
             out.put({**idle, "armed": bool(armed)}, t_s=t)
             if link:
                 link(t, idle["thrust_n"])
             return
-        forces, saturated = mix(vehicle, cmd["thrust_n"], cmd["torque_nm"])
+        forces = plan_forces(t, sp)
+        if forces is not None:
+            pwm = thrust_to_pwm(vehicle, forces)
+            forces = pwm_to_thrust(vehicle, pwm)  # what the motors will really be asked for
+            saturated = bool(np.any(pwm <= vehicle.pwm_min_us) or np.any(pwm >= vehicle.pwm_max_us))
+        else:
+            forces, saturated = mix(vehicle, cmd["thrust_n"], cmd["torque_nm"])
+            pwm = thrust_to_pwm(vehicle, forces)
+        held["forces"] = motor_forces_update(held["forces"], forces, dt_tick, vehicle.motor_time_constant_s)
         if link:
             link(t, forces)
-        out.put({"pwm_us": thrust_to_pwm(vehicle, forces), "thrust_n": np.asarray(forces),
+        out.put({"pwm_us": pwm, "thrust_n": np.asarray(forces),
                  "armed": True, "saturated": bool(saturated), "imu_t_s": cmd["imu_t_s"]}, t_s=t)
 
     rt.run(step)

@@ -1,31 +1,113 @@
-"""zenpilot-planner: flies a mission file (arm, take off, hold, go to points, land).
+"""zenpilot-planner: flies a mission file (arm, take off, hold, go to points, flip, land).
 
 Publishes planner/setpoint at its rate from the phase machine in
 flight/mission.py, fed by the position level's state. It also follows
 planner/command (from the MAVLink bridge): a command replaces whatever is
 being flown. Mission "none" (or ""): idle on the ground, waiting for commands.
+
+Flip items (document 001): when the mission has one, the flip controller of each
+method it names is built at start-up (the iLQR compiled and warmed up before the
+first tick, never in flight) and the loop runs at least at the re-solve rate
+(`mpc_rate_hz`, 0: the method's default, see flight/flip_runner.py). While a flip
+item runs, the setpoint's mode is `plan` and every re-solve from the latest
+estimate (pos/state + att/state, and the rotor forces implied by motors/pwm)
+goes out on planner/plan for the motor driver.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
+
+import numpy as np
+
 import schemas
-from flight.mission import MissionError, Planner, load_mission
+from flight.mission import FLIP_METHODS, MissionError, Planner, load_mission
+from flight.plan import body_state, motor_forces_update
 from services.runtime import Runtime, main_guard, service_parser
 
 NAME = "planner"
-PARAMS = {"mission": "hover"}
+PARAMS = {
+    "mission": "hover",
+    "mpc_rate_hz": 0.0,   # flip re-solve rate; 0: the method's default (project 100, thesis 20, baseline 200)
+    "flip_method": "",    # fly every flip item with this method ("" : as the mission says)
+}
 NO_MISSION = ("", "none")
+
+
+def flip_controllers(rt: Runtime, mission) -> dict:
+    """One FlipController per flip method the mission names (compiled now)."""
+    methods = sorted({item["method"] for item in mission.items if item["type"] == "flip"}) if mission else []
+    if not methods:
+        return {}
+    from flight.flip_runner import FlipController, loop_rate_hz
+    from flight.vehicle import load_vehicle
+    vehicle = load_vehicle(rt.vehicle_name)
+    rate = rt.params["mpc_rate_hz"] or None
+    controllers = {}
+    for m in methods:
+        print(f"zenpilot-planner: building the {m} flip controller", flush=True)
+        controllers[m] = FlipController(vehicle, m, rate)
+    loop = loop_rate_hz(rt.rate_hz, rt.tick_rate, [c.solve_rate_hz for c in controllers.values()])
+    if loop != rt.rate_hz:
+        print(f"zenpilot-planner: loop at {loop:g} Hz for the flip's re-solves", flush=True)
+        rt.rate_hz = loop
+    return controllers
 
 
 def run(args) -> None:
     rt = Runtime(NAME, args, PARAMS)
     name = args.mission if args.mission is not None else rt.params["mission"]
     mission = None if name in NO_MISSION else load_mission(name)
-    planner = Planner(mission)
+    if rt.params["flip_method"] and mission is not None:
+        method = rt.choice("flip_method", FLIP_METHODS)
+        mission = replace(mission, items=tuple({**i, "method": method} if i["type"] == "flip" else i
+                                               for i in mission.items))
+    controllers = flip_controllers(rt, mission)
     state = rt.inbox(schemas.POSITION_STATE, "position")
     commands = rt.inbox(schemas.PLANNER_COMMAND, "mavlink", keep=16)
     out = rt.publisher(schemas.PLANNER_SETPOINT)
     reported = {"state": None}
+    flip = {"t": 0.0, "x": None, "plan": None, "steps": 0, "active": None}
+    if controllers:
+        attitude = rt.inbox(schemas.ATTITUDE_STATE, "attitude")
+        pwm = rt.inbox(schemas.MOTOR_PWM, "motors", keep=32)
+        plan_out = rt.publisher(schemas.PLANNER_PLAN)
+        from flight.vehicle import load_vehicle
+        forces = {"n": None, "tau": load_vehicle(rt.vehicle_name).motor_time_constant_s}
+
+    def fly_flip(item, t, starting):
+        """MissionRunner's flip hook: one controller step on the state of this run."""
+        c = controllers.get(item["method"])
+        if c is None:  # cannot happen for a mission's items; a MAVLink flip names the project's
+            c = next(iter(controllers.values()))
+        if flip["x"] is None:  # no attitude state yet: wait (the fallback laws hold)
+            return "takeoff", False, False, flip["pos"]
+        x = flip["x"] if c.state_dim == 17 else flip["x"][:13]
+        if starting:
+            c.start(t, x, item["altitude_m"])
+            flip["steps"] = 0
+        ratio = max(1, round(rt.rate_hz / c.solve_rate_hz))
+        s = c.step(t, x, item["settle_s"], solve=flip["steps"] % ratio == 0)
+        flip["steps"] += 1
+        flip["plan"] = s.plan
+        return s.phase, s.done, s.failed, s.position_ref_m
+
+    def read_full_state(t: float, pos: dict) -> np.ndarray | None:
+        """[p, v, q, w, rotor forces] at t, or None without an attitude state."""
+        for m in pwm.take():  # the rotor forces the motor driver's commands imply (its lag model)
+            f = np.asarray(m["thrust_n"], dtype=np.float64)
+            forces["n"] = f if forces["n"] is None else motor_forces_update(
+                forces["n"], f, 1.0 / rt.tick_rate, forces["tau"])
+        att = attitude.latest()
+        if att is None:
+            return None
+        n = forces["n"] if forces["n"] is not None else np.zeros(4)
+        return np.concatenate([body_state(t, att, pos), n])
+
+    if controllers:
+        planner = Planner(mission, fly_flip)
+    else:
+        planner = Planner(mission)
 
     def follow_commands() -> None:
         for c in commands.take():
@@ -43,8 +125,14 @@ def run(args) -> None:
         if s is None:  # the mission starts once the position level reports a state
             out.put(planner.sp.as_message(), t_s=t)
             return
+        if controllers:
+            flip["x"] = read_full_state(t, s)
+            flip["pos"] = np.array(s["position_m"])
+            flip["plan"] = None
         sp = planner.update(t, s["position_m"], s["velocity_m_s"])
         out.put(sp.as_message(), t_s=t)
+        if controllers and flip["plan"] is not None:
+            plan_out.put(flip["plan"], t_s=t)
         if sp.mission_state != reported["state"]:
             reported["state"] = sp.mission_state
             if sp.mission_state == "failed":

@@ -9,6 +9,7 @@ mission completes (or fails), or after `max_duration_s`.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import schemas
@@ -23,6 +24,7 @@ EXTRA_PARAMS = {
     "stop_after_mission": True,  # `zenpilot fly`: end the run when the mission ends
     "linger_s": 1.0,  # keep simulating after the mission ends (landing settles, logs flush)
     "max_duration_s": 600.0,  # hard stop, simulated seconds
+    "mass_scale": 1.0,  # the plant's mass = this x the airframe file's (robustness: the services keep the file's)
 }
 START_GRACE_S = 0.5  # lockstep: let subscriptions propagate before tick 0
 
@@ -41,6 +43,10 @@ class SimService:
         try:
             config = SimConfig.from_dict(sim_params)
             vehicle = load_vehicle(rt.vehicle_name)
+            if rt.params["mass_scale"] != 1.0:
+                if not 0.1 <= rt.params["mass_scale"] <= 10.0:
+                    raise ValueError(f"mass_scale {rt.params['mass_scale']} outside [0.1, 10]")
+                vehicle = dataclasses.replace(vehicle, mass_kg=vehicle.mass_kg * rt.params["mass_scale"])
         except (ValueError, VehicleError) as exc:
             rt.close()
             raise ValueError(f"{rt.stack.path}: [services.sim.params]: {exc}") from None

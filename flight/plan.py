@@ -1,0 +1,104 @@
+"""Executing a rotor-speed plan (pure numpy; no JAX, no I/O): what the motor driver needs.
+
+A plan (flight/ilqr.py's Plan, carried on planner/plan) starts at t0_s from the
+state it was solved from: states (H+1, n), controls (H, 4) rotor speeds rad/s,
+gains (H, 4, n), n = 13 (body state) or 17 (body state + rotor forces, when the
+solver models the motors' lag). At time t the driver applies
+
+    u = u_plan(t) + K(t) (x - x_plan(t)),   clipped to [0, max_rotor_speed]
+
+(the same law as flight.ilqr.feedback_control, repeated here so that the 400 Hz
+driver does not import JAX), and the rotor forces kf u^2 go to the motor map.
+
+x is built from the latest estimates: position and velocity (pos/state) and
+attitude and body rate (att/state), each carried to t over its age (constant
+velocity, constant body rate), and, for n = 17, the rotor forces the driver's own
+commands imply through the motor lag (motor_forces_update).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from flight.quat import quat_multiply
+
+BODY_DIM = 13
+QUAT = slice(6, 10)
+
+
+@dataclass(frozen=True)
+class RotorPlan:
+    t0_s: float
+    dt_s: float
+    states: np.ndarray   # (H+1, n)
+    controls: np.ndarray  # (H, 4) rad/s
+    gains: np.ndarray    # (H, 4, n)
+
+    @property
+    def horizon(self) -> int:
+        return self.controls.shape[0]
+
+    @property
+    def state_dim(self) -> int:
+        return self.states.shape[1]
+
+    @property
+    def end_s(self) -> float:
+        return self.t0_s + self.horizon * self.dt_s
+
+    def valid_at(self, t_s: float) -> bool:
+        return self.t0_s - 1e-9 <= t_s < self.end_s - 1e-9
+
+    @classmethod
+    def from_message(cls, msg: dict) -> "RotorPlan":
+        h, n = msg["horizon"], msg["state_dim"]
+        return cls(float(msg["t0_s"]), float(msg["dt_s"]),
+                   np.asarray(msg["states"], dtype=np.float64).reshape(h + 1, n),
+                   np.asarray(msg["controls_rad_s"], dtype=np.float64).reshape(h, 4),
+                   np.asarray(msg["gains"], dtype=np.float64).reshape(h, 4, n))
+
+    def control(self, t_s: float, x, u_max_rad_s: float) -> np.ndarray:
+        """u = u_plan + K (x - x_plan) at t_s; controls and gains held over each step,
+        the planned state interpolated; x's quaternion sign-aligned with the plan's."""
+        s = min(max((t_s - self.t0_s) / self.dt_s, 0.0), self.horizon - 1e-9)
+        k = int(s)
+        frac = s - k
+        x_plan = (1 - frac) * self.states[k] + frac * self.states[k + 1]
+        x = np.array(x, dtype=np.float64)
+        if np.dot(x[QUAT], x_plan[QUAT]) < 0:
+            x[QUAT] = -x[QUAT]
+        u = self.controls[k] + self.gains[k] @ (x - x_plan)
+        return np.clip(u, 0.0, u_max_rad_s)
+
+
+def propagate_attitude(q, rate_rad_s, dt_s: float) -> np.ndarray:
+    """q after dt_s at a constant body rate (exact for a constant rate)."""
+    w = np.asarray(rate_rad_s, dtype=np.float64)
+    angle = float(np.linalg.norm(w)) * dt_s
+    if angle < 1e-12:
+        return np.asarray(q, dtype=np.float64)
+    axis = w / np.linalg.norm(w)
+    dq = np.concatenate([[math.cos(angle / 2)], math.sin(angle / 2) * axis])
+    out = quat_multiply(q, dq)
+    return out / np.linalg.norm(out)
+
+
+def body_state(t_s: float, att: dict, pos: dict) -> np.ndarray:
+    """The 13-state [p, v, q, w] at t_s from an att/state and a pos/state message,
+    each carried forward over its age (never backward)."""
+    a_age = max(0.0, t_s - att["header"]["t_s"])
+    p_age = max(0.0, t_s - pos["header"]["t_s"])
+    v = np.asarray(pos["velocity_m_s"], dtype=np.float64)
+    p = np.asarray(pos["position_m"], dtype=np.float64) + v * p_age
+    w = np.asarray(att["rate_rad_s"], dtype=np.float64)
+    q = propagate_attitude(att["quaternion_wxyz"], w, a_age)
+    return np.concatenate([p, v, q, w])
+
+
+def motor_forces_update(forces_n, command_n, dt_s: float, motor_time_constant_s: float) -> np.ndarray:
+    """Rotor forces after dt_s under a held command with a first-order lag (as
+    flight.ilqr.motor_forces_update and the simulator's motors)."""
+    decay = math.exp(-dt_s / motor_time_constant_s)
+    return np.asarray(command_n) + (np.asarray(forces_n) - np.asarray(command_n)) * decay
