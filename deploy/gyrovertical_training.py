@@ -103,10 +103,10 @@ def add_parser(sub) -> None:
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--vehicle", default="x250", help="vehicle profile (default x250)")
     p.add_argument("--seed", type=int, default=0, help="seed of the flights and the optimiser (default 0)")
-    p.add_argument("--flights", type=int, default=3, help="number of training flights (default 3)")
-    p.add_argument("--duration-s", type=float, default=120.0, help="length of each flight, s (default 120)")
+    p.add_argument("--flights", type=int, default=2, help="number of training flights (default 2)")
+    p.add_argument("--duration-s", type=float, default=300.0, help="length of each flight, s (default 300)")
     p.add_argument("--bias-deg-s", type=float, default=0.05, help="gyro bias of the sequences, deg/s (default 0.05)")
-    p.add_argument("--maxiter", type=int, default=400, help="optimiser iterations per filter (default 400)")
+    p.add_argument("--maxiter", type=int, default=250, help="optimiser iterations per filter (default 250)")
     p.add_argument("--out", help="parameter file to write (default runs/gyrovertical-<vehicle>-seed<N>.toml)")
     p.set_defaults(func=cmd_train)
 
