@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT))
 
 from deploy.gyrovertical_training import (ESTIMATORS, control_flight, estimate,  # noqa: E402
                                           manoeuvring, tilt_error_deg)
-from flight.gyrovertical import DEFAULT_PARAMS_FILE, load_trained  # noqa: E402
+from flight.gyrovertical import PAPER_PARAMS_FILE, load_trained  # noqa: E402
 
 BIAS_DEG_S = 0.05
 COLORS = {"integration": "tab:red", "fixed": "tab:orange", "adaptive": "tab:blue", "kalman-000": "tab:green"}
@@ -43,11 +43,11 @@ def rms(x) -> float:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--params", default=str(DEFAULT_PARAMS_FILE), help="trained parameter file")
+    ap.add_argument("--params", default=str(PAPER_PARAMS_FILE), help="trained parameter file")
     ap.add_argument("--quick", action="store_true", help="shorter flights (a smoke run; does not write docs/)")
     args = ap.parse_args()
     trained = load_trained(args.params)
-    cmd = "python bench/gyrovertical.py" + (f" --params {args.params}" if args.params != str(DEFAULT_PARAMS_FILE) else "")
+    cmd = "python bench/gyrovertical.py" + (f" --params {args.params}" if args.params != str(PAPER_PARAMS_FILE) else "")
     print(f"$ {cmd}{' --quick' if args.quick else ''}\nparameters: {args.params} ({trained.meta.get('command', '?')})")
     short_s, long_s, seeds = (30.0, 120.0, (0,)) if args.quick else (120.0, 600.0, (0, 1, 2))
     bias = np.radians(np.full(3, BIAS_DEG_S))

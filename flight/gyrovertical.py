@@ -98,7 +98,11 @@ import numpy as np
 
 from flight.quat import quat_from_euler, quat_normalize
 
-DEFAULT_PARAMS_FILE = Path(__file__).resolve().parent / "params" / "gyrovertical_x250.toml"
+# 004's training (+-0.05 deg/s gyro biases): the figures and tests of 004
+PAPER_PARAMS_FILE = Path(__file__).resolve().parent / "params" / "gyrovertical_x250.toml"
+# trained alike with +-0.2 deg/s, the bias the simulated MEMS gyro has (SimConfig.gyro_bias_var):
+# the file the attitude service reads by default (a filter must be trained for the gyro it runs on)
+DEFAULT_PARAMS_FILE = Path(__file__).resolve().parent / "params" / "gyrovertical_x250_mems.toml"
 G = 9.80665                 # m/s^2, normalises specific force to the load factor
 DT_REF = 1.0 / 400.0        # s, rate at which the parameters are per-sample variances
 

@@ -33,7 +33,10 @@ from .conftest import ROOT, TRUTH_STATE  # noqa: E402
 
 pytestmark = pytest.mark.integration
 mavlink = mavutil.mavlink
-FLOOD_S = float(os.environ.get("ZENPILOT_MAVLINK_FLOOD_S", "10"))
+# The stack runs in real time on the truth-state ablation unless ZENPILOT_MAVLINK_ESTIMATES=1:
+# real time with the whole estimator cascade does not hold its rates on 2 cores (README, benchmarks).
+STATE_FLAGS = () if os.environ.get("ZENPILOT_MAVLINK_ESTIMATES") == "1" else TRUTH_STATE
+FLOOD_S = float(os.environ.get("ZENPILOT_MAVLINK_FLOOD_S", "60"))  # the issue: a minute
 
 
 def free_udp_port() -> int:
@@ -97,7 +100,7 @@ def stack(tmp_path_factory):
     env = dict(os.environ, ZENPILOT_STATE_DIR=str(tmp))
     router, udp = f"tcp/127.0.0.1:{free_port()}", free_udp_port()
     gcs = Gcs(udp)
-    up = zp("up", "-d", "--router", router, "--out", str(tmp / "run"), *TRUTH_STATE,
+    up = zp("up", "-d", "--router", router, "--out", str(tmp / "run"), *STATE_FLAGS,
             "--set", "planner.mission=none", "--set", f"mavlink.endpoint=udpout:127.0.0.1:{udp}", env=env)
     try:
         assert up.returncode == 0, up.stdout + up.stderr
@@ -150,7 +153,8 @@ def test_gcs_arms_takes_off_holds_lands(stack):
     ack = gcs.command(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 3)  # HOLD
     assert ack.result == mavlink.MAV_RESULT_ACCEPTED
     gcs.wait("EXTENDED_SYS_STATE", lambda m: m.landed_state == mavlink.MAV_LANDED_STATE_IN_AIR)
-    # telemetry matches the truth (the truth-state ablation: within what moves in ~20 ms)
+    # telemetry matches the truth within the estimation error (truth-state ablation: within what
+    # moves in ~20 ms; on estimates: hover errors are millimetres to centimetres and under a degree)
     pos_err, att_err = [], []
     end = time.monotonic() + 4.0
     while time.monotonic() < end:
@@ -166,7 +170,8 @@ def test_gcs_arms_takes_off_holds_lands(stack):
             att_err.append(max(abs(m.roll - roll), abs(m.pitch - pitch),
                                abs(math.remainder(m.yaw - yaw, 2 * math.pi))))
     assert len(pos_err) > 20 and len(att_err) > 20
-    assert max(pos_err) < 0.05 and max(att_err) < math.radians(3.0), (max(pos_err), max(att_err))
+    pos_tol = 0.05 if STATE_FLAGS else 0.15
+    assert max(pos_err) < pos_tol and max(att_err) < math.radians(3.0), (max(pos_err), max(att_err))
     assert abs(gcs.latest["LOCAL_POSITION_NED"].z + 2.0) < 0.1
     # a live gain change through the parameter protocol reaches the position level
     gcs.conn.mav.param_set_send(1, 1, b"POS_K_Z", 4.5, mavlink.MAV_PARAM_TYPE_REAL32)

@@ -16,7 +16,7 @@ import pytest
 
 from deploy.gyrovertical_training import (control_flight, estimate, manoeuvring, run_training, save,
                                           tilt_error_deg)
-from flight.gyrovertical import (DEFAULT_PARAMS_FILE, GyroVertical, GyroVerticalParams, load_trained,
+from flight.gyrovertical import (PAPER_PARAMS_FILE, GyroVertical, GyroVerticalParams, load_trained,
                                  run_sequence)
 from flight.gyrovertical_jax import run_batch
 from flight.quat import quat_from_euler
@@ -104,7 +104,7 @@ def test_shipped_parameters_bound_the_error_over_ten_minutes(ten_minute_flight):
     """004's claim on a flight training never saw: with 0.05 deg/s biases the
     adaptive filter's tilt error stays bounded while pure integration drifts."""
     f = ten_minute_flight
-    trained = load_trained(DEFAULT_PARAMS_FILE)
+    trained = load_trained(PAPER_PARAMS_FILE)
     minute = int(60 / 0.0025)
     tilt = {}
     for e in ("adaptive", "integration"):
@@ -123,7 +123,7 @@ def test_shipped_parameters_bound_the_error_over_ten_minutes(ten_minute_flight):
 
 def test_adaptive_beats_fixed_variance_in_manoeuvres(ten_minute_flight):
     f = ten_minute_flight.slice(int(180 / 0.0025))
-    trained = load_trained(DEFAULT_PARAMS_FILE)
+    trained = load_trained(PAPER_PARAMS_FILE)
     man = manoeuvring(f)
     err = {}
     for e in ("adaptive", "fixed"):
