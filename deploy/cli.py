@@ -26,7 +26,7 @@ import schemas
 from deploy import gyrovertical_training
 from deploy.flightlog import LOG_NAME, read_log
 from deploy.launcher import Launcher, alive_services, client_session, free_port
-from deploy.stack import StackError, load_stack
+from deploy.stack import StackError, load_stack, lockstep_services
 from flight.mission import MissionError, available_missions, load_mission
 
 DEFAULT_MISSION = "steps"
@@ -52,7 +52,7 @@ def cmd_fly(args) -> int:
     router = f"tcp/127.0.0.1:{args.port or free_port()}"
     launcher = Launcher(stack, out, router, lockstep=args.lockstep, seed=args.seed,
                         vehicle=mission.vehicle, mission=mission.path, params=_param_overrides(args.set))
-    names = list(stack.services)
+    names = lockstep_services(stack.services) if args.lockstep else list(stack.services)
     print(f"zenpilot: flying {mission.name} ({mission.vehicle}, "
           f"{'lockstep' if args.lockstep else 'real time'}, seed {args.seed}) -> {out}", flush=True)
     wall0 = time.monotonic()
@@ -181,6 +181,8 @@ def _state() -> dict:
 def cmd_up(args) -> int:
     stack = load_stack(args.stack)
     machine, names, runs_router = _machine_services(stack, args.machine)
+    if args.lockstep:
+        names = lockstep_services(names)
     router = args.router or stack.machines[machine].router
     run_dir = Path(args.out or STATE_DIR / f"run-{machine}")
     params = _param_overrides(args.set)

@@ -45,6 +45,14 @@ SERVICE_MODULES = {
 # services that take part in lockstep (the recorder only listens; the MAVLink
 # bridge is real time in every mode: a ground station lives on the wall clock)
 LOCKSTEP_PARTICIPANTS = ("motors", "attitude", "position", "planner", "vision")
+# Links to the outside world run on the wall clock whatever the mode; a lockstep run leaves them
+# out, or its log would depend on the machine's speed (their health, their rates).
+WALL_CLOCK_ONLY = ("mavlink",)
+
+
+def lockstep_services(names) -> list[str]:
+    """The services a lockstep run starts: all but the wall-clock links."""
+    return [n for n in names if n not in WALL_CLOCK_ONLY]
 
 
 class StackError(ValueError):

@@ -7,7 +7,7 @@ import time
 import msgpack
 import pytest
 
-from deploy.launcher import client_session, free_port
+from deploy.launcher import alive_services, client_session, free_port
 
 from .conftest import TRUTH_STATE, fly
 
@@ -15,6 +15,7 @@ pytestmark = pytest.mark.integration
 
 INPUT_KEYS = ["zp/0/sim/truth", "zp/0/pos/setpoint", "zp/0/att/command", "zp/0/planner/setpoint",
               "zp/0/motors/pwm", "zp/0/pos/state", "zp/0/sim/clock/attitude", "zp/0/sync/motors"]
+RECEIVERS = {"sim", "attitude", "position", "motors", "planner", "recorder"}
 HEADER = {"t_s": 1.0, "seq": 0, "source": "intruder"}
 BAD_PAYLOADS = {
     "malformed": b"\xc1\x00garbage",
@@ -33,7 +34,10 @@ def inject(endpoint: str, stop: threading.Event, sent: dict) -> None:
             time.sleep(0.2)
     else:
         return
-    time.sleep(3.0)  # the services are up and flying
+    # every receiver alive, then a moment to declare its subscriptions (starts are slow on a loaded machine)
+    while not stop.is_set() and not alive_services(session, 0) >= RECEIVERS:
+        time.sleep(0.2)
+    time.sleep(2.0)
     for _ in range(3):
         for key in INPUT_KEYS:
             for reason, payload in BAD_PAYLOADS.items():
