@@ -33,6 +33,10 @@ PHASE_MODES = {"waiting": "IDLE", "disarmed": "IDLE", "landed": "IDLE", "timeout
                "takeoff": "TAKEOFF", "settle": "HOLD", "hold": "HOLD", "goto": "GOTO", "land": "LAND",
                "attitude": "ATTITUDE", "flip": "FLIP"}
 FORCE_DISARM = 21196  # MAVLink's magic number in param2 of ARM_DISARM: disarm even in the air
+# commands that change what the vehicle does: only from a ground station (see _from_ground_station)
+ACTION_COMMANDS = frozenset((mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_CMD_NAV_TAKEOFF,
+                             mavlink.MAV_CMD_NAV_LAND, mavlink.MAV_CMD_NAV_LOITER_UNLIM,
+                             mavlink.MAV_CMD_DO_SET_MODE))
 
 # streams: message name -> (message id, default rate Hz)
 STREAMS = {
@@ -149,6 +153,7 @@ class Bridge:
         self.inputs: dict[str, dict | None] = {}  # att, pos, imu, baro, mag, battery, setpoint
         self.health: dict[str, tuple[float, dict]] = {}  # service -> (arrival wall time, message)
         self.failsafe = LinkFailsafe(config.gcs_timeout_s, config.failsafe_hold_s)
+        self.ground_stations: set[int] = set()   # system ids heard sending a GCS heartbeat
         self.intervals_s: dict[str, float] = {}
         for name, (_, hz) in STREAMS.items():
             hz = float(config.rates_hz.get(name, hz))
@@ -403,6 +408,16 @@ class Bridge:
     def _on_heartbeat(self, msg, now, wall):
         if msg.type == mavlink.MAV_TYPE_GCS:
             self.failsafe.heartbeat(wall)
+            self.ground_stations.add(msg.get_srcSystem())
+
+    def _from_ground_station(self, msg) -> bool:
+        """Commands that move the vehicle are taken only from a system that announced itself
+        with a GCS heartbeat (QGroundControl and MAVSDK do): a stray or random CRC-valid message
+        from anyone else on the link must not land, arm or steer it."""
+        if msg.get_srcSystem() in self.ground_stations:
+            return True
+        self.count("mavlink_not_from_gcs")
+        return False
 
     # -- commands ------------------------------------------------------------
     def _on_command_long(self, msg, now, wall):
@@ -430,6 +445,9 @@ class Bridge:
     def _command(self, msg, command: int, p: list, now: float, wall: float) -> list:
         origin = f"mavlink:{msg.get_srcSystem()}/{msg.get_srcComponent()}"
         C, R = mavlink, mavlink
+        if command in ACTION_COMMANDS and not self._from_ground_station(msg):
+            return self._deny(msg, command, R.MAV_RESULT_DENIED,
+                              f"system {msg.get_srcSystem()} has sent no GCS heartbeat")
         if command == C.MAV_CMD_COMPONENT_ARM_DISARM:
             if not _finite(p[0], p[1]):
                 return self._deny(msg, command, R.MAV_RESULT_DENIED, "non-finite parameter")
@@ -519,7 +537,7 @@ class Bridge:
         return self._deny(msg, command, mavlink.MAV_RESULT_DENIED, f"mode {custom} cannot be set (HOLD=3, LAND=5)")
 
     def _on_set_mode(self, msg, now, wall):  # the deprecated message, still sent by some GCSs
-        if msg.target_system in (0, self.cfg.system_id):
+        if msg.target_system in (0, self.cfg.system_id) and self._from_ground_station(msg):
             return self._set_mode(msg, mavlink.MAV_CMD_DO_SET_MODE, msg.base_mode, msg.custom_mode,
                                   f"mavlink:{msg.get_srcSystem()}")
         return []
@@ -543,7 +561,7 @@ class Bridge:
 
     # -- offboard --------------------------------------------------------------
     def _on_set_position_target_local_ned(self, msg, now, wall):
-        if not self._for_us(msg):
+        if not self._for_us(msg) or not self._from_ground_station(msg):
             return []
         position_ignored = msg.type_mask & 0b111
         if msg.coordinate_frame != mavlink.MAV_FRAME_LOCAL_NED or position_ignored:
@@ -599,7 +617,7 @@ class Bridge:
         return []
 
     def _on_param_set(self, msg, now, wall):
-        if not self._for_us(msg):
+        if not self._for_us(msg) or not self._from_ground_station(msg):
             return []
         i = self._param_index(msg.param_id, -1)
         if i is None:

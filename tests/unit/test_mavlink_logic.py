@@ -73,7 +73,28 @@ def link():
     bridge.inputs["pos"] = {"header": header(NOW - 0.01), "position_m": [1.0, 2.0, 0.0],
                             "velocity_m_s": [0.1, 0.2, 0.3]}
     bridge.inputs["setpoint"] = setpoint()
+    bridge.ground_stations.add(255)   # as if its GCS heartbeat had been heard (without arming the failsafe)
     return bridge, gcs, send, received, counts
+
+
+def test_actions_only_from_a_ground_station(link):
+    bridge, _, _, received, counts = link
+    stranger = mavlink.MAVLink(None, srcSystem=42, srcComponent=1)
+    parser = mavlink.MAVLink(None)
+
+    def send_from(sender, msg):
+        return [a for m in parser.parse_buffer(msg.pack(sender)) or [] for a in bridge.handle(m, NOW, NOW)]
+
+    arm = stranger.command_long_encode(1, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+    assert send_from(stranger, arm) == [] and counts["mavlink_not_from_gcs"] == 1
+    acks = [m for m in received() if m.get_type() == "COMMAND_ACK"]
+    assert acks and acks[-1].result == mavlink.MAV_RESULT_DENIED      # answered, not obeyed
+    unknown = stranger.command_long_encode(1, 1, 31000, 0, 0, 0, 0, 0, 0, 0, 0)
+    send_from(stranger, unknown)
+    assert [m for m in received() if m.get_type() == "COMMAND_ACK"][-1].result == mavlink.MAV_RESULT_UNSUPPORTED
+    send_from(stranger, stranger.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0))
+    send_from(stranger, arm)
+    assert counts["mavlink_not_from_gcs"] == 1                         # now it is a ground station
 
 
 def long(gcs, command, *params):
