@@ -58,7 +58,7 @@ import numpy as np
 from filterpy.kalman import KalmanFilter
 from scipy.linalg import expm
 
-from flight.quat import quat_from_euler
+from flight.quat import quat_from_euler, quat_multiply
 
 W, WF, A, AF = 0, 1, 2, 3          # state indices per axis
 G_REF = 9.80665
@@ -512,6 +512,27 @@ class AttitudeFilter:
             kf.P = 0.5 * (kf.P + kf.P.T)
         self._t_kf = t
 
+    def sample_state(self) -> tuple[np.ndarray, np.ndarray]:
+        """(euler, rate) of the KF at its newest IMU sample (not extrapolated)."""
+        return (wrap(np.array([kf.x[A, 0] for kf in self.kfs])), np.array([kf.x[W, 0] for kf in self.kfs]))
+
+    def reinitialise(self, euler, rate) -> None:
+        """Restart the angle and rate states (and the low-passes) at a known attitude, keeping P.
+
+        Used after a manoeuvre the filter cannot follow (a flip: see GyroCarrier); the
+        accelerometer and magnetometer low-passes restart there too, so they pull from it."""
+        if self._t_kf is None:
+            return
+        euler = wrap(np.asarray(euler, dtype=np.float64))
+        rate = np.asarray(rate, dtype=np.float64)
+        for i, kf in enumerate(self.kfs):
+            kf.x[W, 0] = kf.x[WF, 0] = rate[i]
+            kf.x[A, 0] = kf.x[AF, 0] = euler[i]
+        self._wf, self._g_prev = rate.copy(), rate.copy()
+        self._af, self._a_prev = euler.copy(), euler.copy()
+        if self._yaw_hold is not None:
+            self._yaw_hold = float(euler[2])
+
     def _healthy(self) -> bool:
         for kf in self.kfs:
             if not (np.all(np.isfinite(kf.x)) and np.all(np.isfinite(kf.P))):
@@ -588,3 +609,86 @@ class AttitudeFilter:
             euler, rate = np.zeros(3), np.zeros(3)
         q = quat_from_euler(*euler)
         return AttitudeEstimate(euler, rate, q, euler_var, rate_var, float(delay))
+
+
+# ------------------------------------------------------------------ inversion carrier
+def quat_integrate(q, rate_rad_s, h: float) -> np.ndarray:
+    """q (x) exp(0.5 w h): a body->world quaternion turned by the body rate w over h (exact for constant w)."""
+    w = np.asarray(rate_rad_s, dtype=np.float64)
+    angle = float(np.linalg.norm(w)) * h
+    if angle < 1e-12:
+        return np.asarray(q, dtype=np.float64).copy()
+    axis = w / np.linalg.norm(w)
+    s = math.sin(0.5 * angle)
+    dq = np.array([math.cos(0.5 * angle), *(s * axis)])
+    qn = quat_multiply(q, dq)
+    return qn / np.linalg.norm(qn)
+
+
+def quat_tilt(q) -> float:
+    """Angle between the body z axis and the world z axis, rad (0 level, pi inverted)."""
+    w, x, y, z = (float(v) for v in q)
+    r22 = (w * w - x * x - y * y + z * z) / (w * w + x * x + y * y + z * z)
+    return math.acos(min(1.0, max(-1.0, r22)))
+
+
+class GyroCarrier:
+    """A quaternion carried by the gyros through attitudes the 000 filter cannot hold.
+
+    The 000 filter is three independent Euler-angle axes with the body rate taken
+    as the Euler rate: fine near level, wrong when tilted far or turning fast, and
+    it cannot represent inversion.  Near level the carrier just follows that
+    filter (``follow``: its estimate is used unchanged, so normal flight is
+    exactly 000).  Once tilted past ``enter_tilt_deg`` or turning faster than
+    ``enter_rate_rad_s`` it becomes ``active``: every IMU sample turns the
+    quaternion by the gyro (``propagate``; gyro bias ~3e-3 rad/s, so a 1 s flip
+    drifts well under a degree), and the attitude service publishes it.  When
+    back within ``exit_tilt_deg`` and slower than ``exit_rate_rad_s``,
+    ``back_near_level`` says so and the service re-initialises the 000 filter
+    from it (hysteresis between the two thresholds avoids chattering).
+    """
+
+    def __init__(self, enter_tilt_deg: float = 45.0, exit_tilt_deg: float = 30.0,
+                 enter_rate_rad_s: float = 6.0, exit_rate_rad_s: float = 2.0):
+        if not (0.0 < exit_tilt_deg <= enter_tilt_deg < 180.0 and 0.0 < exit_rate_rad_s <= enter_rate_rad_s):
+            raise ValueError("GyroCarrier: need 0 < exit_tilt <= enter_tilt < 180 and 0 < exit_rate <= enter_rate")
+        self.enter_tilt = math.radians(enter_tilt_deg)
+        self.exit_tilt = math.radians(exit_tilt_deg)
+        self.enter_rate = float(enter_rate_rad_s)
+        self.exit_rate = float(exit_rate_rad_s)
+        self.q = np.array([1.0, 0.0, 0.0, 0.0])
+        self.t: float | None = None
+        self.gyro = np.zeros(3)
+        self.active = False
+        self.activations = 0
+
+    def follow(self, t_s: float, q, gyro) -> None:
+        """Inactive: take the 000 filter's attitude at its newest sample time and that sample's gyro."""
+        self.q = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+        self.t = float(t_s)
+        self.gyro = np.asarray(gyro, dtype=np.float64).copy()
+
+    def check_enter(self, q, rate) -> bool:
+        """Become active when the attitude (q, rate) is beyond what the 000 filter represents."""
+        if not self.active and self.t is not None and (
+                quat_tilt(q) > self.enter_tilt or float(np.linalg.norm(rate)) > self.enter_rate):
+            self.active = True
+            self.activations += 1
+        return self.active
+
+    def propagate(self, t_s: float, gyro) -> None:
+        """One IMU sample: turn by the mean of the previous and this gyro over the interval."""
+        gyro = np.asarray(gyro, dtype=np.float64)
+        if self.t is None or not t_s > self.t:
+            return
+        self.q = quat_integrate(self.q, 0.5 * (self.gyro + gyro), t_s - self.t)
+        self.t = float(t_s)
+        self.gyro = gyro.copy()
+
+    def back_near_level(self) -> bool:
+        return self.active and quat_tilt(self.q) < self.exit_tilt and float(np.linalg.norm(self.gyro)) < self.exit_rate
+
+    def estimate(self, t_now: float, max_delay_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """(quaternion, body rate) at t_now: carried over the transport delay by the newest gyro."""
+        delay = min(max(0.0, t_now - (self.t if self.t is not None else t_now)), max_delay_s)
+        return quat_integrate(self.q, self.gyro, delay), self.gyro.copy()

@@ -113,7 +113,7 @@ EULER = slice(6, 9)
 RATES = slice(9, 12)
 
 _TWO_PI = 2.0 * math.pi
-_KINDS = ("attitude", "position")
+_KINDS = ("attitude", "position", "pin")
 _REASONS = ("gate", "too_old", "future", "invalid")
 
 
@@ -472,6 +472,18 @@ class PositionEKF:
         accepted, _ = self._fuse("attitude", float(t_s), z, np.diag(var))
         return accepted
 
+    def pin_attitude(self, t_s: float, euler, rates) -> bool:
+        """Set the angle and rate states to the attitude level's (no Kalman update, no gate).
+
+        For attitudes where the Euler linearisation and the attitude level's variances are
+        not to be trusted (a flip, past ~60 deg of tilt): the translational states keep
+        predicting with the model, thrust along the body z of these angles, and the
+        attitude follows the gyro-carried estimate rather than the open-loop torque model.
+        Stored in the history like a measurement, so a delayed camera replay re-applies it."""
+        z = np.concatenate([_vec(euler, 3, "euler"), _vec(rates, 3, "rates")])
+        accepted, _ = self._fuse("pin", float(t_s), z, None)
+        return accepted
+
     def update_position(self, t_meas_s: float, position, cov) -> tuple[bool, float]:
         """Camera position of (24) taken at t_meas_s (<= now): fused there, re-predicted to now."""
         z = _vec(position, 3, "position")
@@ -534,6 +546,12 @@ class PositionEKF:
 
     def _apply(self, x, P, meas):
         kind, z, R, offset = meas
+        if kind == "pin":
+            x = x.copy()
+            x[6:12] = z
+            x[6] = (x[6] + math.pi) % _TWO_PI - math.pi
+            x[8] = (x[8] + math.pi) % _TWO_PI - math.pi
+            return x, P
         y, H, S = self._innovate(kind, x, P, z, R, offset)
         return self._correct(x, P, y, H, np.linalg.inv(S), R)
 
@@ -544,7 +562,7 @@ class PositionEKF:
 
     def _fuse(self, kind, t_meas, z, R):
         self._need_init()
-        if not (math.isfinite(t_meas) and np.all(np.isfinite(z)) and np.all(np.isfinite(R))):
+        if not (math.isfinite(t_meas) and np.all(np.isfinite(z)) and (R is None or np.all(np.isfinite(R)))):
             return self._reject(kind, "invalid")
         if t_meas > self._t + self._eps:
             return self._reject(kind, "future")
@@ -565,18 +583,23 @@ class PositionEKF:
             x, P = node.x.copy(), node.P.copy()
             for meas in node.meas:
                 x, P = self._apply(x, P, meas)
-        y, H, S = self._innovate(kind, x, P, z, R, offset)
-        try:
-            S_inv = np.linalg.inv(S)
-            nis = float(y @ S_inv @ y)
-        except np.linalg.LinAlgError:
-            return self._reject(kind, "invalid")
-        if not math.isfinite(nis) or nis < 0:
-            return self._reject(kind, "invalid")
-        if nis > self._gate[len(z)]:
-            return self._reject(kind, "gate", nis)
-        x, P = self._correct(x, P, y, H, S_inv, R)
-        node.meas.append((kind, z.copy(), R.copy(), offset))
+        if kind == "pin":
+            nis = math.nan
+            x, P = self._apply(x, P, (kind, z, None, offset))
+            node.meas.append((kind, z.copy(), None, offset))
+        else:
+            y, H, S = self._innovate(kind, x, P, z, R, offset)
+            try:
+                S_inv = np.linalg.inv(S)
+                nis = float(y @ S_inv @ y)
+            except np.linalg.LinAlgError:
+                return self._reject(kind, "invalid")
+            if not math.isfinite(nis) or nis < 0:
+                return self._reject(kind, "invalid")
+            if nis > self._gate[len(z)]:
+                return self._reject(kind, "gate", nis)
+            x, P = self._correct(x, P, y, H, S_inv, R)
+            node.meas.append((kind, z.copy(), R.copy(), offset))
         # re-run the predictions to now with the stored inputs and measurements
         for k in range(j + 1, len(self._hist)):
             nk = self._hist[k]

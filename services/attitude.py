@@ -19,7 +19,12 @@ from __future__ import annotations
 import numpy as np
 
 import schemas
-from flight.attitude_filter import AttitudeFilter, AttitudeFilterParams, accel_roll_pitch
+from flight.attitude_filter import (
+    AttitudeFilter,
+    AttitudeFilterParams,
+    GyroCarrier,
+    accel_roll_pitch,
+)
 from flight.control import attitude_law
 from flight.gyrovertical import DEFAULT_PARAMS_FILE, GyroVertical, load_trained
 from flight.quat import quat_from_euler, quat_to_euler, quat_to_rotation
@@ -45,6 +50,10 @@ PARAMS = {
     "estimator": "kalman-000",
     "gyrovertical_params": "",    # trained parameter file; "" = the shipped one for the x250
     "imu_rate_hz": 400.0,         # the gyro-vertical's sample period (its variances are per sample)
+    # Flips (001): beyond these the 000 filter (Euler axes, body rate as Euler rate) cannot
+    # follow the vehicle; a gyro-integrated quaternion carries the estimate instead and the
+    # filter restarts from it back near level (flight/attitude_filter.GyroCarrier).
+    "carrier": {"enter_tilt_deg": 45.0, "exit_tilt_deg": 30.0, "enter_rate_rad_s": 6.0, "exit_rate_rad_s": 2.0},
 }
 STATE_SOURCES = ("truth", "estimate")
 ESTIMATORS = ("kalman-000", "gyro-vertical")
@@ -73,6 +82,11 @@ def run(args) -> None:
     if estimate:
         params = rt.table("filter", AttitudeFilterParams.from_dict)
         filt = AttitudeFilter(np.asarray(vehicle.inertia_kg_m2), params, dt=1.0 / rt.rate_hz)
+        try:
+            carrier = GyroCarrier(**p["carrier"])
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{rt.where()} carrier: {exc}") from None
+        carrier_horizon_s = params.max_delay_steps / rt.rate_hz
         imu = rt.inbox(schemas.IMU, "sim", keep=32)
         mag = rt.inbox(schemas.MAG, "sim", keep=8)
         motors = rt.inbox(schemas.MOTOR_PWM, "motors")
@@ -127,9 +141,26 @@ def run(args) -> None:
         out = motors.latest()  # the torque the motors were really asked for (after saturation)
         applied = (vehicle.allocation @ np.asarray(out["thrust_n"]))[1:] if out is not None else last_torque["u"]
         est = filt.update(samples, mag_sample, applied, t)
-        filt_state["q"] = est.quaternion_wxyz
         sample_t = samples[-1][0] if samples else filt.last_sample_t
-        return est.quaternion_wxyz, est.euler_rad, est.rate_rad_s, est.euler_var, est.rate_var, sample_t
+        q, euler, rates = est.quaternion_wxyz, est.euler_rad, est.rate_rad_s
+        samples.sort(key=lambda s: s[0])
+        if not carrier.active:
+            if filt.initialized:   # near level: the carrier only follows the 000 filter
+                sample_euler, sample_rate = filt.sample_state()
+                carrier.follow(filt.last_sample_t, quat_from_euler(*sample_euler),
+                               samples[-1][1] if samples else sample_rate)
+                carrier.check_enter(q, rates)
+        else:
+            for s in samples:
+                carrier.propagate(s[0], s[1])
+        if carrier.active:
+            q, rates = carrier.estimate(t, carrier_horizon_s)
+            euler = np.array(quat_to_euler(q))
+            if carrier.back_near_level():   # the 000 filter takes over again from here
+                filt.reinitialise(quat_to_euler(carrier.q), carrier.gyro)  # both at the newest sample
+                carrier.active = False
+        filt_state["q"] = q
+        return q, euler, rates, est.euler_var, est.rate_var, sample_t
 
     def step(t: float) -> None:
         state = read_state(t)

@@ -18,6 +18,7 @@ from collections import deque
 import numpy as np
 
 import schemas
+from flight.attitude_filter import quat_tilt as tilt_rad
 from flight.control import altitude_law, position_law
 from flight.position_ekf import PositionEKF, PositionEKFParams
 from flight.quat import quat_to_euler
@@ -42,6 +43,9 @@ PARAMS = {
     # floor on a camera fix's variance (m^2): the solver's few-mm covariance ignores
     # time-stamp and model errors of a fast climb
     "camera_var_floor": 1e-5,   # refused camera fixes in a row before the EKF restarts at one
+    # past this tilt (a flip) the attitude level's angles are not fused but pinned into the
+    # EKF (PositionEKF.pin_attitude; counted as attitude_pinned_tilted)
+    "attitude_pin_tilt_deg": 60.0,
     "ekf": {},                   # PositionEKFParams overrides (flight/position_ekf.py)
 }
 STATE_SOURCES = ("truth", "estimate")
@@ -92,7 +96,11 @@ def run(args) -> None:
         if t > ekf.t:
             ekf.predict(t, u)
         att = attitude.latest()
-        if att is not None and att["state_source"] == "estimate":
+        if att is not None and att["state_source"] == "estimate" \
+                and tilt_rad(att["quaternion_wxyz"]) > np.radians(p["attitude_pin_tilt_deg"]):
+            ekf.pin_attitude(att["header"]["t_s"], np.asarray(att["euler_rad"]), np.asarray(att["rate_rad_s"]))
+            count("attitude_pinned_tilted")
+        elif att is not None and att["state_source"] == "estimate":
             if not ekf.update_attitude(att["header"]["t_s"], np.asarray(att["euler_rad"]), np.asarray(att["rate_rad_s"]),
                                        np.maximum(att["euler_var_rad2"], p["attitude_var_floor"]),
                                        np.maximum(att["rate_var_rad2_s2"], p["rate_var_floor"])):

@@ -14,8 +14,14 @@ import math
 import numpy as np
 import pytest
 
-from flight.attitude_filter import (AttitudeEstimate, AttitudeFilter, AttitudeFilterParams,
-                                    accel_roll_pitch, mag_yaw, wrap)
+from flight.attitude_filter import (
+    AttitudeEstimate,
+    AttitudeFilter,
+    AttitudeFilterParams,
+    accel_roll_pitch,
+    mag_yaw,
+    wrap,
+)
 from flight.control import attitude_law
 from flight.quat import quat_from_euler, quat_to_rotation
 
@@ -313,3 +319,64 @@ def test_reset_and_free_fall():
     assert np.all(np.isfinite(e.euler_rad))
     assert e.rate_rad_s[0] == pytest.approx(0.5, abs=0.02)
     assert e.euler_rad[0] == pytest.approx(0.5 * t, abs=0.03)
+
+
+# ------------------------------------------------------------------ the flip: gyro carrier
+def test_quat_integrate_turns_by_the_body_rate():
+    from flight.attitude_filter import quat_integrate
+    from flight.quat import quat_to_euler
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    for _ in range(200):   # 0.5 s at 2 pi rad/s about body x: half a turn
+        q = quat_integrate(q, [2 * math.pi, 0.0, 0.0], 1.0 / 400)
+    assert abs(abs(quat_to_euler(q)[0]) - math.pi) < 1e-9
+    # body rate: from a 90 deg yaw, a body-x turn is a world-y turn
+    q = quat_integrate(quat_from_euler(0.0, 0.0, math.pi / 2), [0.3, 0.0, 0.0], 1.0)
+    assert quat_to_rotation(q)[:, 2] == pytest.approx([math.sin(0.3), 0.0, math.cos(0.3)], abs=1e-12)
+
+
+def test_gyro_carrier_carries_a_full_roll_flip_and_hands_back():
+    from flight.attitude_filter import GyroCarrier, quat_tilt
+    from flight.quat import quat_to_euler
+    c = GyroCarrier()
+    dt, t = 1.0 / 400, 0.0
+    c.follow(t, quat_from_euler(0.02, -0.01, 0.5), np.zeros(3))
+    assert not c.check_enter(c.q, np.array([1.0, 0.5, 0.0]))  # normal flight: follows the 000 filter
+    # a 360-deg roll at up to 20 rad/s (triangular rate profile over 0.63 s), biased gyro
+    n = 252
+    peak = 2 * math.pi / (0.5 * n * dt)
+    bias = np.array([3e-3, -3e-3, 2e-3])
+    tilts, roll_true, w_prev = [], 0.02, 0.0
+    for k in range(1, n + 1):
+        t = k * dt
+        w = peak * (k / (n / 2) if k <= n / 2 else (n - k) / (n / 2))
+        roll_true += 0.5 * (w + w_prev) * dt
+        w_prev = w
+        gyro = np.array([w, 0.0, 0.0]) + bias
+        if not c.active:   # the 000 filter (here: the truth) is followed until the rate is too high
+            q_filter = quat_from_euler(roll_true, -0.01, 0.5)
+            c.follow(t, q_filter, gyro)
+            assert c.check_enter(q_filter, gyro) == (w + bias[0] > 6.0)
+            continue
+        c.propagate(t, gyro)
+        tilts.append(quat_tilt(c.q))
+    assert c.active and c.activations == 1 and max(tilts) > math.radians(178)
+    roll, pitch, yaw = quat_to_euler(c.q)
+    assert abs(roll - 0.02) < math.radians(1.0) and abs(pitch + 0.01) < math.radians(1.0)
+    assert abs(yaw - 0.5) < math.radians(1.0)
+    assert c.back_near_level()
+    q, rate = c.estimate(t + 0.01, 0.05)   # carried over the delay by the newest gyro
+    assert rate == pytest.approx(c.gyro) and np.linalg.norm(q) == pytest.approx(1.0)
+
+
+def test_gyro_carrier_rejects_bad_thresholds():
+    from flight.attitude_filter import GyroCarrier
+    with pytest.raises(ValueError):
+        GyroCarrier(enter_tilt_deg=20.0, exit_tilt_deg=30.0)
+
+
+def test_reinitialise_restarts_the_filter_at_a_given_attitude():
+    filt = AttitudeFilter(INERTIA)
+    filt.update([(0.0, np.zeros(3), np.array([0.0, 0.0, 9.81]))], None, np.zeros(3), 0.0)
+    filt.reinitialise([0.3, -0.2, 1.0], [0.5, 0.0, -0.1])
+    euler, rate = filt.sample_state()
+    assert euler == pytest.approx([0.3, -0.2, 1.0]) and rate == pytest.approx([0.5, 0.0, -0.1])

@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from flight.position_ekf import (
-    PositionEKF, PositionEKFError, PositionEKFParams, discretize, f, jacobian_f, rk4_step,
+    PositionEKF,
+    PositionEKFError,
+    PositionEKFParams,
+    discretize,
+    f,
+    jacobian_f,
+    rk4_step,
 )
 from flight.quat import quat_from_euler, quat_multiply, quat_to_euler, quat_to_rotation
 from flight.vehicle import load_vehicle
@@ -368,3 +374,30 @@ def test_out_of_order_fixes_replay_consistently():
     # linear in the measurement up to re-linearisation: the two orders agree closely
     np.testing.assert_allclose(a.x[0:6], b.x[0:6], atol=1e-4)
     np.testing.assert_allclose(a.position_cov, b.position_cov, rtol=1e-3)
+
+
+# --------------------------------------------------------------------------- the flip
+def test_attitude_innovation_is_wrapped_through_inversion():
+    ekf = PositionEKF(VEH, dt=DT)
+    ekf.initialize(0.0, [0.0, 0.0, 5.0], euler=(math.pi - 0.01, 0.0, 0.0))
+    # the attitude level reports -179.4 deg: 1.2 deg away, not 358.8
+    assert ekf.update_attitude(0.0, [-math.pi + 0.01, 0.0, 0.0], np.zeros(3), [1e-4] * 3, [1e-3] * 3)
+    assert abs(abs(ekf.euler[0]) - math.pi) < 0.02
+
+
+def test_pinned_attitude_drives_the_prediction_and_survives_a_delayed_fix():
+    ekf = PositionEKF(VEH, dt=DT)
+    ekf.initialize(0.0, [0.0, 0.0, 5.0])
+    hover = np.array([VEH.mass_kg * VEH.gravity_m_s2, 0.0, 0.0, 0.0])
+    t = 0.0
+    assert ekf.pin_attitude(t, [math.pi, 0.0, 0.0], [0.0, 0.0, 0.0])
+    for k in range(10):   # inverted, hover thrust: the thrust points down, 2 g down
+        t = (k + 1) * DT
+        ekf.predict(t, hover)
+        assert ekf.pin_attitude(t, [math.pi, 0.0, 0.0], [0.0, 0.0, 0.0])
+    assert ekf.euler == pytest.approx([-math.pi, 0.0, 0.0], abs=1e-9)
+    assert ekf.velocity[2] == pytest.approx(-2 * VEH.gravity_m_s2 * 0.1, rel=0.03)
+    assert ekf.accepted("pin") == 11 and ekf.accepted("attitude") == 0
+    # a camera fix from 50 ms ago replays the predictions; the pins are re-applied there
+    ok, _ = ekf.update_position(t - 0.05, ekf.position, np.eye(3) * 1e-4)
+    assert ok and ekf.euler == pytest.approx([-math.pi, 0.0, 0.0], abs=1e-9)
