@@ -136,7 +136,8 @@ def takeoff(gcs, altitude_m):
 
 
 def land(gcs):
-    ack = gcs.command(mavlink.MAV_CMD_NAV_LAND)
+    # after a flood the bridge may still be draining queued datagrams: give the ACK time
+    ack = gcs.command(mavlink.MAV_CMD_NAV_LAND, timeout=30.0)
     assert ack.result == mavlink.MAV_RESULT_ACCEPTED, ack
     gcs.wait("HEARTBEAT", lambda m: not m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED, timeout=30.0)
     gcs.wait("EXTENDED_SYS_STATE", lambda m: m.landed_state == mavlink.MAV_LANDED_STATE_ON_GROUND)
