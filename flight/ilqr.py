@@ -463,13 +463,6 @@ def feedback_control(plan: Plan, elapsed_s: float, x, u_max_rad_s: float) -> np.
     gains are held over each step, the planned state interpolated linearly. The
     quaternion of x is sign-aligned with the plan's (q and -q are the same attitude).
     x has the plan's state size (with the motor model: body state + rotor forces)."""
-    horizon = plan.controls.shape[0]
-    s = min(max(elapsed_s / plan.dt_s, 0.0), horizon - 1e-9)
-    k = int(s)
-    frac = s - k
-    x_plan = (1 - frac) * plan.states[k] + frac * plan.states[k + 1]
-    x = np.array(x, dtype=np.float64)
-    if np.dot(x[QUAT], x_plan[QUAT]) < 0:
-        x[QUAT] = -x[QUAT]
-    u = plan.controls[k] + plan.gains[k] @ (x - x_plan)
-    return np.clip(u, 0.0, u_max_rad_s)
+    from flight.plan import plan_feedback   # the motor driver's law: one implementation
+    return plan_feedback(np.asarray(plan.states), np.asarray(plan.controls), np.asarray(plan.gains),
+                         plan.dt_s, elapsed_s, x, u_max_rad_s)

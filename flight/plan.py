@@ -60,17 +60,23 @@ class RotorPlan:
                    np.asarray(msg["gains"], dtype=np.float64).reshape(h, 4, n))
 
     def control(self, t_s: float, x, u_max_rad_s: float) -> np.ndarray:
-        """u = u_plan + K (x - x_plan) at t_s; controls and gains held over each step,
-        the planned state interpolated; x's quaternion sign-aligned with the plan's."""
-        s = min(max((t_s - self.t0_s) / self.dt_s, 0.0), self.horizon - 1e-9)
-        k = int(s)
-        frac = s - k
-        x_plan = (1 - frac) * self.states[k] + frac * self.states[k + 1]
-        x = np.array(x, dtype=np.float64)
-        if np.dot(x[QUAT], x_plan[QUAT]) < 0:
-            x[QUAT] = -x[QUAT]
-        u = self.controls[k] + self.gains[k] @ (x - x_plan)
-        return np.clip(u, 0.0, u_max_rad_s)
+        """u = u_plan + K (x - x_plan) at t_s (see :func:`plan_feedback`)."""
+        return plan_feedback(self.states, self.controls, self.gains, self.dt_s, t_s - self.t0_s, x, u_max_rad_s)
+
+
+def plan_feedback(states, controls, gains, dt_s: float, elapsed_s: float, x, u_max_rad_s: float) -> np.ndarray:
+    """u = u_plan + K (x - x_plan), elapsed_s into a plan; controls and gains held over each
+    step, the planned state interpolated; x's quaternion sign-aligned with the plan's."""
+    horizon = controls.shape[0]
+    s = min(max(elapsed_s / dt_s, 0.0), horizon - 1e-9)
+    k = int(s)
+    frac = s - k
+    x_plan = (1 - frac) * states[k] + frac * states[k + 1]
+    x = np.array(x, dtype=np.float64)
+    if np.dot(x[QUAT], x_plan[QUAT]) < 0:
+        x[QUAT] = -x[QUAT]
+    u = controls[k] + gains[k] @ (x - x_plan)
+    return np.clip(u, 0.0, u_max_rad_s)
 
 
 def propagate_attitude(q, rate_rad_s, dt_s: float) -> np.ndarray:
