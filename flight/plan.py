@@ -108,3 +108,17 @@ def motor_forces_update(forces_n, command_n, dt_s: float, motor_time_constant_s:
     flight.ilqr.motor_forces_update and the simulator's motors)."""
     decay = math.exp(-dt_s / motor_time_constant_s)
     return np.asarray(command_n) + (np.asarray(forces_n) - np.asarray(command_n)) * decay
+
+
+def scale_collective(allocation, forces_n, factor: float) -> np.ndarray:
+    """Rotor forces with the collective thrust times factor and the body torques kept.
+
+    A plan is solved on the airframe file's model; the position EKF estimates the
+    thrust scale s (real collective per newton commanded, < 1 when the vehicle is
+    heavier). The driver sends scale_collective(A, plan forces, 1/s) so the vehicle
+    accelerates as planned, and the planner models what was sent as
+    scale_collective(A, sent, s). Torques are left alone: a payload changes mass, not
+    what a rotor force does about the centre."""
+    wrench = np.asarray(allocation) @ np.asarray(forces_n, dtype=np.float64)
+    wrench[0] *= factor
+    return np.linalg.solve(allocation, wrench)

@@ -14,7 +14,8 @@ State and conventions
 position and velocity (z up), ZYX Euler angles listed [roll, pitch, yaw]
 (``R = Rz(yaw) Ry(pitch) Rx(roll)``), body FLU angular rates.  Input
 ``u = [u1, u2, u3, u4]``: total thrust (N) and body torques (N m), held over a
-step (zero-order hold, as the controller applies it).
+step (zero-order hold, as the controller applies it).  The filter adds a 13th
+state, the thrust scale s (:class:`PositionEKF`): the model runs with s u1.
 
 Model (:func:`f`)::
 
@@ -103,14 +104,17 @@ from flight.vehicle import Vehicle
 __all__ = [
     "PositionEKFError", "PositionEKFParams", "PositionEKF",
     "f", "jacobian_f", "rk4_step", "discretize", "wrap_angle",
-    "POSITION", "VELOCITY", "EULER", "RATES", "N_STATE",
+    "POSITION", "VELOCITY", "EULER", "RATES", "THRUST_SCALE", "N_MODEL", "N_STATE",
 ]
 
-N_STATE = 12
+N_MODEL = 12       # the states of (1)-(2)
+THRUST_SCALE = 12  # the filter's 13th state (see PositionEKF)
+N_STATE = 13
 POSITION = slice(0, 3)
 VELOCITY = slice(3, 6)
 EULER = slice(6, 9)
 RATES = slice(9, 12)
+THRUST_SCALE_LIMITS = (0.5, 2.0)  # a physical bound: beyond it the vehicle cannot hover anyway
 
 _TWO_PI = 2.0 * math.pi
 _KINDS = ("attitude", "position", "pin")
@@ -155,8 +159,12 @@ class PositionEKFParams:
       away for 3 dof (threshold 16.3).  1.0 disables the gate.
     * ``max_delay_s``: history kept for delayed measurements; 0.3 s covers
       twice the camera's worst delay (150 ms).
+    * ``q_thrust_scale_1_s``: random walk of the thrust scale (real collective force
+      per commanded newton): battery sag and a payload change it over seconds to
+      minutes; 1e-4 /s lets it move 0.03 in 10 s (1 sigma).
     * ``init_std_*``: 1-sigma of the initial covariance: position from a
-      first camera fix, at rest, level within a few degrees.
+      first camera fix, at rest, level within a few degrees; the thrust scale
+      within 10 % of the airframe file's (mass, payload, rotor wear).
     """
 
     q_position_m2_s: float = 1e-6
@@ -169,6 +177,8 @@ class PositionEKFParams:
     init_std_velocity_m_s: float = 0.1
     init_std_angles_rad: float = 0.05
     init_std_rates_rad_s: float = 0.05
+    q_thrust_scale_1_s: float = 1e-4
+    init_std_thrust_scale: float = 0.1
 
     def __post_init__(self):
         for fld in fields(self):
@@ -201,14 +211,15 @@ class PositionEKFParams:
 
     @property
     def process_noise_density(self) -> np.ndarray:
-        """Diagonal of Q_c (12,)."""
-        return np.repeat([self.q_position_m2_s, self.q_velocity_m2_s3,
-                          self.q_angles_rad2_s, self.q_rates_rad2_s3], 3)
+        """Diagonal of Q_c (13,)."""
+        return np.r_[np.repeat([self.q_position_m2_s, self.q_velocity_m2_s3,
+                                self.q_angles_rad2_s, self.q_rates_rad2_s3], 3), self.q_thrust_scale_1_s]
 
     @property
     def initial_covariance(self) -> np.ndarray:
-        return np.diag(np.repeat([self.init_std_position_m, self.init_std_velocity_m_s,
-                                  self.init_std_angles_rad, self.init_std_rates_rad_s], 3) ** 2)
+        return np.diag(np.r_[np.repeat([self.init_std_position_m, self.init_std_velocity_m_s,
+                                        self.init_std_angles_rad, self.init_std_rates_rad_s], 3),
+                             self.init_std_thrust_scale] ** 2)
 
 
 # --------------------------------------------------------------------------- #
@@ -244,7 +255,7 @@ def f(x, u, vehicle: Vehicle) -> np.ndarray:
 
 
 def jacobian_f(x, u, vehicle: Vehicle) -> np.ndarray:
-    """Analytic 12x12 Jacobian df/dx at (x, u) (22)."""
+    """Analytic 12x12 Jacobian df/dx of the model (1)-(2) at (x, u) (22)."""
     _, _, _, _, _, _, r, p, y, wx, wy, wz = x.tolist() if isinstance(x, np.ndarray) else list(x)
     u1 = float(u[0])
     m = vehicle.mass_kg
@@ -257,7 +268,7 @@ def jacobian_f(x, u, vehicle: Vehicle) -> np.ndarray:
     tp = sp / cp
     q = sr * wy + cr * wz      # d q / d roll = qd
     qd = cr * wy - sr * wz
-    J = np.zeros((N_STATE, N_STATE))
+    J = np.zeros((N_MODEL, N_MODEL))
     # p' = v
     J[0, 3] = J[1, 4] = J[2, 5] = 1.0
     # v' = a R e3 - k v - g e3
@@ -307,12 +318,30 @@ def rk4_step(x, u, vehicle: Vehicle, dt: float) -> np.ndarray:
 
 
 def discretize(x, u, vehicle: Vehicle, dt: float, q_density=None):
-    """One step: (x_next by RK4, F_d = I + A + A^2/2 with A = J dt, Q_d = diag(q_density) dt)."""
+    """One step: (x_next by RK4, F_d = I + A + A^2/2 with A = J dt, Q_d = diag(q_density) dt).
+
+    x has the 12 states of (1)-(2), or 13 with the thrust scale s last (the filter's
+    state): then the model runs with u1 scaled by s, and J gets the column
+    d v' / d s = (u1 / m) R e3 (s itself is a random walk)."""
     x = np.asarray(x, dtype=np.float64)
     u = np.asarray(u, dtype=np.float64)
-    x_next = rk4_step(x, u, vehicle, dt)
-    A = jacobian_f(x, u, vehicle) * dt
-    F = np.eye(N_STATE) + A + 0.5 * (A @ A)
+    if x.shape[0] == N_MODEL:
+        x_next = rk4_step(x, u, vehicle, dt)
+        A = jacobian_f(x, u, vehicle) * dt
+    else:
+        s = x[THRUST_SCALE]
+        u_real = u.copy()
+        u_real[0] *= s
+        x_next = x.copy()
+        x_next[:N_MODEL] = rk4_step(x[:N_MODEL], u_real, vehicle, dt)
+        J = np.zeros((N_STATE, N_STATE))
+        J[:N_MODEL, :N_MODEL] = jacobian_f(x[:N_MODEL], u_real, vehicle)
+        r, p, y = x[EULER]
+        sr, cr, sp, cp, sy, cy = math.sin(r), math.cos(r), math.sin(p), math.cos(p), math.sin(y), math.cos(y)
+        J[VELOCITY, THRUST_SCALE] = (u[0] / vehicle.mass_kg) * np.array(
+            [sy * sr + cy * cr * sp, -cy * sr + sy * cr * sp, cr * cp])
+        A = J * dt
+    F = np.eye(x.shape[0]) + A + 0.5 * (A @ A)
     Q = None if q_density is None else np.diag(np.asarray(q_density, dtype=np.float64) * dt)
     return x_next, F, Q
 
@@ -334,7 +363,17 @@ class _Node:
 
 
 class PositionEKF:
-    """EKF on the 12-state model with delayed camera fusion (see module doc)."""
+    """EKF on the 12-state model with delayed camera fusion (see module doc).
+
+    Its state has a 13th element, the thrust scale s: the collective force the
+    vehicle really gets per newton commanded (1 for the airframe file's mass and
+    rotors). (1) runs with s u1. A heavier vehicle (payload), a weaker battery or
+    worn rotors change s; the camera's positions make it observable through the
+    vertical (and, tilted, horizontal) acceleration, and the laws divide the
+    collective by it (PX4 estimates its hover thrust for the same reason). Without
+    it the laws of 000, which have no integral action, hold a heavier vehicle low,
+    and the EKF's velocity is biased by the wrong acceleration.
+    """
 
     def __init__(self, vehicle: Vehicle, params: PositionEKFParams | None = None, dt: float = 0.01):
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
@@ -390,6 +429,10 @@ class PositionEKF:
         return self.x[RATES]
 
     @property
+    def thrust_scale(self) -> float:
+        return float(self.x[THRUST_SCALE])
+
+    @property
     def position_cov(self) -> np.ndarray:
         return self.P[POSITION, POSITION]
 
@@ -415,6 +458,7 @@ class PositionEKF:
         x = np.zeros(N_STATE)
         x[POSITION] = _vec(position, 3, "position")
         x[EULER] = _vec(euler, 3, "euler")
+        x[THRUST_SCALE] = 1.0
         x[6] = float(wrap_angle(x[6]))
         x[8] = float(wrap_angle(x[8]))
         P = self.params.initial_covariance if P0 is None else np.array(P0, dtype=np.float64)
@@ -508,7 +552,7 @@ class PositionEKF:
         x[8] = (x[8] + math.pi) % _TWO_PI - math.pi
         if x[2] <= 0.0:  # the floor: (1) alone would let a vehicle at idle thrust fall through it
             x[2], x[5] = 0.0, max(x[5], 0.0)
-            if u[0] < self.vehicle.mass_kg * self.vehicle.gravity_m_s2:
+            if u[0] * x[THRUST_SCALE] < self.vehicle.mass_kg * self.vehicle.gravity_m_s2:
                 x[3:6] = 0.0  # resting on it: no sliding either
         return x, P
 
@@ -542,6 +586,7 @@ class PositionEKF:
         P = IKH @ P @ IKH.T + K @ R @ K.T
         x[6] = (x[6] + math.pi) % _TWO_PI - math.pi
         x[8] = (x[8] + math.pi) % _TWO_PI - math.pi
+        x[THRUST_SCALE] = min(max(x[THRUST_SCALE], THRUST_SCALE_LIMITS[0]), THRUST_SCALE_LIMITS[1])
         return x, 0.5 * (P + P.T)
 
     def _apply(self, x, P, meas):

@@ -158,6 +158,9 @@ POSITION_STATE = Message(
         _vec("position_cov_m2", "position covariance, row-major 3x3 (zeros for truth)", "m^2", 9, -1e6, 1e6),
         _vec("acceleration_m_s2", "acceleration, world ENU (slope of the velocity estimate over ~0.1 s)",
              "m/s^2", lo=-1e4, hi=1e4),
+        F("thrust_scale", "float", "collective force the vehicle really gets per newton commanded "
+          "(the EKF's estimate; 1 for truth); the laws and the motor driver divide by it",
+          min=0.1, max=10.0),
         F("state_source", "str", "where the state came from", choices=("truth", "estimate")),
     ),
 )

@@ -11,7 +11,8 @@ applies u = u_plan(t) + K(t) (x - x_plan(t)) (flight/plan.py) on the latest
 estimate x (pos/state position/velocity and att/state quaternion/rates, each
 carried forward over its age; with a 17-state plan, the rotor forces its own
 commands imply through the motor lag), clipped to the rotor limits, as thrust
-kf u^2 through the motor map. The newest plan is used; when it has expired the
+kf u^2 through the motor map, the collective divided by the position EKF's
+thrust scale (pos/state; flight/plan.scale_collective). The newest plan is used; when it has expired the
 previous one while it lasts ("plan_fallback_previous"), then the attitude
 level's command ("plan_fallback_hover"): both counted per output in health.
 
@@ -27,7 +28,7 @@ import numpy as np
 
 import schemas
 from flight.mixer import mix, pwm_to_thrust, thrust_to_pwm
-from flight.plan import RotorPlan, body_state, motor_forces_update
+from flight.plan import RotorPlan, body_state, motor_forces_update, scale_collective
 from flight.vehicle import load_vehicle
 from services.runtime import Runtime, main_guard, service_parser
 
@@ -60,7 +61,9 @@ def run(args) -> None:
         rt.rejected[reason] = rt.rejected.get(reason, 0) + 1
 
     def plan_forces(t: float, sp: dict):
-        """Rotor forces from a valid plan, or None (fall back to the attitude command)."""
+        """Rotor forces from a valid plan (in the plan's model, the airframe file's),
+        with the thrust scale of the latest pos/state; or None (fall back to the
+        attitude command)."""
         for m in plans.take():
             if m["_n"] > held["seen"]:
                 held["seen"] = m["_n"]
@@ -93,15 +96,22 @@ def run(args) -> None:
             if link:
                 link(t, idle["thrust_n"])
             return
+        pos = pos_state.latest()
+        thrust_scale = pos["thrust_scale"] if pos is not None else 1.0
         forces = plan_forces(t, sp)
         if forces is not None:
+            if thrust_scale != 1.0:  # the collective the plan needs from the real vehicle
+                wrench = vehicle.allocation @ forces
+                forces, _ = mix(vehicle, wrench[0] / thrust_scale, wrench[1:])
             pwm = thrust_to_pwm(vehicle, forces)
             forces = pwm_to_thrust(vehicle, pwm)  # what the motors will really be asked for
             saturated = bool(np.any(pwm <= vehicle.pwm_min_us) or np.any(pwm >= vehicle.pwm_max_us))
         else:
             forces, saturated = mix(vehicle, cmd["thrust_n"], cmd["torque_nm"])
             pwm = thrust_to_pwm(vehicle, forces)
-        held["forces"] = motor_forces_update(held["forces"], forces, dt_tick, vehicle.motor_time_constant_s)
+        # the plan's motor states: what was sent, as the plan's model (the airframe file's) sees it
+        as_planned = scale_collective(vehicle.allocation, forces, thrust_scale)
+        held["forces"] = motor_forces_update(held["forces"], as_planned, dt_tick, vehicle.motor_time_constant_s)
         if link:
             link(t, forces)
         out.put({"pwm_us": pwm, "thrust_n": np.asarray(forces),

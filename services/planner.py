@@ -22,7 +22,7 @@ import numpy as np
 
 import schemas
 from flight.mission import FLIP_METHODS, MissionError, Planner, load_mission
-from flight.plan import body_state, motor_forces_update
+from flight.plan import body_state, motor_forces_update, scale_collective
 from services.runtime import Runtime, main_guard, service_parser
 
 NAME = "planner"
@@ -73,7 +73,8 @@ def run(args) -> None:
         pwm = rt.inbox(schemas.MOTOR_PWM, "motors", keep=32)
         plan_out = rt.publisher(schemas.PLANNER_PLAN)
         from flight.vehicle import load_vehicle
-        forces = {"n": None, "tau": load_vehicle(rt.vehicle_name).motor_time_constant_s}
+        vehicle = load_vehicle(rt.vehicle_name)
+        forces = {"n": None, "tau": vehicle.motor_time_constant_s}
 
     def fly_flip(item, t, starting):
         """MissionRunner's flip hook: one controller step on the state of this run."""
@@ -94,8 +95,9 @@ def run(args) -> None:
 
     def read_full_state(t: float, pos: dict) -> np.ndarray | None:
         """[p, v, q, w, rotor forces] at t, or None without an attitude state."""
-        for m in pwm.take():  # the rotor forces the motor driver's commands imply (its lag model)
-            f = np.asarray(m["thrust_n"], dtype=np.float64)
+        for m in pwm.take():  # the rotor forces the motor driver's commands imply (its lag model),
+            # as the plan's model (the airframe file's) sees them: collective times the thrust scale
+            f = scale_collective(vehicle.allocation, m["thrust_n"], pos["thrust_scale"])
             forces["n"] = f if forces["n"] is None else motor_forces_update(
                 forces["n"], f, 1.0 / rt.tick_rate, forces["tau"])
         att = attitude.latest()

@@ -79,13 +79,13 @@ def run(args) -> None:
         rt.rejected[reason] = rt.rejected.get(reason, 0) + 1
 
     def read_state(t: float):
-        """(position, velocity, euler, position covariance) or None."""
+        """(position, velocity, euler, position covariance, thrust scale) or None."""
         if not estimate:
             s = truth.latest()
             if s is None:
                 return None
             return (np.asarray(s["position_m"]), np.asarray(s["velocity_m_s"]),
-                    np.array(quat_to_euler(s["quaternion_wxyz"])), np.zeros((3, 3)))
+                    np.array(quat_to_euler(s["quaternion_wxyz"])), np.zeros((3, 3)), 1.0)
         if not started["ekf"]:
             ekf.initialize(t, np.asarray(p["home_position_m"], dtype=float))
             started["ekf"] = True
@@ -118,13 +118,14 @@ def run(args) -> None:
                 ekf.reset_position(pose["position_m"], cov)
                 count("fusion_position_reset")
                 started["refused"] = 0
-        return ekf.position, ekf.velocity, ekf.euler, ekf.position_cov
+        return ekf.position, ekf.velocity, ekf.euler, ekf.position_cov, ekf.thrust_scale
 
     def step(t: float) -> None:
         state, sp = read_state(t), planner.latest()
         if state is None:
             return
-        pos, vel, (roll, pitch, yaw), cov = state
+        pos, vel, (roll, pitch, yaw), cov, thrust_scale = state
+        m_eff = m / thrust_scale  # the mass the laws see: a vehicle that gets less thrust per newton
         stale = sp is None or t - sp["header"]["t_s"] > p["setpoint_timeout_s"]
         if stale and hold["position"] is None:
             hold["position"] = pos.copy()  # planner lost: hold the position we had
@@ -134,11 +135,11 @@ def run(args) -> None:
             ref_pos, att_ref, thrust = pos, [0.0, 0.0, yaw], 0.0
         elif sp is not None and not stale and sp["mode"] == "attitude":
             ref_pos, att_ref = np.asarray(sp["position_m"]), list(sp["attitude_rad"])
-            thrust = altitude_law(m, g, pos[2], vel[2], ref_pos[2], k[2], alpha[2], roll, pitch)
+            thrust = altitude_law(m_eff, g, pos[2], vel[2], ref_pos[2], k[2], alpha[2], roll, pitch)
         else:
             ref_pos = hold["position"] if stale else np.asarray(sp["position_m"])
             yaw_ref = yaw if stale else sp["attitude_rad"][2]
-            r, pt, thrust = position_law(m, g, pos, vel, ref_pos, k, alpha, yaw_ref,
+            r, pt, thrust = position_law(m_eff, g, pos, vel, ref_pos, k, alpha, yaw_ref,
                                          max_tilt_rad=np.radians(p["max_tilt_deg"]))
             att_ref = [r, pt, yaw_ref]
         thrust = float(min(thrust, 4 * vehicle.max_thrust_n))
@@ -148,7 +149,7 @@ def run(args) -> None:
         setpoint_out.put({"attitude_ref_rad": att_ref, "thrust_n": thrust}, t_s=t)
         state_out.put({"position_m": pos, "velocity_m_s": vel, "position_ref_m": ref_pos,
                        "position_cov_m2": np.asarray(cov).reshape(-1), "acceleration_m_s2": accel,
-                       "state_source": p["state_source"]}, t_s=t)
+                       "thrust_scale": thrust_scale, "state_source": p["state_source"]}, t_s=t)
 
     rt.run(step)
 

@@ -1,6 +1,5 @@
 """The service side of the flip (issue 5): plan execution, the plan message, the flip item."""
 
-import math
 
 import numpy as np
 import pytest
@@ -92,3 +91,15 @@ def test_flip_item_refuses_a_low_altitude_and_unknown_method(tmp_path):
         path.write_text(f'[mission]\nname = "m"\nvehicle = "q820"\n[[items]]\ntype = "flip"\n{body}\n')
         with pytest.raises(MissionError, match=what):
             load_mission(str(path))
+
+
+def test_scale_collective_keeps_torques_and_inverts():
+    from flight.plan import scale_collective
+    from flight.vehicle import load_vehicle
+    veh = load_vehicle("q820")
+    forces = np.array([4.0, 5.0, 6.0, 4.5])
+    sent = scale_collective(veh.allocation, forces, 1 / 0.9)
+    w, w_sent = veh.allocation @ forces, veh.allocation @ sent
+    assert w_sent[0] == pytest.approx(w[0] / 0.9)
+    np.testing.assert_allclose(w_sent[1:], w[1:], atol=1e-12)
+    np.testing.assert_allclose(scale_collective(veh.allocation, sent, 0.9), forces, atol=1e-12)

@@ -117,6 +117,30 @@ def test_discretisation_transition_matches_rk4_sensitivity():
     np.testing.assert_allclose(Q, np.eye(12) * DT)
 
 
+def _rk4_scaled(x13, u, dt):
+    """The filter's 13-state step: (1)-(2) with u1 times the thrust scale x13[12], which stays."""
+    ue = np.array(u, dtype=float)
+    ue[0] *= x13[12]
+    return np.r_[rk4_step(x13[:12], ue, VEH, dt), x13[12]]
+
+
+def test_thrust_scale_column_matches_finite_differences():
+    rng = np.random.default_rng(5)
+    x = np.r_[_random_state(rng) * 0.3, 0.9]
+    x[9:12] = 0.0
+    u = np.array([4.2, 0.0, 0.0, 0.0])
+    x_next, F, Q = discretize(x, u, VEH, DT, np.ones(13))
+    np.testing.assert_allclose(x_next, _rk4_scaled(x, u, DT), atol=1e-12)
+    Fd = np.zeros((13, 13))
+    for i in range(13):
+        e = np.zeros(13)
+        e[i] = 1e-6
+        Fd[:, i] = (_rk4_scaled(x + e, u, DT) - _rk4_scaled(x - e, u, DT)) / 2e-6
+    np.testing.assert_allclose(F, Fd, atol=2e-5)
+    assert F[5, 12] == pytest.approx(DT * u[0] / VEH.mass_kg * math.cos(x[6]) * math.cos(x[7]), rel=5e-3)
+    np.testing.assert_allclose(Q, np.eye(13) * DT)
+
+
 # --------------------------------------------------------------------------- params
 def test_params_from_dict_and_validation():
     p = PositionEKFParams.from_dict({"q_velocity_m2_s3": 0.05, "gate_probability": 0.99})
@@ -159,10 +183,12 @@ def _step_ref(t):
 
 
 @functools.lru_cache(maxsize=None)
-def _truth(seed: int = 0, duration: float = 8.0, q_scale: float = 1.0):
+def _truth(seed: int = 0, duration: float = 8.0, q_scale: float = 1.0, thrust_scale: float = 1.0):
     """Truth at 100 Hz from the same model (RK4 at 2 ms), u held over each 10 ms, plus
     process noise (times q_scale) on velocity and rates: a calm indoor 0.005 m^2/s^3 on
-    velocity, below the filter's default, which also covers the plant's unmodelled motor lag."""
+    velocity, below the filter's default, which also covers the plant's unmodelled motor lag.
+    thrust_scale: the plant makes this times the commanded collective (a payload); the
+    recorded inputs are the commands."""
     rng = np.random.default_rng(seed)
     qc = PositionEKFParams(q_velocity_m2_s3=0.005).process_noise_density * q_scale
     n = int(round(duration / DT))
@@ -173,8 +199,9 @@ def _truth(seed: int = 0, duration: float = 8.0, q_scale: float = 1.0):
     xs[0] = x
     for k in range(n):
         u = _ctrl(x, _step_ref(k * DT))
+        u_real = u * [thrust_scale, 1.0, 1.0, 1.0]
         for _ in range(5):
-            x = rk4_step(x, u, VEH, DT / 5)
+            x = rk4_step(x, u_real, VEH, DT / 5)
         x[3:6] += rng.normal(size=3) * np.sqrt(qc[3:6] * DT)
         x[9:12] += rng.normal(size=3) * np.sqrt(qc[9:12] * DT)
         us[k] = u
@@ -193,7 +220,7 @@ def _run(xs, us, *, seed=0, delay_steps=5, naive=False, params=None, outage=None
     n = len(us)
     ekf = PositionEKF(VEH, params or PositionEKFParams(), dt=DT)
     ekf.initialize(0.0, xs[0, 0:3] + rng.normal(scale=0.02, size=3), xs[0, 6:9])
-    est = np.zeros((n + 1, 12))
+    est = np.zeros((n + 1, 13))
     pcov = np.zeros((n + 1, 3, 3))
     est[0], pcov[0] = ekf.x, ekf.position_cov
     cam_cov = np.eye(3) * CAM_STD ** 2
@@ -253,6 +280,24 @@ def test_hover_and_step_accuracy_and_consistency():
         rms2, nees2 = _metrics(xs2, est2, pcov2, mask)
         print(f"seed {seed}: RMS {rms2 * 1e3:.2f} mm, mean NEES {nees2:.2f}")
         assert rms2 < 0.01 and NEES_LO <= nees2 <= NEES_HI
+
+
+def test_thrust_scale_learns_a_heavier_vehicle():
+    """The plant gives 10 % less collective than commanded (10 % heavier): the thrust
+    scale converges to 1/1.1 and the position stays accurate and consistent."""
+    xs, us = _truth(0, duration=8.0, thrust_scale=1 / 1.1)
+    ekf, est, pcov = _run(xs, us)
+    t = np.arange(len(xs)) * DT
+    scale = est[:, 12]
+    print(f"thrust scale at 1/2/4/8 s: {scale[[100, 200, 400, 800]]}")
+    assert abs(scale[-1] - 1 / 1.1) < 0.01
+    assert np.all(np.abs(scale[t >= 3.0] - 1 / 1.1) < 0.02)
+    rms, nees = _metrics(xs, est, pcov, t >= 3.0)
+    assert rms < 0.01
+    assert NEES_LO <= nees <= NEES_HI
+    # the nominal vehicle keeps its scale
+    _, est_nominal, _ = _run(*_truth(0))
+    assert np.all(np.abs(est_nominal[t >= 3.0, 12] - 1.0) < 0.02)
 
 
 def test_delayed_fusion_beats_fusing_as_current():
