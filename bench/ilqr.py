@@ -6,12 +6,16 @@ Both solve the same problem (THESIS setting: dt 0.1 s, horizon 10, 5 iterations,
 a hover 0.5 m below and 0.3 m beside the target). The thesis's solver is forced to its
 5 iterations (tol 0) so both do the same amount of work; the project's runs its
 5 iterations (relative tolerance 0). Prints compile times, median solve times (best
-of rounds), their ratio, and the PROJECT configuration's solve time and MPC rate.
+of rounds), their ratio, and the PROJECT configuration's solve time and MPC rate; then the
+planner's start-up in a fresh process: compiling, and loading from the compile cache the
+planner service keeps (flight.ilqr.use_compile_cache).
 """
 from __future__ import annotations
 
 import dataclasses
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -39,6 +43,26 @@ def problem(horizon: int):
     x0 = hover_state([0.3, 0.0, 4.5])
     targets = np.repeat(hover_state([0.0, 0.0, 5.0])[None], horizon + 1, axis=0)
     return x0, targets
+
+
+STARTUP = """
+import sys, time
+sys.path.insert(0, {root!r})
+from flight.ilqr import {config}, Planner, use_compile_cache
+from flight.vehicle import load_vehicle
+use_compile_cache({cache!r})
+vehicle = load_vehicle("q820")
+t0 = time.perf_counter()
+Planner(vehicle, {config})
+print(time.perf_counter() - t0)
+"""
+
+
+def startup_s(config: str, cache_dir: str) -> float:
+    """Seconds to build and warm up a Planner in a fresh process with this cache."""
+    code = STARTUP.format(root=str(Path(__file__).resolve().parents[1]), config=config, cache=cache_dir)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    return float(out.stdout.split()[-1])
 
 
 def main() -> None:
@@ -83,6 +107,10 @@ def main() -> None:
     print(f"PROJECT (dt {PROJECT.dt_s} s, horizon {PROJECT.horizon}, <= {PROJECT.max_iterations} iterations, "
           f"{PROJECT.integrator}): compile {compile_s:.1f} s, solve cold {1e3 * cold_s:.2f} ms, "
           f"warm {1e3 * warm_s:.2f} ms -> MPC up to {1.0 / cold_s:.0f} Hz (cold) / {1.0 / warm_s:.0f} Hz (warm)")
+    with tempfile.TemporaryDirectory() as cache:
+        for config in ("THESIS", "PROJECT"):
+            first, again = startup_s(config, cache), startup_s(config, cache)
+            print(f"planner start-up, {config}: compile {first:.1f} s, from the compile cache {again:.2f} s")
 
 
 if __name__ == "__main__":

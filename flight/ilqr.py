@@ -234,6 +234,42 @@ def make_cost(config: ILQRConfig) -> tuple[Callable, Callable]:
     return stage_cost, terminal_cost
 
 
+def make_cost_derivatives(config: ILQRConfig) -> tuple[Callable, Callable]:
+    """Exact derivatives of make_cost's costs, using their structure: the p, v, rate and u
+    terms are quadratic (constant Hessians), only the attitude term needs autodiff, and on
+    the 4 quaternion components alone. Same values as jax.grad/jax.hessian of the costs (a
+    test holds them equal) for a fraction of the work: a generic Hessian of the stage cost
+    differentiates all 13 (17) states twice.
+
+    stage_derivatives(x, u, x_target, u_target) -> (lx, lu, lxx, luu, lux)
+    terminal_derivatives(x, x_target) -> (lx, lxx); x of any size >= 13 (extra states
+    carry no cost)."""
+    att_grad = jax.grad(attitude_error_sq_rad2)
+    att_hess = jax.hessian(attitude_error_sq_rad2)
+
+    def state_derivatives(x, x_target, weight):
+        w = np.asarray(weight, dtype=np.float64)
+        diag = np.zeros(x.shape[-1])
+        diag[POS], diag[VEL], diag[RATE] = w[0:3], w[3:6], w[7:10]
+        diag = jnp.asarray(diag, x.dtype)
+        q, qt = x[QUAT], x_target[QUAT]
+        lx = (2.0 * diag * (x - x_target)).at[QUAT].set(w[6] * att_grad(q, qt))
+        lxx = jnp.diag(2.0 * diag).at[QUAT, QUAT].set(w[6] * att_hess(q, qt))
+        return lx, lxx
+
+    def stage_derivatives(x, u, x_target, u_target):
+        lx, lxx = state_derivatives(x, x_target, config.state_weight)
+        cw = config.control_weight
+        lu = 2.0 * cw * (u - u_target)
+        luu = 2.0 * cw * jnp.eye(u.shape[-1], dtype=u.dtype)
+        return lx, lu, lxx, luu, jnp.zeros((u.shape[-1], x.shape[-1]), x.dtype)
+
+    def terminal_derivatives(x, x_target):
+        return state_derivatives(x, x_target, config.terminal_weight)
+
+    return stage_derivatives, terminal_derivatives
+
+
 # --- solver ------------------------------------------------------------------------
 
 class Solution(NamedTuple):
@@ -292,18 +328,26 @@ def _backward_pass(derivs, mu):
     return gains, ffs, decrease.sum(axis=0), ok
 
 
-def make_solver(dynamics, stage_cost, terminal_cost, config: ILQRConfig, u_min, u_max) -> Callable:
-    """solve(x0, controls_init, x_targets, u_targets) -> Solution; pure, jit it once."""
+def make_solver(dynamics, stage_cost, terminal_cost, config: ILQRConfig, u_min, u_max,
+                cost_derivatives=None) -> Callable:
+    """solve(x0, controls_init, x_targets, u_targets) -> Solution; pure, jit it once.
+
+    cost_derivatives: (stage_derivatives, terminal_derivatives) as make_cost_derivatives
+    returns; None: jax.grad / jax.hessian of the costs."""
     alphas = jnp.asarray(config.line_search_alphas)
     jac_x = jax.vmap(jax.jacfwd(dynamics, argnums=0))
     jac_u = jax.vmap(jax.jacfwd(dynamics, argnums=1))
-    c_x = jax.vmap(jax.grad(stage_cost, argnums=0))
-    c_u = jax.vmap(jax.grad(stage_cost, argnums=1))
-    c_xx = jax.vmap(jax.hessian(stage_cost, argnums=0))
-    c_uu = jax.vmap(jax.hessian(stage_cost, argnums=1))
-    c_ux = jax.vmap(jax.jacfwd(jax.grad(stage_cost, argnums=1), argnums=0))
-    t_x = jax.grad(terminal_cost)
-    t_xx = jax.hessian(terminal_cost)
+    if cost_derivatives is None:
+        def stage_derivatives(x, u, xt, ut):
+            return (jax.grad(stage_cost, argnums=0)(x, u, xt, ut), jax.grad(stage_cost, argnums=1)(x, u, xt, ut),
+                    jax.hessian(stage_cost, argnums=0)(x, u, xt, ut), jax.hessian(stage_cost, argnums=1)(x, u, xt, ut),
+                    jax.jacfwd(jax.grad(stage_cost, argnums=1), argnums=0)(x, u, xt, ut))
+
+        def terminal_derivatives(x, xt):
+            return jax.grad(terminal_cost)(x, xt), jax.hessian(terminal_cost)(x, xt)
+    else:
+        stage_derivatives, terminal_derivatives = cost_derivatives
+    stage_derivatives_all = jax.vmap(stage_derivatives)
     mu_min, mu_max, factor = config.regularisation_min, config.regularisation_max, config.regularisation_factor
 
     def cost_of(states, controls, x_targets, u_targets):
@@ -311,11 +355,9 @@ def make_solver(dynamics, stage_cost, terminal_cost, config: ILQRConfig, u_min, 
 
     def derivatives(states, controls, x_targets, u_targets):
         xs, xt = states[:-1], x_targets[:-1]
-        return (jac_x(xs, controls), jac_u(xs, controls),
-                c_x(xs, controls, xt, u_targets), c_u(xs, controls, xt, u_targets),
-                c_xx(xs, controls, xt, u_targets), c_uu(xs, controls, xt, u_targets),
-                c_ux(xs, controls, xt, u_targets),
-                t_x(states[-1], x_targets[-1]), t_xx(states[-1], x_targets[-1]))
+        lx, lu, lxx, luu, lux = stage_derivatives_all(xs, controls, xt, u_targets)
+        return (jac_x(xs, controls), jac_u(xs, controls), lx, lu, lxx, luu, lux,
+                *terminal_derivatives(states[-1], x_targets[-1]))
 
     def forward(states, controls, gains, ffs, alpha):
         def step(x, d):
@@ -370,6 +412,18 @@ def make_solver(dynamics, stage_cost, terminal_cost, config: ILQRConfig, u_min, 
 
 # --- planner (compiled once) -------------------------------------------------------
 
+def use_compile_cache(path: str) -> str:
+    """Keep compiled solvers in path (JAX's persistent compilation cache): a service that
+    starts again with the same vehicle, config and JAX loads the executable instead of
+    compiling it (bench/ilqr.py measures both). Returns the absolute path."""
+    import os
+    path = os.path.abspath(os.path.expanduser(path))
+    os.makedirs(path, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", path)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)  # the solvers, not every small op
+    return path
+
+
 @dataclass(frozen=True)
 class Plan:
     """A solved plan in numpy, time 0 = the state it was solved from."""
@@ -404,8 +458,15 @@ class Planner:
         self.u_hover_rad_s = hover_rotor_speed_rad_s(vehicle)
         self.models_motors = config.motor_time_constant_s is not None
         self.state_dim = BODY_DIM + (CONTROL_DIM if self.models_motors else 0)
-        self._solve = jax.jit(make_solver(self.dynamics, self.stage_cost, self.terminal_cost,
-                                          config, 0.0, self.u_max_rad_s))
+        solver = make_solver(self.dynamics, self.stage_cost, self.terminal_cost,
+                             config, 0.0, self.u_max_rad_s, make_cost_derivatives(config))
+
+        def solve_packed(*args):  # the four scalars in one array: fewer device->host copies
+            sol = solver(*args)
+            scalars = jnp.stack([sol.cost, sol.initial_cost, sol.iterations.astype(sol.cost.dtype),
+                                 sol.converged.astype(sol.cost.dtype)])
+            return sol.states, sol.controls, sol.gains, sol.feedforward, scalars
+        self._solve = jax.jit(solve_packed)
         if warm_up:
             x0 = hover_state(np.zeros(3))
             self.solve(x0, np.repeat(x0[None], config.horizon + 1, axis=0))
@@ -431,12 +492,13 @@ class Planner:
         u_targets = self.hover_controls() if u_targets is None else u_targets
         warm = self.hover_controls() if warm is None else warm
         x0, x_targets = self.full_state(x0), self.full_state(x_targets)
-        sol = self._solve(jnp.asarray(x0, jnp.float32), jnp.asarray(warm, jnp.float32),
-                          jnp.asarray(x_targets, jnp.float32), jnp.asarray(u_targets, jnp.float32))
-        sol = jax.device_get(sol)
-        return Plan(np.asarray(sol.states, np.float64), np.asarray(sol.controls, np.float64),
-                    np.asarray(sol.gains, np.float64), np.asarray(sol.feedforward, np.float64),
-                    float(sol.cost), float(sol.initial_cost), int(sol.iterations), bool(sol.converged), self.config.dt_s)
+        # numpy in (jit converts it on the way; jnp.asarray per argument costs more), one copy out
+        states, controls, gains, ffs, (cost, cost0, iterations, converged) = jax.device_get(self._solve(
+            np.asarray(x0, np.float32), np.asarray(warm, np.float32),
+            np.asarray(x_targets, np.float32), np.asarray(u_targets, np.float32)))
+        return Plan(np.asarray(states, np.float64), np.asarray(controls, np.float64),
+                    np.asarray(gains, np.float64), np.asarray(ffs, np.float64),
+                    float(cost), float(cost0), int(iterations), bool(converged > 0.5), self.config.dt_s)
 
     def compiled_count(self) -> int:
         """Number of compiled versions of the solve (1 after warm-up if shapes never change)."""

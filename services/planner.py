@@ -7,7 +7,8 @@ being flown. Mission "none" (or ""): idle on the ground, waiting for commands.
 
 Flip items (document 001): when the mission has one, the flip controller of each
 method it names is built at start-up (the iLQR compiled and warmed up before the
-first tick, never in flight) and the loop runs at least at the re-solve rate
+first tick, never in flight; the executable is kept in `compile_cache_dir`, so
+a restart loads it instead of compiling) and the loop runs at least at the re-solve rate
 (`mpc_rate_hz`, 0: the method's default, see flight/flip_runner.py). While a flip
 item runs, the setpoint's mode is `plan` and every re-solve from the latest
 estimate (pos/state + att/state, and the rotor forces implied by motors/pwm)
@@ -30,6 +31,8 @@ PARAMS = {
     "mission": "hover",
     "mpc_rate_hz": 0.0,   # flip re-solve rate; 0: the method's default (project 100, thesis 20, baseline 200)
     "flip_method": "",    # fly every flip item with this method ("" : as the mission says)
+    # where compiled iLQR solvers are kept between starts ("": compile every start)
+    "compile_cache_dir": "~/.cache/zenpilot/jax",
 }
 NO_MISSION = ("", "none")
 
@@ -43,6 +46,12 @@ def flip_controllers(rt: Runtime, mission) -> dict:
     from flight.vehicle import load_vehicle
     vehicle = load_vehicle(rt.vehicle_name)
     rate = rt.params["mpc_rate_hz"] or None
+    if rt.params["compile_cache_dir"]:
+        from flight.ilqr import use_compile_cache
+        try:
+            use_compile_cache(rt.params["compile_cache_dir"])
+        except OSError as exc:
+            raise ValueError(f"{rt.where()} compile_cache_dir: {exc}") from None
     controllers = {}
     for m in methods:
         print(f"zenpilot-planner: building the {m} flip controller", flush=True)

@@ -14,7 +14,9 @@ from flight.ilqr import (
     feedback_control,
     hover_rotor_speed_rad_s,
     hover_state,
+    PROJECT,
     make_cost,
+    make_cost_derivatives,
     make_dynamics,
     motor_forces_update,
     warm_start,
@@ -136,6 +138,27 @@ def test_cost_is_thesis_quadratic_away_from_attitude():
     u = np.full(4, 1000.0)
     assert float(stage(jnp.asarray(x), jnp.asarray(u), jnp.asarray(xt), jnp.asarray(u))) == pytest.approx(1.0)
     assert float(terminal(jnp.asarray(x), jnp.asarray(xt))) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("config,n", [(THESIS, 13), (PROJECT, 17)])
+def test_structured_cost_derivatives_equal_autodiff(config, n):
+    """make_cost_derivatives (what the solver uses) against jax.grad / jax.hessian of the costs,
+    at random states far from and near the target attitude."""
+    stage, terminal = make_cost(config)
+    stage_d, terminal_d = make_cost_derivatives(config)
+    rng = np.random.default_rng(3)
+    for near in (False, True):
+        x, xt = (jnp.asarray(rng.normal(size=n)) for _ in range(2))
+        if near:
+            x = x.at[6:10].set(xt[6:10] * 1.3 + 1e-4 * rng.normal(size=4))
+        u, ut = (jnp.asarray(rng.normal(size=4) * 100 + 700) for _ in range(2))
+        expected = (jax.grad(stage, 0)(x, u, xt, ut), jax.grad(stage, 1)(x, u, xt, ut),
+                    jax.hessian(stage, 0)(x, u, xt, ut), jax.hessian(stage, 1)(x, u, xt, ut),
+                    jax.jacfwd(jax.grad(stage, 1), 0)(x, u, xt, ut))
+        for got, want in zip(stage_d(x, u, xt, ut), expected):
+            np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)  # float32
+        for got, want in zip(terminal_d(x, xt), (jax.grad(terminal)(x, xt), jax.hessian(terminal)(x, xt))):
+            np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)  # float32
 
 
 def test_motor_lag_model_forces_follow_the_command_exactly():
