@@ -342,6 +342,8 @@ def _estimation(log, p, truth_t, truth_pos, truth_euler, landed) -> dict | None:
                 out["nees_band_95"] = list(NEES_BAND_95_3DOF)
                 out["nees_within_band_fraction"] = _f(np.mean((nees >= NEES_BAND_95_3DOF[0])
                                                               & (nees <= NEES_BAND_95_3DOF[1])))
+        # the EKF's thrust scale when the flight ended (1 / the plant's mass_scale if learned)
+        out["thrust_scale_final"] = _f(pos[-1].get("thrust_scale", 1.0))
     if att:
         idx, air = truth_index(att)
         est = np.array([x["euler_rad"] for x in att])[air]
