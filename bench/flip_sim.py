@@ -26,6 +26,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from flight.flip import (
+    PROJECT_FLIP,
     THESIS_BASELINE,
     THESIS_FLIP,
     BaselineConfig,
@@ -42,6 +43,7 @@ from flight.ilqr import (
     ILQRConfig,
     Planner,
     feedback_control,
+    hover_state,
     motor_forces_update,
     warm_start,
 )
@@ -50,9 +52,6 @@ from flight.vehicle import Vehicle, load_vehicle
 from simulator.config import SimConfig
 from simulator.plant import Plant
 
-# the wind-up (a -0.3 rad roll and back over 0.3 s) pushes towards +y before the turn,
-# whose roll torque forces a lateral impulse towards -y (see FlipConfig)
-PROJECT_FLIP = FlipConfig(lookahead=True, flip_duration_s=0.9, windup_rad=0.3, windup_s=0.3)
 THESIS_SOLVE_RATE_HZ = 20.0    # the thesis's MPC timer (50 ms)
 PROJECT_SOLVE_RATE_HZ = 100.0
 SIM = SimConfig()
@@ -98,7 +97,9 @@ def _tick(plant: Plant, sim: SimConfig, cmd) -> None:
 def simulate_mpc(vehicle: Vehicle, planner: Planner, flip: FlipConfig, solve_rate_hz: float,
                  after_recovery_s: float = 1.0, max_time_s: float = 12.0,
                  sim: SimConfig = SIM) -> FlipRun:
-    """Take off from the ground, flip, recover; stop after_recovery_s into the landing."""
+    """Take off from the ground, flip, recover; stop after_recovery_s into the hold that
+    follows (the phase machine's land: as the planner service (flight/flip_runner.py), a
+    hover where it recovered, at the flip's altitude)."""
     ticks_per_solve = round(sim.tick_rate_hz / solve_rate_hz)
     kf = vehicle.thrust_coefficient_kf
     plant = Plant(vehicle)
@@ -106,6 +107,7 @@ def simulate_mpc(vehicle: Vehicle, planner: Planner, flip: FlipConfig, solve_rat
     machine.start(0.0, plant.x[:13])
     run = FlipRun()
     plan, plan_t_s = None, 0.0
+    hold_point_m = None
     tau = planner.config.motor_time_constant_s
     forces_est = plant.motor_thrust_n  # the plan's motor states: estimated from the commands
     for tick in range(int(max_time_s * sim.tick_rate_hz)):
@@ -115,9 +117,15 @@ def simulate_mpc(vehicle: Vehicle, planner: Planner, flip: FlipConfig, solve_rat
             phase = machine.update(t_s, x)
             if phase in (Phase.DONE,) or (phase == Phase.LAND and t_s - machine.phase_start_s >= after_recovery_s):
                 break
+            if phase == Phase.LAND:  # as the planner service: hover where it recovered, at the flip's altitude
+                if hold_point_m is None:
+                    hold_point_m = np.array([x[0], x[1], machine.flip_point_m[2]])
+                targets = np.repeat(hover_state(hold_point_m)[None], planner.config.horizon + 1, axis=0)
+            else:
+                targets = machine.targets(t_s, x)
             warm = None if plan is None else warm_start(plan, t_s - plan_t_s)
             start = time.perf_counter()
-            candidate = planner.solve(x, machine.targets(t_s, x), warm=warm)
+            candidate = planner.solve(x, targets, warm=warm)
             run.solve_s.append(time.perf_counter() - start)
             run.solves += 1
             if candidate.usable or plan is None:

@@ -102,6 +102,12 @@ class FlipConfig:
     # False (thesis): recovery targets ramp from the current roll to level along the
     # horizon. True: level and at rest over the whole horizon.
     recovery_direct: bool = False
+    # False (thesis): recovery holds the horizontal position where it is, at rest, so the
+    # plan brakes the turn's lateral speed while it levels (tilted, 10-15 degrees, for a few
+    # tenths of a second). True: level first: the horizontal targets coast at the current
+    # horizontal velocity (p + v t, v), so nothing asks for a tilt; the braking is left to the
+    # hold that follows (land / the flip item's settle).
+    recovery_coast: bool = False
     # The flip's own reference may begin with a wind-up: a roll of -windup_rad and back
     # over windup_s before the turn (lookahead only), pushing towards +y first so that the
     # turn's own lateral impulse (towards -y, forced by the roll torque) cancels out.
@@ -114,6 +120,14 @@ class FlipConfig:
 
 
 THESIS_FLIP = FlipConfig(takeoff_hover_check=False)
+# the project's flip (the one source: flight/flip_runner.py and bench/flip_sim.py fly it): a
+# look-ahead quintic turn of 0.9 s after a 0.3 rad wind-up (a -0.3 rad roll and back over
+# 0.3 s pushes towards +y before the turn, whose roll torque forces a lateral impulse
+# towards -y). recovery_coast stays off: on truth it levels sooner (stack, seed 0: recovery
+# 0.66 -> 0.47 s, overshoot 16 -> 12 deg), but on estimates without the recovery's velocity
+# feedback a biased attitude estimate pushes the vehicle sideways unchecked and the hold then
+# brakes it tilted (stack on the estimators of be5319e, seeds 0 and 1: 1.3 -> 2.4 s)
+PROJECT_FLIP = FlipConfig(lookahead=True, flip_duration_s=0.9, windup_rad=0.3, windup_s=0.3)
 
 
 def smooth_roll_reference(t_s, duration_s: float):
@@ -224,6 +238,9 @@ class FlipPhaseMachine:
             position[:, 2] = max(x[2] - c.landing_speed_m_s * n * self.dt_s, 0.0)
         targets = np.zeros((n + 1, 13))
         targets[:n, 0:3] = position
+        if self.phase == Phase.RECOVERY and c.recovery_coast:
+            targets[:n, 0:2] = x[0:2] + x[3:5] * (np.arange(n) * self.dt_s)[:, None]
+            targets[:n, 3:5] = x[3:5]
         targets[:n, 6:10] = np.array([quat_from_roll(r) for r in rolls])
         targets[:n, 10:13] = rate
         targets[n] = targets[n - 1]

@@ -26,10 +26,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from flight.flip import (
+    PROJECT_FLIP,
     THESIS_FLIP,
     BaselineConfig,
     BaselineFlip,
-    FlipConfig,
     FlipPhaseMachine,
     Phase,
     tilt_rad,
@@ -38,9 +38,6 @@ from flight.quat import quat_to_euler
 from flight.vehicle import Vehicle
 
 METHODS = ("ilqr-project", "ilqr-thesis", "baseline")
-# the project's flip reference, as bench/flip_sim.py flies it: a look-ahead quintic turn
-# of 0.9 s after a 0.3 rad wind-up (see flight/flip.FlipConfig)
-PROJECT_FLIP = FlipConfig(lookahead=True, flip_duration_s=0.9, windup_rad=0.3, windup_s=0.3)
 # re-solve rates: the thesis's 20 Hz MPC timer; the project's solve (~2-9 ms) allows 100 Hz;
 # the baseline is a 200 Hz rate loop (the attitude level's rate)
 DEFAULT_RATE_HZ = {"ilqr-project": 100.0, "ilqr-thesis": 20.0, "baseline": 200.0}

@@ -69,6 +69,31 @@ def test_flip_targets_lead_the_roll_adaptively():
     np.testing.assert_array_equal(targets[-1], targets[-2])
 
 
+def test_recovery_coast_levels_without_braking():
+    """recovery_coast: the horizontal targets move on at the current velocity (nothing asks
+    for a braking tilt); the altitude is the flip's, the attitude level at rest."""
+    m = FlipPhaseMachine(FlipConfig(recovery_coast=True), horizon=10, dt_s=0.1)
+    m.start(0.0, state(z=0.0))
+    m.update(0.0, state())
+    for roll in np.linspace(0.0, 2 * math.pi - 0.05, 30):
+        m.update(0.5, state(roll=roll, rates=(3.0, 0, 0)))
+    assert m.phase == Phase.RECOVERY
+    x = state(z=4.5, roll=2 * math.pi + 0.1, rates=(1.0, 0, 0), v=(0.5, -1.0, -0.8))
+    x[0:2] = (0.3, 0.2)
+    targets = m.targets(0.6, x)
+    k = np.arange(10) * 0.1
+    np.testing.assert_allclose(targets[:10, 0], 0.3 + 0.5 * k)
+    np.testing.assert_allclose(targets[:10, 1], 0.2 - 1.0 * k)
+    np.testing.assert_allclose(targets[:10, 2], 5.0)
+    np.testing.assert_allclose(targets[:10, 3:6], np.tile([0.5, -1.0, 0.0], (10, 1)))
+    np.testing.assert_allclose(targets[:10, 10:13], 0.0)
+    # without it (the thesis): hold where it is, at rest
+    m.config = FlipConfig()
+    held = m.targets(0.6, x)
+    np.testing.assert_allclose(held[:10, 0:2], np.tile([0.3, 0.2], (10, 1)))
+    np.testing.assert_allclose(held[:10, 3:6], 0.0)
+
+
 def synthetic_flip(overshoot_rad=0.3, sink_m=0.8):
     t = np.arange(0.0, 3.0, 0.0025)
     turn_end = 1.5
