@@ -16,6 +16,8 @@ level's reference; the collective thrust is passed on to the motor driver.
 
 from __future__ import annotations
 
+from collections import deque
+
 import numpy as np
 
 import schemas
@@ -44,6 +46,14 @@ PARAMS = {
     # 000's plain accelerometer angles pull the estimate toward level in every
     # manoeuvre. False: 000 as printed.
     "compensate_acceleration": True,
+    # How the acceleration is compensated (compensate_acceleration = true):
+    # "window" compares the position level's velocity change over the last
+    # `accel_window_s` with the one the accelerometer gives at the filter's own attitude
+    # over the same window (AttitudeFilter accel_ref: no lag between the two, so a tilt
+    # step is not read as a pull towards level); "slope" subtracts the position
+    # level's published acceleration (its velocity slope, ~50 ms late) from the samples.
+    "acceleration_compensation": "slope",
+    "accel_window_s": 0.1,
     # Angle measurement of the filter: "kalman-000" the accelerometer angles of
     # 000; "gyro-vertical" the adaptive gyro-vertical of 004 (raw IMU in, its own
     # adaptive accelerometer trust; compensate_acceleration does not apply).
@@ -56,6 +66,7 @@ PARAMS = {
     "carrier": {"enter_tilt_deg": 45.0, "exit_tilt_deg": 30.0, "enter_rate_rad_s": 6.0, "exit_rate_rad_s": 2.0},
 }
 STATE_SOURCES = ("truth", "estimate")
+COMPENSATIONS = ("window", "slope")
 ESTIMATORS = ("kalman-000", "gyro-vertical")
 
 
@@ -81,7 +92,8 @@ def run(args) -> None:
     estimate = rt.choice("state_source", STATE_SOURCES) == "estimate"
     if estimate:
         params = rt.table("filter", AttitudeFilterParams.from_dict)
-        filt = AttitudeFilter(np.asarray(vehicle.inertia_kg_m2), params, dt=1.0 / rt.rate_hz)
+        filt = AttitudeFilter(np.asarray(vehicle.inertia_kg_m2), params, dt=1.0 / rt.rate_hz,
+                              gravity_m_s2=vehicle.gravity_m_s2)
         try:
             carrier = GyroCarrier(**p["carrier"])
         except (TypeError, ValueError) as exc:
@@ -95,6 +107,12 @@ def run(args) -> None:
         print(f"zenpilot-attitude: estimator {p['estimator']}"
               + (f" ({p['gyrovertical_params'] or DEFAULT_PARAMS_FILE.name})" if make_gyrovertical else ""), flush=True)
         motion = rt.inbox(schemas.POSITION_STATE, "position") if compensate else None
+        windowed = rt.choice("acceleration_compensation", COMPENSATIONS) == "window"
+        accel_window_s = p["accel_window_s"]
+        if not (isinstance(accel_window_s, (int, float)) and not isinstance(accel_window_s, bool)
+                and 0.0 < accel_window_s <= 0.5):
+            raise ValueError(f"{rt.where()} accel_window_s: must be in (0, 0.5] s, got {accel_window_s!r}")
+        velocities: deque = deque()   # (t, velocity) of the position level's estimate, newest last
     else:
         truth = rt.inbox(schemas.TRUTH, "sim")
     setpoint = rt.inbox(schemas.POSITION_SETPOINT, "position")
@@ -116,6 +134,21 @@ def run(args) -> None:
         gyrovertical["last_t"] = t_s
         return gv.update(gyro, accel)
 
+    def velocity_window(moving):
+        """(t0, t1, mean acceleration) from the position level's velocities over accel_window_s, or None."""
+        t_p = moving["header"]["t_s"]
+        if not velocities or t_p > velocities[-1][0]:
+            velocities.append((t_p, np.asarray(moving["velocity_m_s"], dtype=np.float64)))
+        elif t_p < velocities[-1][0]:      # time went back (a restart): start over
+            velocities.clear()
+            velocities.append((t_p, np.asarray(moving["velocity_m_s"], dtype=np.float64)))
+        while len(velocities) > 1 and velocities[0][0] < velocities[-1][0] - accel_window_s - 1e-9:
+            velocities.popleft()
+        (t0, v0), (t1, v1) = velocities[0], velocities[-1]
+        if t1 - t0 < 0.5 * accel_window_s:
+            return None
+        return t0, t1, (v1 - v0) / (t1 - t0)
+
     def read_state(t: float):
         """(quaternion, euler, rates, euler_var, rate_var, sample time) or None."""
         if not estimate:
@@ -129,18 +162,22 @@ def run(args) -> None:
             samples.sort(key=lambda s: s[0])
             samples = [(ts, gyro, acc, gyrovertical_update(ts, gyro, acc)) for ts, gyro, acc in samples]
         moving = motion.latest() if motion is not None else None
+        accel_ref = None
         if moving is not None and moving["state_source"] == "estimate" and filt.initialized:
-            # specific force f = R^T (a - g): remove R^T a so that what is left is gravity alone
-            r_t = quat_to_rotation(filt_state["q"]).T
-            a_body = r_t @ np.asarray(moving["acceleration_m_s2"])
-            samples = [(ts, gyro, acc - a_body) for ts, gyro, acc in samples]
+            if windowed:
+                accel_ref = velocity_window(moving)
+            else:
+                # specific force f = R^T (a - g): remove R^T a so that what is left is gravity alone
+                r_t = quat_to_rotation(filt_state["q"]).T
+                a_body = r_t @ np.asarray(moving["acceleration_m_s2"])
+                samples = [(ts, gyro, acc - a_body) for ts, gyro, acc in samples]
         mags = mag.take()
         mag_sample = (mags[-1]["header"]["t_s"], np.asarray(mags[-1]["field_ut"])) if mags else None
         if not samples and filt.initialized is False:
             return None
         out = motors.latest()  # the torque the motors were really asked for (after saturation)
         applied = (vehicle.allocation @ np.asarray(out["thrust_n"]))[1:] if out is not None else last_torque["u"]
-        est = filt.update(samples, mag_sample, applied, t)
+        est = filt.update(samples, mag_sample, applied, t, accel_ref=accel_ref)
         sample_t = samples[-1][0] if samples else filt.last_sample_t
         q, euler, rates = est.quaternion_wxyz, est.euler_rad, est.rate_rad_s
         samples.sort(key=lambda s: s[0])

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from flight.attitude_filter import (
+    AIDED_TILT,
     AttitudeEstimate,
     AttitudeFilter,
     AttitudeFilterParams,
@@ -34,7 +35,8 @@ GAIN = 16.0
 
 
 def simulate(filters, *, t_end, angles0=(0.0, 0.0, 0.0), ref=None, step_t=0.2, control="estimate",
-             delay_s=0.0, seed=0, actuator_tau_s=0.0, gyro_var=1e-5, accel_var=1e-4, mag_std=0.5):
+             delay_s=0.0, seed=0, actuator_tau_s=0.0, gyro_var=1e-5, accel_var=1e-4, mag_std=0.5,
+             gyro_bias=(0.0, 0.0, 0.0)):
     """Run the synthetic closed loop; law (8) on filters[0]'s estimate (or on the truth).
 
     ref: (3,) reference applied from step_t on (before it: angles0).
@@ -57,7 +59,7 @@ def simulate(filters, *, t_end, angles0=(0.0, 0.0, 0.0), ref=None, step_t=0.2, c
 
     def sample(tt):
         r = quat_to_rotation(quat_from_euler(*angle))
-        gyro = w + rng.normal(0.0, math.sqrt(gyro_var), 3)
+        gyro = w + np.asarray(gyro_bias) + rng.normal(0.0, math.sqrt(gyro_var), 3)
         acc = r.T @ np.array([0.0, 0.0, G]) + rng.normal(0.0, math.sqrt(accel_var), 3)
         pending.append((tt, gyro, acc))
         if k_imu % 8 == 0:
@@ -380,3 +382,172 @@ def test_reinitialise_restarts_the_filter_at_a_given_attitude():
     filt.reinitialise([0.3, -0.2, 1.0], [0.5, 0.0, -0.1])
     euler, rate = filt.sample_state()
     assert euler == pytest.approx([0.3, -0.2, 1.0]) and rate == pytest.approx([0.5, 0.0, -0.1])
+
+
+# ------------------------------------------------------------------ gyro bias state
+def test_bias_state_converges_to_a_constant_gyro_bias():
+    """A constant gyro bias (the simulator draws one, sigma ~0.18 deg/s per axis): the bias
+    state [w, wf, a, af, b] learns it from the accelerometer/magnetometer angles, and the angles
+    lose the offset b * (their correction time) that the 000 filter without it keeps."""
+    bias = np.array([3e-3, -4e-3, 2.5e-3])   # rad/s, ~0.2 deg/s
+    angles = np.radians([5.0, -8.0, 30.0])
+    with_b, without_b = AttitudeFilter(INERTIA, AttitudeFilterParams(**AIDED_TILT)), AttitudeFilter(
+        INERTIA, AttitudeFilterParams(init_bias_var=0.0, bias_process_var=1e-30))
+    out = simulate([with_b, without_b], t_end=20.0, angles0=angles, control="none", seed=3, gyro_bias=bias)
+    late = out["t"] >= 15.0
+    err_b = np.degrees(np.abs(wrap(out["est"][0] - out["truth"])))[late]
+    err_0 = np.degrees(np.abs(wrap(out["est"][1] - out["truth"])))[late]
+    print("gyro bias: estimated", with_b.gyro_bias, "true", bias,
+          "| late mean |angle error| (deg) with", err_b.mean(axis=0), "without", err_0.mean(axis=0))
+    assert with_b.gyro_bias == pytest.approx(bias, abs=1e-3)
+    assert np.abs(without_b.gyro_bias).max() < 1e-12
+    assert np.all(err_b.mean(axis=0) < 0.5 * err_0.mean(axis=0))
+    # the published rate is the body rate (here 0), the bias removed
+    assert np.abs(out["rate_est"][0][late].mean(axis=0)).max() < 1e-3
+    assert np.abs(out["rate_est"][1][late].mean(axis=0) - bias).max() < 1e-3
+    # the bias is the sensor's: a re-initialisation keeps it
+    kept = with_b.gyro_bias.copy()
+    with_b.reinitialise([0.0, 0.0, 0.0], bias)
+    assert with_b.gyro_bias == pytest.approx(kept)
+    assert with_b.sample_state()[1] == pytest.approx(bias - kept, abs=1e-12)
+
+
+# ------------------------------------------------------------------ Euler kinematics
+def test_euler_rate_excess_matches_the_quaternion_kinematics():
+    from flight.attitude_filter import euler_rate_excess, quat_integrate
+    from flight.quat import quat_to_euler
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        e0 = rng.uniform([-0.8, -0.8, -3.0], [0.8, 0.8, 3.0])
+        w = rng.normal(0.0, 1.0, 3)
+        h = 1e-6
+        q = quat_integrate(quat_from_euler(*e0), w, h)
+        euler_rate = wrap(np.array(quat_to_euler(q)) - e0) / h
+        assert w + euler_rate_excess(e0[0], e0[1], w) == pytest.approx(euler_rate, abs=1e-4)
+    assert euler_rate_excess(0.0, 0.0, [1.0, -2.0, 3.0]) == pytest.approx(np.zeros(3))
+
+
+def _banked_turn_samples(roll, yaw_rate, t_end, seed=0):
+    """IMU and magnetometer of a vehicle held at `roll` (pitch 0) turning at `yaw_rate`, level flight."""
+    rng = np.random.default_rng(seed)
+    gyro_body = np.array([0.0, math.sin(roll) * yaw_rate, math.cos(roll) * yaw_rate])
+    calls = []
+    for c in range(int(round(t_end / DT)) + 1):
+        t_now = c * DT
+        imu, mag = [], None
+        for k in (1, 0):
+            t = round(t_now - k * IMU_DT, 9)
+            if t < 0:
+                continue
+            r = quat_to_rotation(quat_from_euler(roll, 0.0, yaw_rate * t))
+            imu.append((t, gyro_body + rng.normal(0.0, math.sqrt(1e-5), 3),
+                        r.T @ np.array([0.0, 0.0, G]) + rng.normal(0.0, 1e-2, 3)))
+            if round(t / IMU_DT) % 8 == 0:
+                mag = (t, r.T @ FIELD + rng.normal(0.0, 0.5, 3))
+        calls.append((t_now, imu, mag))
+    return calls
+
+
+def test_euler_kinematics_keep_a_banked_turn():
+    """Held at 20 deg of roll while turning at 1 rad/s, the body pitch rate is sin(20 deg) rad/s
+    although the pitch stays 0: the 000 filter (body rate as Euler rate) integrates it and
+    the accelerometer must pull the pitch back all the time (degrees of error); with the ZYX
+    kinematics the angles stay on the truth."""
+    roll, yaw_rate = math.radians(20.0), 1.0
+    calls = _banked_turn_samples(roll, yaw_rate, 3.0)
+    errs = {}
+    for kin in (True, False):
+        f = AttitudeFilter(INERTIA, AttitudeFilterParams(euler_kinematics=kin))
+        worst = np.zeros(3)
+        for t_now, imu, mag in calls:
+            e = f.update(imu, mag, np.zeros(3), t_now)
+            if t_now >= 1.0:
+                truth = np.array([roll, 0.0, yaw_rate * t_now])
+                worst = np.maximum(worst, np.degrees(np.abs(wrap(e.euler_rad - truth))))
+        errs[kin] = worst
+    print("banked turn: max |error| (deg) with kinematics", errs[True], "000 as printed", errs[False])
+    assert np.all(errs[True][:2] < 0.5)
+    assert errs[False][:2].max() > 3.0
+
+
+# ------------------------------------------------------------------ acceleration reference
+def _accelerating_calls(roll, t_end, seed=0, t_tilt=1.0, ramp_s=0.2):
+    """Level at rest, then from t_tilt rolled to `roll` over ramp_s and held, the thrust tilted
+    so that the altitude is kept: the vehicle accelerates at g tan(roll(t)) sideways and the
+    accelerometer reads g / cos(roll) along body z only ('level!').  Returns the calls and the
+    mean world acceleration over a window, as the position level's velocity slope gives it."""
+    rng = np.random.default_rng(seed)
+    rate = roll / ramp_s
+
+    def phi(t):
+        return roll * min(max((t - t_tilt) / ramp_s, 0.0), 1.0)
+
+    def mean_accel(t0, t1):
+        tt = np.linspace(t0, t1, 201)
+        return np.array([0.0, -G * float(np.mean([math.tan(phi(t)) for t in tt])), 0.0])
+
+    calls = []
+    for c in range(int(round(t_end / DT)) + 1):
+        t_now = c * DT
+        imu = []
+        for k in (1, 0):
+            t = round(t_now - k * IMU_DT, 9)
+            if t < 0:
+                continue
+            p_rate = rate if t_tilt < t <= t_tilt + ramp_s else 0.0
+            imu.append((t, np.array([p_rate, 0.0, 0.0]) + rng.normal(0.0, math.sqrt(1e-5), 3),
+                        np.array([0.0, 0.0, G / math.cos(phi(t))]) + rng.normal(0.0, 1e-2, 3)))
+        r = quat_to_rotation(quat_from_euler(phi(t_now), 0.0, 0.0))
+        mag = (t_now, r.T @ FIELD) if c % 4 == 0 else None
+        calls.append((t_now, imu, mag))
+    return calls, mean_accel
+
+
+def test_acceleration_reference_gives_the_tilt_of_an_accelerating_vehicle():
+    """The accelerometer of a multirotor reads 'level' while it tilts to accelerate; a mean
+    acceleration over a past window (the position level's velocity slope, 10 ms old) gives
+    the tilt back: the window's mean of R f + g at the filter's own attitude is compared with it."""
+    roll = math.radians(10.0)
+    calls, mean_accel = _accelerating_calls(roll, 4.0)
+    plain, aided = AttitudeFilter(INERTIA, gravity_m_s2=G), AttitudeFilter(INERTIA, gravity_m_s2=G)
+    worst = 0.0
+    for t_now, imu, mag in calls:
+        e0 = plain.update(imu, mag, np.zeros(3), t_now)
+        ref = (t_now - 0.11, t_now - 0.01, mean_accel(t_now - 0.11, t_now - 0.01)) if t_now > 0.2 else None
+        e1 = aided.update(imu, mag, np.zeros(3), t_now, accel_ref=ref)
+        if t_now > 1.2:
+            worst = max(worst, abs(e1.euler_rad[0] - roll))
+    print("accelerating at 10 deg: roll without reference", math.degrees(e0.euler_rad[0]),
+          "with", math.degrees(e1.euler_rad[0]), "worst error after the tilt", math.degrees(worst))
+    assert abs(e0.euler_rad[0]) < math.radians(2.0)          # 000 as printed: pulled to level
+    assert worst < math.radians(0.3)
+    assert abs(e1.euler_rad[1]) < math.radians(0.2)
+
+
+def test_acceleration_reference_is_bounded_and_expires():
+    calls, _ = _accelerating_calls(0.0, 2.0)   # at rest, level
+    p = AttitudeFilterParams()
+    f = AttitudeFilter(INERTIA, p, gravity_m_s2=G)
+    for t_now, imu, mag in calls[:200]:
+        f.update(imu, mag, np.zeros(3), t_now, accel_ref=(t_now - 0.11, t_now - 0.01, np.zeros(3)))
+    assert np.degrees(np.abs(f.sample_state()[0][:2])).max() < 0.2
+    # a wild reference (100 m/s^2 sideways) pulls at most as hard as aid_max_correction_m_s2 does
+    wild = AttitudeFilter(INERTIA, p, gravity_m_s2=G)
+    for t_now, imu, mag in calls[:300]:
+        a = np.zeros(3) if t_now < 1.0 else np.array([0.0, 100.0, 0.0])
+        e_w = wild.update(imu, mag, np.zeros(3), t_now, accel_ref=(t_now - 0.11, t_now - 0.01, a))
+        assert wild._aid_c is None or np.linalg.norm(wild._aid_c) <= p.aid_max_correction_m_s2 + 1e-9
+    assert math.radians(-30.0) < e_w.euler_rad[0] < 0.0   # 3 m/s^2: ~17 deg; 100 m/s^2 would be ~84
+    # a reference that stops (its window ends longer than aid_max_age_s ago) is dropped: the
+    # raw accelerometer angles take over, exactly as with no reference
+    import copy
+    t_stop = calls[300][0]
+    stale = (t_stop - 0.11, t_stop - 0.01, np.array([0.0, 100.0, 0.0]))
+    plain = None
+    for t_now, imu, mag in calls[300:]:
+        if plain is None and t_now > stale[1] + p.aid_max_age_s + DT:
+            plain = copy.deepcopy(wild)
+        e = wild.update(imu, mag, np.zeros(3), t_now, accel_ref=stale)
+        if plain is not None:
+            e_plain = plain.update(imu, mag, np.zeros(3), t_now)
+    assert e.euler_rad == pytest.approx(e_plain.euler_rad, abs=1e-12)
