@@ -17,6 +17,21 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from flight.attitude_filter import FILTER_000  # noqa: E402
+
+
+def _inline_table(d: dict) -> str:
+    """A dict of numbers, booleans and tuples as a TOML inline table (a --set value)."""
+    def value(v):
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, (tuple, list)):
+            return "[" + ",".join(value(e) for e in v) + "]"
+        return repr(v)
+    return "{" + ",".join(f"{k}={value(v)}" for k, v in d.items()) + "}"
+
 
 COMMON = ["--set", "sim.imu_latency_s=0.01"]
 TRUTH = ["--set", "attitude.state_source=truth", "--set", "position.state_source=truth",
@@ -31,6 +46,8 @@ ROWS = [
     ("camera delay 150 ms", ["--set", "sim.camera_latency_s=0.15"]),
     ("camera dropping 20 % of frames", ["--set", "sim.camera_drop_rate=0.2"]),
     ("000 as printed: no acceleration compensation", ["--set", "attitude.compensate_acceleration=false"]),
+    ("filter of 000 (no gyro-bias state, body rate as Euler rate), velocity-slope compensation",
+     ["--set", "attitude.filter=" + _inline_table(FILTER_000), "--set", 'attitude.acceleration_compensation="slope"']),
 ]
 
 

@@ -181,15 +181,15 @@ class AttitudeFilterParams:
     # body-vs-Euler rate; both are modelled here (bias state, euler_kinematics), so roll
     # and pitch trust the gyro longer and average the acceleration reference's noise
     # (~0.3 m/s^2, i.e. ~1.7 deg) over ~1 s.  Yaw (magnetometer) keeps 1e-5.
-    angle_process_var: tuple = (1e-5, 1e-5, 1e-5)   # AIDED_TILT: (3e-6, 3e-6, 1e-5)
+    angle_process_var: tuple = (3e-6, 3e-6, 1e-5)
     # Q: density of the gyro bias random walk, rad^2/s^3 (the simulator's walk is 1e-10;
     # a MEMS gyro's bias also moves with temperature, hence the margin)
-    bias_process_var: tuple = (1e-12, 1e-12, 1e-12)   # AIDED_TILT: 1e-9
+    bias_process_var: tuple = (1e-9, 1e-9, 1e-9)
     model_filter_lag: bool = True    # False: ablation "cascade without the filter lag in the model"
     # True: the angles integrate the ZYX Euler rates of the estimated body rates (the other
     # axes' estimates enter as a known input); False: 000 as printed, the body rate taken as the
     # Euler rate (off by 12 % of the pitch rate in roll at 20 deg of roll and pitch)
-    euler_kinematics: bool = False
+    euler_kinematics: bool = True
     extrapolate: bool = True         # False: ablation without the extrapolator (15)
     max_delay_steps: int = 10        # extrapolate at most this many dt (longer delays are capped)
     mag_field_world_ut: tuple = (0.0, 20.0, -45.0)  # ENU, only its horizontal direction is used
@@ -197,7 +197,7 @@ class AttitudeFilterParams:
     init_rate_var: float = 1e-2      # rad^2/s^2
     # gyro bias variance at start, rad^2/s^2 (a MEMS gyro's turn-on bias, ~0.2 deg/s);
     # 0 with bias_process_var ~0 is the ablation "no bias state" (the bias stays 0)
-    init_bias_var: float = 0.0   # AIDED_TILT: 1e-5
+    init_bias_var: float = 1e-5
     min_accel_g: float = 0.3         # |specific force| below this: no accel angle update (free fall)
     max_gap_s: float = 0.5           # IMU silent for longer: re-initialise from the next sample
     # Acceleration reference (``update(..., accel_ref=...)``, see AttitudeFilter): the
@@ -898,11 +898,9 @@ class GyroCarrier:
         return quat_integrate(self.q, self.gyro, delay), self.gyro.copy()
 
 
-# The filter with what 000's leaves out, as measured in the stack (README, "aided tilt"): a
-# gyro-bias state, the exact ZYX kinematics, and (so) a slower pull of the angle measurement.
-# With the attitude service's acceleration_compensation = "window" it meets the attitude-step
-# figures on estimates, but the attitude-steps mission's return to position hold then went
-# unstable in ~1/3 of flights (a marginal position/attitude loop under motor saturation that the
-# default's lagging estimate happens to damp), so it is not the default yet.
-AIDED_TILT = {"angle_process_var": (3e-6, 3e-6, 1e-5), "euler_kinematics": True,
-              "init_bias_var": 1e-5, "bias_process_var": (1e-9, 1e-9, 1e-9)}
+# The per-axis filter of 000 as printed (an ablation): no gyro-bias state, the body rate taken
+# as the Euler rate, the angle random walk 000 needs to absorb both; with the attitude
+# service's acceleration_compensation = "slope" it is the stack's estimator before the
+# aided tilt (README: attitude steps on estimates 5-12 % / 0.6-1.0 s with it).
+FILTER_000 = {"angle_process_var": (1e-5, 1e-5, 1e-5), "euler_kinematics": False,
+              "init_bias_var": 0.0, "bias_process_var": (1e-12, 1e-12, 1e-12)}

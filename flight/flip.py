@@ -127,7 +127,7 @@ THESIS_FLIP = FlipConfig(takeoff_hover_check=False)
 # 0.66 -> 0.47 s, overshoot 16 -> 12 deg), but on estimates without the recovery's velocity
 # feedback a biased attitude estimate pushes the vehicle sideways unchecked and the hold then
 # brakes it tilted (stack on the estimators of be5319e, seeds 0 and 1: 1.3 -> 2.4 s)
-PROJECT_FLIP = FlipConfig(lookahead=True, flip_duration_s=0.9, windup_rad=0.3, windup_s=0.3)
+PROJECT_FLIP = FlipConfig(lookahead=True, flip_duration_s=0.9, windup_rad=0.3, windup_s=0.3, recovery_coast=True)
 
 
 def smooth_roll_reference(t_s, duration_s: float):

@@ -52,7 +52,7 @@ PARAMS = {
     # over the same window (AttitudeFilter accel_ref: no lag between the two, so a tilt
     # step is not read as a pull towards level); "slope" subtracts the position
     # level's published acceleration (its velocity slope, ~50 ms late) from the samples.
-    "acceleration_compensation": "slope",
+    "acceleration_compensation": "window",
     "accel_window_s": 0.1,
     # Angle measurement of the filter: "kalman-000" the accelerometer angles of
     # 000; "gyro-vertical" the adaptive gyro-vertical of 004 (raw IMU in, its own

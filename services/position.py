@@ -30,7 +30,11 @@ PARAMS = {
     "state_source": "estimate",
     "k": [4.0, 4.0, 4.0],        # laws (10) gains per axis (x, y, z), 1/s
     "alpha": [4.0, 4.0, 4.0],
-    "max_tilt_deg": 35.0,
+    # tilt the laws may ask for: law (8) saturates the x250's torque (~46 rad/s^2 about hover)
+    # for any attitude-reference step over ~10 deg; at 35 deg the position and attitude loops
+    # lost their separation under saturation when attitude steps handed back to position hold
+    # (a growing oscillation, the mixer raising the collective); 20 deg held on every seed tried
+    "max_tilt_deg": 20.0,
     "setpoint_timeout_s": 0.5,   # stale planner setpoint -> hold where we are
     "home_position_m": [0.0, 0.0, 0.0],  # where the EKF starts: the take-off point
     "position_reset_after": 5,

@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 
 from flight.attitude_filter import (
-    AIDED_TILT,
     AttitudeEstimate,
     AttitudeFilter,
     AttitudeFilterParams,
@@ -391,7 +390,7 @@ def test_bias_state_converges_to_a_constant_gyro_bias():
     lose the offset b * (their correction time) that the 000 filter without it keeps."""
     bias = np.array([3e-3, -4e-3, 2.5e-3])   # rad/s, ~0.2 deg/s
     angles = np.radians([5.0, -8.0, 30.0])
-    with_b, without_b = AttitudeFilter(INERTIA, AttitudeFilterParams(**AIDED_TILT)), AttitudeFilter(
+    with_b, without_b = AttitudeFilter(INERTIA, AttitudeFilterParams()), AttitudeFilter(
         INERTIA, AttitudeFilterParams(init_bias_var=0.0, bias_process_var=1e-30))
     out = simulate([with_b, without_b], t_end=20.0, angles0=angles, control="none", seed=3, gyro_bias=bias)
     late = out["t"] >= 15.0
