@@ -67,6 +67,7 @@ PARAMS = {
 }
 STATE_SOURCES = ("truth", "estimate")
 COMPENSATIONS = ("window", "slope")
+VELOCITY_KEEP_S = 0.2  # pos/state history kept beyond the window: covers an IMU transport delay
 ESTIMATORS = ("kalman-000", "gyro-vertical")
 
 
@@ -134,17 +135,23 @@ def run(args) -> None:
         gyrovertical["last_t"] = t_s
         return gv.update(gyro, accel)
 
-    def velocity_window(moving):
-        """(t0, t1, mean acceleration) from the position level's velocities over accel_window_s, or None."""
+    def velocity_window(moving, until: float):
+        """(t0, t1, mean acceleration) from the position level's velocities over accel_window_s,
+        ending at or before `until` (the newest IMU sample: the filter compares the window with its
+        own samples, which arrive later than pos/state when the IMU has a transport delay), or None."""
         t_p = moving["header"]["t_s"]
         if not velocities or t_p > velocities[-1][0]:
             velocities.append((t_p, np.asarray(moving["velocity_m_s"], dtype=np.float64)))
         elif t_p < velocities[-1][0]:      # time went back (a restart): start over
             velocities.clear()
             velocities.append((t_p, np.asarray(moving["velocity_m_s"], dtype=np.float64)))
-        while len(velocities) > 1 and velocities[0][0] < velocities[-1][0] - accel_window_s - 1e-9:
+        while len(velocities) > 1 and velocities[0][0] < velocities[-1][0] - accel_window_s - VELOCITY_KEEP_S:
             velocities.popleft()
-        (t0, v0), (t1, v1) = velocities[0], velocities[-1]
+        usable = [e for e in velocities if e[0] <= until + 1e-9]
+        if len(usable) < 2:
+            return None
+        t1, v1 = usable[-1]
+        t0, v0 = next(e for e in usable if e[0] >= t1 - accel_window_s - 1e-9)
         if t1 - t0 < 0.5 * accel_window_s:
             return None
         return t0, t1, (v1 - v0) / (t1 - t0)
@@ -165,7 +172,8 @@ def run(args) -> None:
         accel_ref = None
         if moving is not None and moving["state_source"] == "estimate" and filt.initialized:
             if windowed:
-                accel_ref = velocity_window(moving)
+                newest_imu_t = max((smp[0] for smp in samples), default=filt.last_sample_t)
+                accel_ref = velocity_window(moving, newest_imu_t)
             else:
                 # specific force f = R^T (a - g): remove R^T a so that what is left is gravity alone
                 r_t = quat_to_rotation(filt_state["q"]).T
