@@ -75,10 +75,23 @@ class Gcs:
         shown = {k: str(v) for k, v in self.latest.items() if k in ("HEARTBEAT", "LOCAL_POSITION_NED", "STATUSTEXT")}
         raise AssertionError(f"no {kind} matching within {timeout} s; latest: {shown}")
 
-    def command(self, command: int, *params, timeout: float = 5.0):
+    def command(self, command: int, *params, timeout: float = 5.0, confirmation: int = 0):
         p = list(params) + [0.0] * (7 - len(params))
-        self.conn.mav.command_long_send(1, 1, command, 0, *p)
+        self.conn.mav.command_long_send(1, 1, command, confirmation, *p)
         return self.wait("COMMAND_ACK", lambda m: m.command == command, timeout)
+
+    def command_retransmitted(self, command: int, *params, every_s: float = 3.0, timeout: float = 45.0):
+        """The MAVLink command protocol: a command without an ACK is sent again (confirmation
+        counting up), as QGroundControl and MAVSDK do; UDP may drop a datagram."""
+        deadline = time.monotonic() + timeout
+        confirmation = 0
+        while True:
+            try:
+                return self.command(command, *params, timeout=every_s, confirmation=min(confirmation, 255))
+            except AssertionError:
+                if time.monotonic() > deadline:
+                    raise
+                confirmation += 1
 
     def command_until_accepted(self, command: int, *params, timeout: float = 20.0):
         deadline = time.monotonic() + timeout
@@ -136,8 +149,8 @@ def takeoff(gcs, altitude_m):
 
 
 def land(gcs):
-    # after a flood the bridge may still be draining queued datagrams: give the ACK time
-    ack = gcs.command(mavlink.MAV_CMD_NAV_LAND, timeout=30.0)
+    # after a minute of flood a command datagram may be lost: retransmit until acknowledged
+    ack = gcs.command_retransmitted(mavlink.MAV_CMD_NAV_LAND)
     assert ack.result == mavlink.MAV_RESULT_ACCEPTED, ack
     gcs.wait("HEARTBEAT", lambda m: not m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED, timeout=30.0)
     gcs.wait("EXTENDED_SYS_STATE", lambda m: m.landed_state == mavlink.MAV_LANDED_STATE_ON_GROUND)
