@@ -13,12 +13,33 @@ def wrap_angle(a):
     return (np.asarray(a, dtype=np.float64) + np.pi) % (2 * np.pi) - np.pi
 
 
-def attitude_law(inertia, angles, rates, angles_ref, k, alpha) -> np.ndarray:
+def stopping_rate(error, gain, max_accel):
+    """Rate that drives an angle error to zero: gain * error near zero, and beyond
+    max_accel / gain^2 the rate from which max_accel still stops at the reference,
+    sqrt(2 max_accel (|error| - max_accel / (2 gain^2))) (ArduPilot's sqrt_controller;
+    the two branches meet with equal value and slope). max_accel may be inf (linear)."""
+    error = np.asarray(error, dtype=np.float64)
+    gain = np.broadcast_to(np.asarray(gain, dtype=np.float64), error.shape)
+    max_accel = np.broadcast_to(np.asarray(max_accel, dtype=np.float64), error.shape)
+    linear = gain * error
+    with np.errstate(invalid="ignore", over="ignore"):
+        limit = max_accel / (gain * gain)
+        root = np.sign(error) * np.sqrt(2.0 * max_accel * np.maximum(np.abs(error) - 0.5 * limit, 0.0))
+    return np.where(np.abs(error) > limit, root, linear)
+
+
+def attitude_law(inertia, angles, rates, angles_ref, k, alpha, max_accel=None) -> np.ndarray:
     """Law (8): u = I [-(alpha+k) rate - alpha k (angle - ref)] per axis.
 
     inertia: diagonal (Ixx, Iyy, Izz); angles, angles_ref: (roll, pitch, yaw);
     rates: angular rates (000 uses body rates as Euler rates near hover).
     Returns body torque (3,) N m.
+
+    The law is a rate loop on a proportional angle loop: u = I (alpha+k) (w_ref - rate),
+    w_ref = -alpha k / (alpha+k) (angle - ref). max_accel (3,), rad/s^2: w_ref is capped by
+    stopping_rate at this angular acceleration, so a large error never asks for a rate the
+    airframe cannot stop in time (saturated, the linear law overshoots and can limit-cycle);
+    errors below max_accel / (alpha k / (alpha+k))^2 see law (8) exactly. None: law (8).
     """
     inertia = np.asarray(inertia, dtype=np.float64)
     if inertia.shape == (3, 3):
@@ -27,7 +48,11 @@ def attitude_law(inertia, angles, rates, angles_ref, k, alpha) -> np.ndarray:
     alpha = np.asarray(alpha, dtype=np.float64)
     err = np.asarray(angles, dtype=np.float64) - np.asarray(angles_ref, dtype=np.float64)
     err[2] = wrap_angle(err[2])  # yaw: take the short way round
-    return inertia * (-(alpha + k) * np.asarray(rates, dtype=np.float64) - alpha * k * err)
+    rates = np.asarray(rates, dtype=np.float64)
+    if max_accel is None:
+        return inertia * (-(alpha + k) * rates - alpha * k * err)
+    rate_ref = -stopping_rate(err, alpha * k / (alpha + k), max_accel)
+    return inertia * (alpha + k) * (rate_ref - rates)
 
 
 def attitude_from_thrust_vector(h_world, yaw: float) -> tuple[float, float]:

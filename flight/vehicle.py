@@ -65,6 +65,14 @@ class Vehicle:
     def allocation_inv(self) -> np.ndarray:
         return np.linalg.inv(self.allocation)
 
+    @functools.cached_property
+    def max_angular_accel_rad_s2(self) -> np.ndarray:
+        """Largest angular acceleration per body axis (roll, pitch, yaw) the rotors give,
+        each axis alone, at a collective in mid-range: sum_j |M[axis, j]| (max - min thrust) / 2 / I."""
+        span = self.max_thrust_n - self.min_thrust_n
+        torque = np.abs(self.allocation[1:]).sum(axis=1) * span / 2.0
+        return torque / np.asarray(self.inertia_kg_m2, dtype=np.float64)
+
     @property
     def inertia_matrix_kg_m2(self) -> np.ndarray:
         return np.diag(np.asarray(self.inertia_kg_m2, dtype=np.float64))

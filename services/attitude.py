@@ -38,6 +38,11 @@ PARAMS = {
     "state_source": "estimate",
     "k": [16.0, 16.0, 16.0],      # law (8) gains per axis (roll, pitch, yaw), 1/s
     "alpha": [16.0, 16.0, 16.0],
+    # Law (8)'s angle loop asks at most for the rate this fraction of the airframe's angular
+    # acceleration can stop (flight/control.stopping_rate): beyond a few degrees of error on a
+    # heavy frame the linear law saturates the rotors, overshoots and can limit-cycle. Errors
+    # below (fraction a_max) / (alpha k / (alpha + k))^2 see law (8) exactly. 0: law (8) as printed.
+    "stopping_accel_fraction": 0.5,
     "setpoint_timeout_s": 0.1,    # stale position setpoint -> level, zero thrust
     "filter": {},                 # AttitudeFilterParams overrides (flight/attitude_filter.py)
     # Subtract the position level's acceleration estimate from the accelerometer
@@ -120,6 +125,10 @@ def run(args) -> None:
     command = rt.publisher(schemas.ATTITUDE_COMMAND)
     state_out = rt.publisher(schemas.ATTITUDE_STATE)
     k, alpha = rt.live_array("k"), rt.live_array("alpha")
+    fraction = p["stopping_accel_fraction"]
+    if not (isinstance(fraction, (int, float)) and not isinstance(fraction, bool) and 0.0 <= fraction <= 1.0):
+        raise ValueError(f"{rt.where()} stopping_accel_fraction: must be in [0, 1], got {fraction!r}")
+    max_accel = fraction * vehicle.max_angular_accel_rad_s2 if fraction > 0 else None
     last_torque = {"u": np.zeros(3)}
     filt_state = {"q": np.array([1.0, 0.0, 0.0, 0.0])}
 
@@ -217,7 +226,7 @@ def run(args) -> None:
             ref, thrust = np.array([0.0, 0.0, euler[2]]), 0.0
         else:
             ref, thrust = np.asarray(sp["attitude_ref_rad"]), sp["thrust_n"]
-        torque = attitude_law(vehicle.inertia_kg_m2, euler, rates, ref, k, alpha)
+        torque = attitude_law(vehicle.inertia_kg_m2, euler, rates, ref, k, alpha, max_accel)
         if thrust <= 0.0:
             torque = np.zeros(3)  # on the ground, idle: nothing to steer (and nothing to wind up)
         last_torque["u"] = torque

@@ -62,3 +62,47 @@ def test_altitude_law_tilted_keeps_vertical_thrust():
     t = altitude_law(0.4, G, 1.0, 0.0, 1.0, 4.0, 4.0, roll=0.2, pitch=-0.1)
     assert t * np.cos(0.2) * np.cos(-0.1) == pytest.approx(0.4 * G)
     assert altitude_law(0.4, G, 1.0, 0.0, 1.5, 4.0, 4.0, 0.0, 0.0) > 0.4 * G
+
+
+def test_stopping_rate_is_linear_near_zero_and_stoppable_beyond():
+    from flight.control import stopping_rate
+    gain, accel = 8.0, 10.9
+    edge = accel / gain ** 2
+    small = np.linspace(-edge, edge, 21)
+    np.testing.assert_allclose(stopping_rate(small, gain, accel), gain * small)
+    # continuous in value and slope at the edge
+    h = 1e-6
+    assert stopping_rate(edge + h, gain, accel) == pytest.approx(gain * (edge + h), rel=1e-5)
+    slope = (stopping_rate(edge + h, gain, accel) - stopping_rate(edge, gain, accel)) / h
+    assert slope == pytest.approx(gain, rel=1e-3)
+    # beyond: decelerating at accel from that rate stops before the reference
+    big = np.array([0.2, 0.5, 1.0, 3.0])
+    rate = stopping_rate(big, gain, accel)
+    assert np.all(rate < gain * big)
+    assert np.all(rate ** 2 / (2 * accel) <= big)
+    np.testing.assert_allclose(stopping_rate(-big, gain, accel), -rate)
+    np.testing.assert_allclose(stopping_rate(big, gain, np.inf), gain * big)
+
+
+def test_attitude_law_with_stopping_limit():
+    inertia = np.array([7.5e-3, 7.5e-3, 14.2e-3])
+    k = a = np.full(3, 16.0)
+    accel = np.array([20.0, 20.0, 5.0])
+    # inside the linear range (|e| < 20 / 64 rad): law (8) exactly
+    angles, rates = [0.1, -0.2, 0.05], [0.3, -0.1, 0.2]
+    np.testing.assert_allclose(attitude_law(inertia, angles, rates, [0, 0, 0], k, a, accel),
+                               attitude_law(inertia, angles, rates, [0, 0, 0], k, a), rtol=1e-12)
+    # a large roll error asks for less torque than the linear law, same sign
+    linear = attitude_law(inertia, [0.8, 0, 0], [0, 0, 0], [0, 0, 0], k, a)
+    limited = attitude_law(inertia, [0.8, 0, 0], [0, 0, 0], [0, 0, 0], k, a, accel)
+    assert linear[0] < limited[0] < 0
+    # ... and brakes a rate it could not stop in time
+    assert attitude_law(inertia, [0.8, 0, 0], [-6.0, 0, 0], [0, 0, 0], k, a, accel)[0] > 0
+
+
+def test_vehicle_max_angular_accel():
+    from flight.vehicle import load_vehicle
+    v = load_vehicle("q820")
+    # plus frame: roll from the two motors on the y axis, arm 0.15 m (the flip baseline's 21.8 rad/s^2)
+    assert v.max_angular_accel_rad_s2[0] == pytest.approx(21.756, rel=1e-3)
+    assert np.all(v.max_angular_accel_rad_s2 > 0)
