@@ -301,8 +301,18 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+class Terminated(Exception):
+    """SIGTERM: raised in the main thread so that every command's finally blocks stop the
+    services it started (Python's default SIGTERM ends the process and leaves them running)."""
+
+
+def _raise_terminated(signum, frame):
+    raise Terminated()
+
+
 def main(argv=None) -> None:
     args = build_parser().parse_args(argv)
+    signal.signal(signal.SIGTERM, _raise_terminated)  # `up` installs its own
     try:
         code = args.func(args)
     except (StackError, MissionError, ValueError) as exc:
@@ -313,6 +323,9 @@ def main(argv=None) -> None:
         code = 2
     except KeyboardInterrupt:
         code = 130
+    except Terminated:
+        print("zenpilot: terminated; services stopped", file=sys.stderr)
+        code = 143
     raise SystemExit(code)
 
 
