@@ -45,9 +45,13 @@ ROWS = [
     ("camera delay 100 ms", ["--set", "sim.camera_latency_s=0.1"]),
     ("camera delay 150 ms", ["--set", "sim.camera_latency_s=0.15"]),
     ("camera dropping 20 % of frames", ["--set", "sim.camera_drop_rate=0.2"]),
-    ("000 as printed: no acceleration compensation", ["--set", "attitude.compensate_acceleration=false"]),
+    ("without the camera level (accelerometer bias left in roll/pitch)", ["--set", "attitude.camera_level=false"]),
+    # 000 has no camera at the attitude level
+    ("000 as printed: no acceleration compensation", ["--set", "attitude.compensate_acceleration=false",
+                                                      "--set", "attitude.camera_level=false"]),
     ("filter of 000 (no gyro-bias state, body rate as Euler rate), velocity-slope compensation",
-     ["--set", "attitude.filter=" + _inline_table(FILTER_000), "--set", 'attitude.acceleration_compensation="slope"']),
+     ["--set", "attitude.filter=" + _inline_table(FILTER_000), "--set", 'attitude.acceleration_compensation="slope"',
+      "--set", "attitude.camera_level=false"]),
 ]
 
 

@@ -24,6 +24,7 @@ import schemas
 from flight.attitude_filter import (
     AttitudeFilter,
     AttitudeFilterParams,
+    CameraLevel,
     GyroCarrier,
     accel_roll_pitch,
 )
@@ -65,6 +66,11 @@ PARAMS = {
     "estimator": "kalman-000",
     "gyrovertical_params": "",    # trained parameter file; "" = the shipped one for the x250
     "imu_rate_hz": 400.0,         # the gyro-vertical's sample period (its variances are per sample)
+    # Remove the accelerometer bias's tilt with the camera's attitude (vision/pose): the
+    # estimate minus the camera's roll/pitch at each frame's exposure time, low-passed
+    # (flight/attitude_filter.CameraLevel). False: no camera at the attitude level (000).
+    "camera_level": True,
+    "camera_level_settings": {"time_constant_s": 2.0},
     # Flips (001): beyond these the 000 filter (Euler axes, body rate as Euler rate) cannot
     # follow the vehicle; a gyro-integrated quaternion carries the estimate instead and the
     # filter restarts from it back near level (flight/attitude_filter.GyroCarrier).
@@ -105,6 +111,13 @@ def run(args) -> None:
         except (TypeError, ValueError) as exc:
             raise ValueError(f"{rt.where()} carrier: {exc}") from None
         carrier_horizon_s = params.max_delay_steps / rt.rate_hz
+        level = None
+        if p["camera_level"]:
+            try:
+                level = CameraLevel(**p["camera_level_settings"])
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"{rt.where()} camera_level_settings: {exc}") from None
+            poses = rt.inbox(schemas.VISION_POSE, "vision", keep=8)
         imu = rt.inbox(schemas.IMU, "sim", keep=32)
         mag = rt.inbox(schemas.MAG, "sim", keep=8)
         motors = rt.inbox(schemas.MOTOR_PWM, "motors")
@@ -214,6 +227,15 @@ def run(args) -> None:
                 filt.reinitialise(quat_to_euler(carrier.q), carrier.gyro)  # both at the newest sample
                 carrier.active = False
         filt_state["q"] = q
+        if level is not None:
+            frames = poses.take()
+            if not carrier.active:
+                level.record(t, euler, rates)
+                for m in frames:
+                    level.fuse(m["header"]["t_s"], m["quaternion_wxyz"])
+                rt.rejected.update(level.rejected)
+                euler = level.apply(euler)
+                q = quat_from_euler(*euler)
         return q, euler, rates, est.euler_var, est.rate_var, sample_t
 
     def step(t: float) -> None:

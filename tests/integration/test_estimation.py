@@ -42,14 +42,16 @@ def test_steps_on_estimates_settle_without_overshoot(tmp_path):
 
 def test_attitude_steps_on_estimates(tmp_path):
     """+-10 deg roll and pitch steps on the estimated state (figure 4 of 000): monotone within the
-    paper's 5 % and settled, then back to position hold without a crash. The paper's 0.35 s
-    settling is not asserted: on estimates it is 0.35-0.375 s (truth state: 0.32 s)."""
+    paper's 5 %, settled within its 0.35 s (the median step; every step within 0.38 s: the worst of
+    eight is noise-limited, 0.334-0.354 s over seeds 0-7, truth state 0.322 s), then back to
+    position hold without a crash."""
     proc, m = fly(tmp_path, "attitude-steps")
     assert m["completed"] and not m["crashed"], proc.stdout
     assert len(m["attitude_steps"]) == 8 and m["attitude_steps_unsettled"] == 0, m["attitude_steps"]
     for s in m["attitude_steps"]:
         assert s["overshoot_pct"] <= 5.0, s
-        assert s["settle_s"] is not None and s["settle_s"] <= 0.4, s
+        assert s["settle_s"] is not None and s["settle_s"] <= 0.38, s
+    assert np.median([s["settle_s"] for s in m["attitude_steps"]]) <= 0.35
     assert m["max_tilt_deg"] < 25.0
 
 
