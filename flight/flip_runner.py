@@ -126,12 +126,16 @@ class FlipController:
         if self.settle_start_s is None:
             self.settle_start_s = t_s
             self.hold_point_m = np.array([x[0], x[1], self._flip_z()])
+        if self.baseline is not None:  # it only damps the horizontal speed: it stops where it stops
+            self.hold_point_m[:2] = x[:2]
         calm = (tilt_rad(x[6:10]) < HANDOVER_TILT_RAD and np.linalg.norm(x[10:13]) < HANDOVER_RATE_RAD_S
                 and np.linalg.norm(x[3:6]) < HANDOVER_SPEED_M_S
                 and np.linalg.norm(x[0:3] - self.hold_point_m) < HANDOVER_DISTANCE_M)
         return t_s - self.settle_start_s >= settle_s and calm
 
     def _flip_z(self) -> float:
+        if self.baseline is not None and self.baseline.hold_point_m is not None:
+            return float(self.baseline.hold_point_m[2])  # it climbed 1 m to roll: holds where it recovered
         if self.machine is not None and self.machine.phase != Phase.TAKEOFF:
             return float(self.machine.flip_point_m[2])
         return self.altitude_m

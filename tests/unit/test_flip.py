@@ -184,3 +184,31 @@ def test_thesis_take_off_checks_the_altitude_only():
     m = FlipPhaseMachine(THESIS_FLIP, horizon=10, dt_s=0.1)
     m.start(0.0, state(z=0.0))
     assert m.update(0.1, state(z=5.05, v=(0, 0, 1.0))) == Phase.FLIP
+
+
+def test_baseline_flip_item_hands_back_after_recovery():
+    """The flip item of the planner service with the baseline ends (done) once the vehicle is
+    calm where the baseline holds after recovery: that is above the item's altitude (it climbs
+    1 m to roll), so settling towards the item's altitude never ended (flip-aborted)."""
+    from bench.flip_sim import _plant_command, _tick, SIM
+    from flight.flip_runner import FlipController
+    from simulator.plant import Plant
+    vehicle = load_vehicle("q820")
+    hover = vehicle.hover_thrust_per_motor_n
+    plant = Plant(vehicle, position_m=(0.0, 0.0, 5.0), motor_thrust_n=np.full(4, hover))
+    ctrl = FlipController(vehicle, "baseline")
+    ctrl.start(0.0, plant.x[:13], 5.0)
+    kf = vehicle.thrust_coefficient_kf
+    phases, forces = set(), np.full(4, hover)
+    for tick in range(int(12.0 * SIM.tick_rate_hz)):
+        t = tick / SIM.tick_rate_hz
+        if tick % 2 == 0:  # 200 Hz
+            step = ctrl.step(t, plant.x[:13], settle_s=0.5, solve=True)
+            phases.add(step.phase)
+            if step.done:
+                break
+            forces = kf * np.asarray(step.plan["controls_rad_s"]) ** 2
+        _tick(plant, SIM, _plant_command(vehicle, forces))
+    assert {"flip", "recovery", "settle"} <= phases
+    assert step.done, f"not handed back after {t:.1f} s (z {plant.position_m[2]:.2f} m)"
+    assert plant.position_m[2] > 5.0
