@@ -125,20 +125,25 @@ class FlipController:
         on the q820 their torque saturates easily and a handover in motion can limit-cycle)."""
         if self.settle_start_s is None:
             self.settle_start_s = t_s
-            self.hold_point_m = np.array([x[0], x[1], self._flip_z()])
-        if self.baseline is not None:  # it only damps the horizontal speed: it stops where it stops
-            self.hold_point_m[:2] = x[:2]
+            self.hold_point_m = self._settle_point(x)
+        elif self.baseline is not None:
+            self.hold_point_m = self._settle_point(x)
         calm = (tilt_rad(x[6:10]) < HANDOVER_TILT_RAD and np.linalg.norm(x[10:13]) < HANDOVER_RATE_RAD_S
                 and np.linalg.norm(x[3:6]) < HANDOVER_SPEED_M_S
                 and np.linalg.norm(x[0:3] - self.hold_point_m) < HANDOVER_DISTANCE_M)
         return t_s - self.settle_start_s >= settle_s and calm
 
-    def _flip_z(self) -> float:
+    def _settle_point(self, x) -> np.ndarray:
+        """Where the vehicle must be calm before handing back. The baseline holds the altitude it
+        recovered at (it climbed 1 m to roll) and only damps its horizontal speed, so it stops
+        where it stops; the iLQR holds where the recovery ended, at the flip's altitude."""
         if self.baseline is not None and self.baseline.hold_point_m is not None:
-            return float(self.baseline.hold_point_m[2])  # it climbed 1 m to roll: holds where it recovered
-        if self.machine is not None and self.machine.phase != Phase.TAKEOFF:
-            return float(self.machine.flip_point_m[2])
-        return self.altitude_m
+            z = self.baseline.hold_point_m[2]
+        elif self.machine is not None and self.machine.phase != Phase.TAKEOFF:
+            z = self.machine.flip_point_m[2]
+        else:
+            z = self.altitude_m
+        return np.array([x[0], x[1], float(z)])
 
     def _ilqr_step(self, t_s, x, settle_s, solve) -> Step:
         from flight.ilqr import hover_state, warm_start

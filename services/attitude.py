@@ -233,7 +233,8 @@ def run(args) -> None:
                 level.record(t, euler, rates)
                 for m in frames:
                     level.fuse(m["header"]["t_s"], m["quaternion_wxyz"])
-                rt.rejected.update(level.rejected)
+                if frames:
+                    rt.rejected.update(level.rejected)
                 euler = level.apply(euler)
                 q = quat_from_euler(*euler)
         return q, euler, rates, est.euler_var, est.rate_var, sample_t

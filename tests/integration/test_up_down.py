@@ -52,7 +52,6 @@ def _processes_mentioning(text: str) -> list[int]:
     return pids
 
 
-@pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads /proc")
 def test_terminated_fly_stops_its_services(tmp_path):
     """SIGTERM to `zenpilot fly` (a batch job cancelled, a bench killed) stops the router
     and every service it started instead of leaving them running."""
