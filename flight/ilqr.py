@@ -129,7 +129,7 @@ def make_derivative(vehicle: Vehicle) -> Callable:
 
     def with_forces(x, forces_n):
         v, q, w = x[VEL], x[QUAT], x[RATE]
-        thrust_torque = allocation @ forces_n
+        thrust_torque = jnp.sum(allocation * forces_n, axis=1)  # allocation @ forces, fusible
         accel = (_body_z_in_world(q) * thrust_torque[0] - drag * v) / mass - gravity
         q_dot = 0.5 * _quat_multiply(q, jnp.concatenate([jnp.zeros(1), w]))
         w_dot = (thrust_torque[1:] - jnp.cross(w, inertia * w)) / inertia
@@ -170,7 +170,8 @@ def make_dynamics(vehicle: Vehicle, dt_s: float, integrator: str = "euler",
         k3 = body(x + 0.5 * dt_s * k2, forces)
         k4 = body(x + dt_s * k3, forces)
         x_new = x + dt_s / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
-        return x_new.at[QUAT].set(x_new[QUAT] / jnp.linalg.norm(x_new[QUAT]))
+        return jnp.concatenate([x_new[:QUAT.start], x_new[QUAT] / jnp.linalg.norm(x_new[QUAT]),
+                                x_new[QUAT.stop:]])
 
     step = {"euler": euler, "rk4": rk4}[integrator]
     kf = _thrust_coefficient(vehicle)
@@ -203,8 +204,9 @@ def attitude_error_sq_rad2(q, q_target):
 
     arccos has an infinite slope at 1, so within 1e-3 of it the square is taken from its
     series 4 (2 s + s^2 / 3), s = 1 - |<q, q*>|, which is smooth with finite derivatives
-    of every order; the other branch sees a harmless argument there (double-where)."""
-    d = jnp.abs(jnp.dot(q, q_target)) / (jnp.linalg.norm(q) * jnp.linalg.norm(q_target))
+    of every order; the other branch sees a harmless argument there (double-where).
+    Sums rather than jnp.dot: XLA fuses them with the rest (a dot is a call of its own)."""
+    d = jnp.abs(jnp.sum(q * q_target)) / jnp.sqrt(jnp.sum(q * q) * jnp.sum(q_target * q_target))
     s = 1.0 - d
     near = s < 1e-3
     series = 4.0 * (2.0 * s + s * s / 3.0)
@@ -212,13 +214,43 @@ def attitude_error_sq_rad2(q, q_target):
     return jnp.where(near, series, 4.0 * jnp.arccos(d_far) ** 2)
 
 
+def attitude_error_derivatives(q, q_target):
+    """Gradient (4,) and Hessian (4, 4) in q of attitude_error_sq_rad2, in closed form
+    (the same values as jax.grad / jax.hessian, a test holds them equal, as elementwise
+    work XLA fuses: autodiff's Hessian was the solver's costliest step).
+
+    With u = q/|q|, c = q*/|q*|, sg = sign<u, c> and d = |<u, c>|:
+    dd/dq = (sg c - d u)/|q|, d2d/dq2 = -[(sg c - d u) u' + u (sg c - d u)' + d (I - u u')]/|q|^2,
+    and the error e(d) = 4 arccos(d)^2 (near d = 1 its series) by the chain rule."""
+    n = jnp.sqrt(jnp.sum(q * q))
+    u = q / n
+    c = q_target / jnp.sqrt(jnp.sum(q_target * q_target))
+    dot = jnp.sum(u * c)
+    sg = jnp.where(dot >= 0.0, 1.0, -1.0).astype(q.dtype)
+    d = jnp.abs(dot)
+    r = sg * c - d * u
+    grad_d = r / n
+    eye = jnp.eye(q.shape[-1], dtype=q.dtype)
+    hess_d = -(r[:, None] * u[None, :] + u[:, None] * r[None, :] + d * (eye - u[:, None] * u[None, :])) / (n * n)
+    s = 1.0 - d
+    near = s < 1e-3
+    d_far = jnp.where(near, 0.5, jnp.clip(d, 0.0, 1.0))
+    angle = jnp.arccos(d_far)
+    root = jnp.sqrt(1.0 - d_far * d_far)
+    de_far = -8.0 * angle / root
+    d2e_far = 8.0 * (1.0 / (root * root) - angle * d_far / (root * root * root))
+    de = jnp.where(near, -8.0 - 8.0 * s / 3.0, de_far)
+    d2e = jnp.where(near, 8.0 / 3.0, d2e_far)
+    return de * grad_d, d2e * grad_d[:, None] * grad_d[None, :] + de * hess_d
+
+
 def _weighted_state_error(x, x_target, weight):
     w = jnp.asarray(weight)
     dp = x[POS] - x_target[POS]
     dv = x[VEL] - x_target[VEL]
     dw = x[RATE] - x_target[RATE]
-    return (jnp.dot(w[0:3] * dp, dp) + jnp.dot(w[3:6] * dv, dv)
-            + w[6] * attitude_error_sq_rad2(x[QUAT], x_target[QUAT]) + jnp.dot(w[7:10] * dw, dw))
+    return (jnp.sum(w[0:3] * dp * dp) + jnp.sum(w[3:6] * dv * dv)
+            + w[6] * attitude_error_sq_rad2(x[QUAT], x_target[QUAT]) + jnp.sum(w[7:10] * dw * dw))
 
 
 def make_cost(config: ILQRConfig) -> tuple[Callable, Callable]:
@@ -226,7 +258,7 @@ def make_cost(config: ILQRConfig) -> tuple[Callable, Callable]:
     attitude through the geodesic angle."""
     def stage_cost(x, u, x_target, u_target):
         du = u - u_target
-        return _weighted_state_error(x, x_target, config.state_weight) + config.control_weight * jnp.dot(du, du)
+        return _weighted_state_error(x, x_target, config.state_weight) + config.control_weight * jnp.sum(du * du)
 
     def terminal_cost(x, x_target):
         return _weighted_state_error(x, x_target, config.terminal_weight)
@@ -236,25 +268,23 @@ def make_cost(config: ILQRConfig) -> tuple[Callable, Callable]:
 
 def make_cost_derivatives(config: ILQRConfig) -> tuple[Callable, Callable]:
     """Exact derivatives of make_cost's costs, using their structure: the p, v, rate and u
-    terms are quadratic (constant Hessians), only the attitude term needs autodiff, and on
-    the 4 quaternion components alone. Same values as jax.grad/jax.hessian of the costs (a
+    terms are quadratic (constant Hessians), the attitude term's in closed form on the
+    4 quaternion components alone. Same values as jax.grad/jax.hessian of the costs (a
     test holds them equal) for a fraction of the work: a generic Hessian of the stage cost
     differentiates all 13 (17) states twice.
 
     stage_derivatives(x, u, x_target, u_target) -> (lx, lu, lxx, luu, lux)
     terminal_derivatives(x, x_target) -> (lx, lxx); x of any size >= 13 (extra states
     carry no cost)."""
-    att_grad = jax.grad(attitude_error_sq_rad2)
-    att_hess = jax.hessian(attitude_error_sq_rad2)
-
     def state_derivatives(x, x_target, weight):
         w = np.asarray(weight, dtype=np.float64)
         diag = np.zeros(x.shape[-1])
         diag[POS], diag[VEL], diag[RATE] = w[0:3], w[3:6], w[7:10]
         diag = jnp.asarray(diag, x.dtype)
-        q, qt = x[QUAT], x_target[QUAT]
-        lx = (2.0 * diag * (x - x_target)).at[QUAT].set(w[6] * att_grad(q, qt))
-        lxx = jnp.diag(2.0 * diag).at[QUAT, QUAT].set(w[6] * att_hess(q, qt))
+        att_grad, att_hess = attitude_error_derivatives(x[QUAT], x_target[QUAT])
+        after = x.shape[-1] - QUAT.stop  # padding, not .at[].set: it fuses
+        lx = 2.0 * diag * (x - x_target) + jnp.pad(w[6] * att_grad, (QUAT.start, after))
+        lxx = jnp.diag(2.0 * diag) + jnp.pad(w[6] * att_hess, ((QUAT.start, after),) * 2)
         return lx, lxx
 
     def stage_derivatives(x, u, x_target, u_target):
@@ -297,35 +327,74 @@ def trajectory_cost(stage_cost, terminal_cost, states, controls, x_targets, u_ta
     return jnp.sum(stage) + terminal_cost(states[-1], x_targets[-1])
 
 
+def _matmul(a, b):
+    """a @ b as a broadcast product and a sum: for these 4..18-wide matrices XLA fuses it
+    with its neighbours, where a dot is an Eigen call of its own (most of a step's time)."""
+    return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
+
+
+def _solve_spd(a, rhs):
+    """Solve a x = rhs for a small symmetric a (n, n) by an L D L' factorisation written out
+    entry by entry (n = 4 controls): one reciprocal per pivot and the rest products, which
+    XLA fuses, where LAPACK's potrf and trsm are a call each and every sqrt or divide is a
+    fusion of its own. Returns (x, positive_definite); x is garbage when not positive definite."""
+    n = a.shape[0]
+    low = [[None] * n for _ in range(n)]   # unit lower triangle
+    d, inv_d = [None] * n, [None] * n
+    pd = jnp.array(True)
+    for j in range(n):
+        d[j] = a[j, j] - sum(low[j][k] * low[j][k] * d[k] for k in range(j))
+        pd = pd & (d[j] > 0.0)
+        inv_d[j] = 1.0 / jnp.where(d[j] > 0.0, d[j], 1.0)
+        for i in range(j + 1, n):
+            low[i][j] = (a[i, j] - sum(low[i][k] * low[j][k] * d[k] for k in range(j))) * inv_d[j]
+    y = []
+    for i in range(n):  # low y = rhs
+        y.append(rhs[i] - sum(low[i][k] * y[k] for k in range(i)))
+    x = [None] * n
+    for i in reversed(range(n)):  # low' x = y / d
+        x[i] = y[i] * inv_d[i] - sum(low[k][i] * x[k] for k in range(i + 1, n))
+    return jnp.stack(x), pd
+
+
 def _backward_pass(derivs, mu):
-    """Riccati recursion with Quu + mu I; returns K, k, expected decrease terms, all-PD flag."""
+    """Riccati recursion with Quu + mu I; returns K, k, expected decrease terms, all-PD flag.
+
+    Written on the augmented vector z = [x, 1, u]: the value function is one matrix
+    V = [Vxx vx; vx' .] and a step is M = F' V F + L with F = [A 0 B; 0 1 0] and L the
+    stage cost's [lxx lx lxu; lx' 0 lu'; lux lu luu]; then Qxx, qx, Qux, qu, Quu are
+    blocks of M, the gains [K k] = -Quu^-1 [Qux qu] and the new V is
+    M_zz + G' Quu G + G' [Qux qu] + [Qux qu]' G, G = [K k] (the usual update, 13+1 wide)."""
     A, B, lx, lu, lxx, luu, lux, vx_final, vxx_final = derivs
-    n_u = B.shape[-1]
+    horizon, n_x, n_u = B.shape
+    n_a = n_x + 1
+    dtype = A.dtype
+    unit_row = jnp.concatenate([jnp.zeros(n_x, dtype), jnp.ones(1, dtype), jnp.zeros(n_u, dtype)])
+    F = jnp.concatenate([jnp.concatenate([A, jnp.zeros((horizon, n_x, 1), dtype), B], axis=2),
+                         jnp.broadcast_to(unit_row, (horizon, 1, n_a + n_u))], axis=1)
+    L = jnp.concatenate([
+        jnp.concatenate([lxx, lx[:, :, None], jnp.swapaxes(lux, 1, 2)], axis=2),
+        jnp.concatenate([lx[:, None, :], jnp.zeros((horizon, 1, 1), dtype), lu[:, None, :]], axis=2),
+        jnp.concatenate([lux, lu[:, :, None], luu], axis=2)], axis=1)
+    v_final = jnp.block([[vxx_final, vx_final[:, None]], [vx_final[None, :], jnp.zeros((1, 1), dtype)]])
+    regularisation = mu * jnp.eye(n_u, dtype=dtype)
 
     def step(carry, d):
-        vx, vxx, ok = carry
-        a, b, cx, cu, cxx, cuu, cux = d
-        qx = cx + a.T @ vx
-        qu = cu + b.T @ vx
-        qxx = cxx + a.T @ vxx @ a
-        quu = cuu + b.T @ vxx @ b
-        qux = cux + b.T @ vxx @ a
-        quu_reg = quu + mu * jnp.eye(n_u)
-        chol = jnp.linalg.cholesky(quu_reg)
-        pd = jnp.all(jnp.isfinite(chol))
-        chol = jnp.where(pd, chol, jnp.eye(n_u))
-        solve = lambda rhs: jax.scipy.linalg.cho_solve((chol, True), rhs)
-        gain = -solve(qux)
-        ff = -solve(qu)
-        vx_new = qx + gain.T @ quu @ ff + gain.T @ qu + qux.T @ ff
-        vxx_new = qxx + gain.T @ quu @ gain + gain.T @ qux + qux.T @ gain
-        vxx_new = 0.5 * (vxx_new + vxx_new.T)
-        decrease = jnp.stack([ff @ qu, 0.5 * ff @ quu @ ff])
-        return (vx_new, vxx_new, ok & pd), (gain, ff, decrease)
+        v, ok = carry
+        f, l = d
+        m = _matmul(f.T, _matmul(v, f)) + l
+        quu, q_u = m[n_a:, n_a:], m[n_a:, :n_a]          # Quu, [Qux qu]
+        g, pd = _solve_spd(quu + regularisation, q_u)
+        g = jnp.where(pd, -g, 0.0)                        # [K k]
+        quu_g = _matmul(quu, g)
+        g_q = _matmul(g.T, q_u)
+        v_new = m[:n_a, :n_a] + _matmul(g.T, quu_g) + g_q + g_q.T
+        ff = g[:, n_x]
+        decrease = jnp.stack([jnp.sum(ff * q_u[:, n_x]), 0.5 * jnp.sum(ff * quu_g[:, n_x])])
+        return (0.5 * (v_new + v_new.T), ok & pd), (g, decrease)
 
-    (_, _, ok), (gains, ffs, decrease) = jax.lax.scan(
-        step, (vx_final, vxx_final, jnp.array(True)), (A, B, lx, lu, lxx, luu, lux), reverse=True)
-    return gains, ffs, decrease.sum(axis=0), ok
+    (_, ok), (g, decrease) = jax.lax.scan(step, (v_final, jnp.array(True)), (F, L), reverse=True)
+    return g[:, :, :n_x], g[:, :, n_x], decrease.sum(axis=0), ok
 
 
 def make_solver(dynamics, stage_cost, terminal_cost, config: ILQRConfig, u_min, u_max,
@@ -362,7 +431,7 @@ def make_solver(dynamics, stage_cost, terminal_cost, config: ILQRConfig, u_min, 
     def forward(states, controls, gains, ffs, alpha):
         def step(x, d):
             x_ref, u_ref, gain, ff = d
-            u = jnp.clip(u_ref + alpha * ff + gain @ (x - x_ref), u_min, u_max)
+            u = jnp.clip(u_ref + alpha * ff + jnp.sum(gain * (x - x_ref), axis=1), u_min, u_max)
             x_next = dynamics(x, u)
             return x_next, (x_next, u)
         _, (xs, us) = jax.lax.scan(step, states[0], (states[:-1], controls, gains, ffs))

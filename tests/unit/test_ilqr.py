@@ -21,6 +21,7 @@ from flight.ilqr import (
     motor_forces_update,
     warm_start,
 )
+from flight.ilqr import _backward_pass, _solve_spd
 from flight.quat import quat_from_euler
 from flight.vehicle import load_vehicle
 
@@ -159,6 +160,57 @@ def test_structured_cost_derivatives_equal_autodiff(config, n):
             np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)  # float32
         for got, want in zip(terminal_d(x, xt), (jax.grad(terminal)(x, xt), jax.hessian(terminal)(x, xt))):
             np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)  # float32
+
+
+
+def test_small_spd_solve_matches_numpy_and_flags_indefinite():
+    """The written-out L D L' solve of the backward pass: float32 accuracy as LAPACK's on
+    Quu-like matrices (condition up to 1e4), and an indefinite matrix is reported."""
+    rng = np.random.default_rng(5)
+    for cond in (1.0, 1e2, 1e4):
+        q, _ = np.linalg.qr(rng.normal(size=(4, 4)))
+        a = (q * np.logspace(0, np.log10(cond), 4) * 1e-3) @ q.T
+        rhs = rng.normal(size=(4, 14))
+        x, pd = _solve_spd(jnp.asarray(a, jnp.float32), jnp.asarray(rhs, jnp.float32))
+        want = np.linalg.solve(a, rhs)
+        assert bool(pd)
+        assert np.abs(np.asarray(x) - want).max() <= 1e-5 * cond * np.abs(want).max()
+    _, pd = _solve_spd(jnp.asarray(np.diag([1.0, 2.0, -0.1, 3.0]), jnp.float32), jnp.ones((4, 3), jnp.float32))
+    assert not bool(pd)
+
+
+def test_backward_pass_is_the_riccati_recursion():
+    """The augmented backward pass against the textbook recursion in float64 numpy, on random
+    linearisations: gains K, feedforward k and the expected decrease."""
+    rng = np.random.default_rng(8)
+    horizon, n_x, n_u, mu = 5, 13, 4, 1e-3
+    A = np.eye(n_x) + 0.1 * rng.normal(size=(horizon, n_x, n_x))
+    B = 0.1 * rng.normal(size=(horizon, n_x, n_u))
+    lx, lu = rng.normal(size=(horizon, n_x)), rng.normal(size=(horizon, n_u))
+    lxx = np.stack([m @ m.T + np.eye(n_x) for m in rng.normal(size=(horizon, n_x, n_x))]) * 0.1
+    luu = np.stack([np.eye(n_u)] * horizon) * 0.5
+    lux = 0.01 * rng.normal(size=(horizon, n_u, n_x))
+    vx_final, vxx_final = rng.normal(size=n_x), np.eye(n_x) * 2.0
+    vx, vxx = vx_final, vxx_final
+    want_gains, want_ffs, want_decrease = [], [], np.zeros(2)
+    for t in reversed(range(horizon)):
+        a, b = A[t], B[t]
+        qx, qu = lx[t] + a.T @ vx, lu[t] + b.T @ vx
+        qxx, quu, qux = lxx[t] + a.T @ vxx @ a, luu[t] + b.T @ vxx @ b, lux[t] + b.T @ vxx @ a
+        quu_reg = quu + mu * np.eye(n_u)
+        gain, ff = -np.linalg.solve(quu_reg, qux), -np.linalg.solve(quu_reg, qu)
+        vx = qx + gain.T @ quu @ ff + gain.T @ qu + qux.T @ ff
+        vxx = qxx + gain.T @ quu @ gain + gain.T @ qux + qux.T @ gain
+        vxx = 0.5 * (vxx + vxx.T)
+        want_decrease += [ff @ qu, 0.5 * ff @ quu @ ff]
+        want_gains.insert(0, gain)
+        want_ffs.insert(0, ff)
+    derivs = tuple(jnp.asarray(v, jnp.float32) for v in (A, B, lx, lu, lxx, luu, lux, vx_final, vxx_final))
+    gains, ffs, decrease, ok = _backward_pass(derivs, mu)
+    assert bool(ok)
+    np.testing.assert_allclose(gains, np.stack(want_gains), rtol=1e-3, atol=1e-4)
+    np.testing.assert_allclose(ffs, np.stack(want_ffs), rtol=1e-3, atol=1e-4)
+    np.testing.assert_allclose(decrease, want_decrease, rtol=1e-3)
 
 
 def test_motor_lag_model_forces_follow_the_command_exactly():
