@@ -8,6 +8,13 @@ signal over a window that runs from the step until the planner's reference
 next changes (any change of the stepped quantity's reference, or a mode
 change) or the log ends. Crossing times are linearly interpolated between
 truth samples.
+
+An attitude step is the attitude loop's response (figure 4 of 000: law (8) on the
+filters, and the motors): it is timed from the moment the attitude level holds the
+new reference (att/state euler_ref_rad), which reaches it one tick per hop after
+the planner's setpoint (planner -> position -> attitude: 20 ms in lockstep), and
+starts from the angle flown then. The same step timed from the planner's setpoint
+is kept as command_settle_s, the delay as reference_delay_s.
 """
 
 from __future__ import annotations
@@ -18,6 +25,7 @@ from typing import Any
 import numpy as np
 
 ATTITUDE_STEP_MIN_DEG = 1.0
+ATTITUDE_REF_TOL_DEG = 1e-3  # the attitude level's reference equals the setpoint's
 POSITION_STEP_MIN_M = 0.2
 SETTLE_BAND = 0.05  # of the step size
 MONOTONE_TOL = 0.01  # of the step size
@@ -128,11 +136,22 @@ def _change_points(modes: list[str], ref: np.ndarray) -> np.ndarray:
     return np.nonzero(mode_change | ref_change)[0] + 1
 
 
+def _reference_arrival(loop_t: np.ndarray, loop_ref: np.ndarray, t0: float, t_end: float,
+                       value: float) -> float | None:
+    """First time in [t0, t_end] the attitude level's reference (display units) equals value."""
+    idx = np.nonzero((loop_t >= t0) & (loop_t <= t_end) & (np.abs(loop_ref - value) <= ATTITUDE_REF_TOL_DEG))[0]
+    return float(loop_t[idx[0]]) if idx.size else None
+
+
 def _find_steps(sp: list[dict], sp_t: np.ndarray, truth_t: np.ndarray, truth_val: np.ndarray,
                 landed: np.ndarray, mode: str, axes: tuple[str, ...], threshold: float,
-                scale: float) -> list[dict]:
+                scale: float, loop: tuple[np.ndarray, np.ndarray] | None = None) -> list[dict]:
     """Reference jumps > threshold (in display units: ref * scale) between consecutive
-    setpoints of `mode`; each analysed against truth_val[:, axis] * scale."""
+    setpoints of `mode`; each analysed against truth_val[:, axis] * scale.
+
+    loop = (times, references (n, axes)) of the attitude level: attitude steps are then
+    timed from the reference's arrival there (module docstring); None, or a reference
+    that never arrives, times them from the setpoint (reference_delay_s None)."""
     if not sp or truth_t.size == 0:
         return []
     modes = [m["mode"] for m in sp]
@@ -174,6 +193,18 @@ def _find_steps(sp: list[dict], sp_t: np.ndarray, truth_t: np.ndarray, truth_val
                      "window_s": _f(t_end - t0), **r}
             if mode == "position":
                 entry.pop("monotone")
+            else:
+                entry["command_settle_s"], entry["reference_delay_s"] = r["settle_s"], None
+                t_ref = None if loop is None else _reference_arrival(loop[0], loop[1][:, a], t0, t_end,
+                                                                        float(ref[i, a]))
+                if t_ref is not None:
+                    start = prev[a]
+                    if modes[i - 1] != mode:  # entering attitude mode: from the angle flown then
+                        start = vals[max(int(np.searchsorted(truth_t, t_ref, side="right")) - 1, 0), a]
+                    wl = (truth_t >= t_ref) & (truth_t <= t_end)
+                    entry.update(step_response(truth_t[wl], vals[wl, a], t_ref, float(start), float(ref[i, a])))
+                    entry[f"from_{unit}"] = _f(start)
+                    entry["reference_delay_s"] = _f(t_ref - t0)
             steps.append(entry)
     return steps
 
@@ -262,14 +293,18 @@ def compute_metrics(log: dict[str, list[dict]], info: dict, vehicle_id: int = 0)
                        "imu_to_pwm_max": _f(lat.max()) if lat.size else None, "samples": int(lat.size)}
 
     # step responses
+    att_state = _sorted(log.get(p + "att/state", []))
+    loop = ((_times(att_state), np.degrees(np.array([x["euler_ref_rad"][:2] for x in att_state], dtype=np.float64)))
+            if att_state else None)
     m["attitude_steps"] = _find_steps(sp, sp_t, truth_t, euler[:, :2], landed, "attitude",
-                                      ("roll", "pitch"), ATTITUDE_STEP_MIN_DEG, 180.0 / math.pi)
+                                      ("roll", "pitch"), ATTITUDE_STEP_MIN_DEG, 180.0 / math.pi, loop)
     m["position_steps"] = _find_steps(sp, sp_t, truth_t, pos, landed, "position",
                                       ("x", "y", "z"), POSITION_STEP_MIN_M, 1.0)
     att, ps = m["attitude_steps"], m["position_steps"]
     m["attitude_rise_s_max"] = _max_or_none(s["rise_s"] for s in att)
     m["attitude_overshoot_pct_max"] = _max_or_none(s["overshoot_pct"] for s in att)
     m["attitude_settle_s_max"] = _max_or_none(s["settle_s"] for s in att)
+    m["attitude_command_settle_s_max"] = _max_or_none(s["command_settle_s"] for s in att)
     m["attitude_steps_unsettled"] = sum(1 for s in att if s["settle_s"] is None)
     m["position_step_settle_s_max"] = _max_or_none(s["settle_s"] for s in ps)
     m["position_step_overshoot_pct_max"] = _max_or_none(s["overshoot_pct"] for s in ps)
@@ -392,6 +427,9 @@ def format_table(metrics: dict) -> str:
                    f"settle {_fmt(s['settle_s'])} s")
             if "monotone" in s:
                 txt += f", monotone {_fmt(s['monotone'])}"
+            if s.get("reference_delay_s") is not None:
+                txt += (f" (at the attitude level, {1e3 * s['reference_delay_s']:.0f} ms after the setpoint;"
+                        f" from the setpoint {_fmt(s['command_settle_s'])} s)")
             rows.append((f"{kind[:-1]} {s['axis']} @ {s['t_s']:.2f} s", txt))
     width = max((len(k) for k, _ in rows), default=0)
     return "\n".join(f"{k.ljust(width)}  {v}" for k, v in rows)

@@ -148,6 +148,45 @@ def attitude_log():
     return {P + "sim/truth": tr, P + "planner/setpoint": sp}
 
 
+
+def test_attitude_steps_are_timed_where_the_attitude_level_gets_the_reference():
+    """Entering attitude mode, the setpoint reaches the attitude level 15 ms late (planner ->
+    position -> attitude) and the vehicle was rolling away from it meanwhile: the step is the
+    loop's response from the reference's arrival and the angle flown then; the setpoint-timed
+    figure stays beside it."""
+    d2r, delay = math.pi / 180, 0.015
+    tr, sp, att = [], [], []
+    for k in range(3001):  # truth 1 kHz: drifting to -0.5 deg until the reference arrives
+        t = k / 1000
+        arrive = 1.0 + delay
+        roll = (-0.5 * (t - 0.9) / (arrive - 0.9) if 0.9 < t <= arrive else 0.0) if t <= arrive else \
+            -0.5 + 10.5 * (1 - math.exp(-(t - arrive) / TAU_ROLL))
+        tr.append(truth(t, k, (0, 0, 2), roll=roll * d2r))
+    for j in range(151):  # planner 50 Hz: position hold, then attitude mode with roll 10 deg at 1 s
+        t = j / 50
+        sp.append(setpoint(t, j, mode="position" if t < 1.0 else "attitude", pos=(0, 0, 2),
+                           att=(10 * d2r if t >= 1 else 0.0, 0.0, 0.0)))
+    for j in range(601):  # attitude level 200 Hz
+        t = j / 200
+        att.append({"version": 1, "header": hdr(t, j, "attitude"),
+                    "euler_ref_rad": [10 * d2r if t >= 1.0 + delay - 1e-9 else 0.0, 0.0, 0.0],
+                    "state_source": "truth"})
+    log = {P + "sim/truth": tr, P + "planner/setpoint": sp}
+    roll_from_setpoint = compute_metrics(log, INFO)["attitude_steps"][0]
+    assert roll_from_setpoint["reference_delay_s"] is None
+
+    log[P + "att/state"] = att
+    m = compute_metrics(log, INFO)
+    assert_json_clean(m)
+    (roll,) = m["attitude_steps"]
+    assert roll["t_s"] == pytest.approx(1.0) and roll["reference_delay_s"] == pytest.approx(delay)
+    assert roll["from_deg"] == pytest.approx(-0.5, abs=1e-6) and roll["monotone"] is True
+    assert roll["settle_s"] == pytest.approx(TAU_ROLL * math.log(20), abs=1e-3)
+    assert roll["command_settle_s"] == roll_from_setpoint["settle_s"]
+    assert roll["command_settle_s"] > roll["settle_s"] + delay - 1e-3
+    assert m["attitude_settle_s_max"] == roll["settle_s"]
+    assert m["attitude_command_settle_s_max"] == roll["command_settle_s"]
+
 def test_attitude_steps_match_analytic_responses():
     m = compute_metrics(attitude_log(), INFO)
     assert_json_clean(m)
