@@ -13,6 +13,12 @@ def wrap_angle(a):
     return (np.asarray(a, dtype=np.float64) + np.pi) % (2 * np.pi) - np.pi
 
 
+# Law (8)'s angle loop asks at most for the rate this fraction of the airframe's angular
+# acceleration can stop (stopping_rate): the attitude service's default and the baseline
+# flip's own hold (flight/flip.BaselineFlip) share it.
+STOPPING_ACCEL_FRACTION = 0.5
+
+
 def stopping_rate(error, gain, max_accel):
     """Rate that drives an angle error to zero: gain * error near zero, and beyond
     max_accel / gain^2 the rate from which max_accel still stops at the reference,

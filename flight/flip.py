@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flight.control import attitude_law, position_law, wrap_angle
+from flight.control import STOPPING_ACCEL_FRACTION, attitude_law, position_law, wrap_angle
 from flight.mixer import mix
 from flight.quat import quat_to_euler
 from flight.vehicle import Vehicle
@@ -277,6 +277,10 @@ class BaselineConfig:
     recovery_attitude_gain_1_s: float = 6.0  # attitude P loop: rate_sp = k (angle_ref - angle)
     max_rate_rad_s: float = 6.0            # its set-point limit
     attitude_gain: float = 16.0            # law (8) of 000, k = alpha (take-off, hold)
+    # law (8)'s rate demand capped as the stack's attitude service caps it (0: law (8) as
+    # printed): uncapped, the q820's saturated hold can limit-cycle and, the mixer raising
+    # the collective to keep the torque, climb away (flip grid, baseline seed 11: 138 m)
+    stopping_accel_fraction: float = STOPPING_ACCEL_FRACTION
     position_gain: float = 4.0             # laws (9)-(11) of 000, k = alpha
     land_position_gain: float = 1.5        # after recovery: altitude hold, horizontal damping ...
     land_max_tilt_rad: float = 0.07        # ... gently (the metrics' level is 5 degrees)
@@ -301,6 +305,8 @@ class BaselineFlip:
         self.rolling = False
         self.hold_point_m = None
         self._max_total_n = 4.0 * vehicle.max_thrust_n
+        fraction = config.stopping_accel_fraction
+        self._max_accel = fraction * vehicle.max_angular_accel_rad_s2 if fraction > 0 else None
 
     def command(self, t_s: float, x) -> np.ndarray:
         c, v = self.config, self.vehicle
@@ -325,7 +331,7 @@ class BaselineFlip:
                 self.phase = Phase.RECOVERY
             elif not self.rolling:
                 torque = attitude_law(v.inertia_kg_m2, (roll, pitch, yaw), rates, (0.0, 0.0, self._yaw),
-                                      c.attitude_gain, c.attitude_gain)
+                                      c.attitude_gain, c.attitude_gain, self._max_accel)
                 return self._mix(c.climb_thrust * self._max_total_n, torque)
             else:
                 return self._rate_loop(np.array([c.roll_rate_rad_s, 0.0, 0.0]), rates, c.flip_thrust)
@@ -357,7 +363,7 @@ class BaselineFlip:
         roll_ref, pitch_ref, thrust = position_law(v.mass_kg, v.gravity_m_s2, x[0:3], x[3:6], point,
                                                    gain, gain, yaw, max_tilt_rad)
         torque = attitude_law(v.inertia_kg_m2, (roll, pitch, yaw), x[10:13], (roll_ref, pitch_ref, yaw),
-                              c.attitude_gain, c.attitude_gain)
+                              c.attitude_gain, c.attitude_gain, self._max_accel)
         return self._mix(thrust, torque)
 
     def _mix(self, thrust_n, torque_nm) -> np.ndarray:

@@ -28,7 +28,7 @@ from flight.attitude_filter import (
     GyroCarrier,
     accel_roll_pitch,
 )
-from flight.control import attitude_law
+from flight.control import STOPPING_ACCEL_FRACTION, attitude_law
 from flight.gyrovertical import DEFAULT_PARAMS_FILE, GyroVertical, load_trained
 from flight.quat import quat_from_euler, quat_to_euler, quat_to_rotation
 from flight.vehicle import load_vehicle
@@ -43,7 +43,7 @@ PARAMS = {
     # acceleration can stop (flight/control.stopping_rate): beyond a few degrees of error on a
     # heavy frame the linear law saturates the rotors, overshoots and can limit-cycle. Errors
     # below (fraction a_max) / (alpha k / (alpha + k))^2 see law (8) exactly. 0: law (8) as printed.
-    "stopping_accel_fraction": 0.5,
+    "stopping_accel_fraction": STOPPING_ACCEL_FRACTION,
     "setpoint_timeout_s": 0.1,    # stale position setpoint -> level, zero thrust
     "filter": {},                 # AttitudeFilterParams overrides (flight/attitude_filter.py)
     # Subtract the position level's acceleration estimate from the accelerometer

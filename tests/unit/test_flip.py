@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from flight.flip import (
+    BaselineConfig,
     BaselineFlip,
     FlipConfig,
     FlipPhaseMachine,
@@ -144,6 +145,26 @@ def test_baseline_rolls_at_low_thrust_then_recovers():
     braking = ctl.command(0.04, state(z=6.1, roll=math.radians(350), rates=(6, 0, 0)))
     assert braking[3] > braking[1]  # the rate set-point is below the rate: decelerate the roll
 
+
+
+def test_baseline_hold_caps_law_8_as_the_attitude_service_does():
+    """The baseline's own hold (waiting to be calm before the flip, and after it) asks law (8)
+    for no more rate than the q820's rotors can stop, as the stack's attitude service: a 30 deg
+    roll error gets less roll torque than law (8) as printed (which saturated the q820's hold
+    into a limit cycle that the mixer's collective shift turned into a climb to 138 m), a 2 deg
+    one exactly law (8)'s. At 30 deg, already turning back at 3 rad/s, law (8) as printed still
+    accelerates the turn with all the rotors have; capped, it almost coasts: 3.1 rad/s is what
+    half the q820's angular acceleration can stop over the 30 deg."""
+    vehicle = load_vehicle("q820")
+    capped, printed = BaselineFlip(vehicle), BaselineFlip(vehicle, BaselineConfig(stopping_accel_fraction=0.0))
+    for roll_deg, rate, same in ((30.0, -3.0, False), (2.0, 0.0, True)):
+        x = state(z=3.0, roll=math.radians(roll_deg), rates=(rate, 0.0, 0.0))  # take-off, below the hover altitude
+        a, b = capped.command(0.0, x), printed.command(0.0, x)
+        torque_a, torque_b = a[1] - a[3], b[1] - b[3]
+        if same:
+            assert torque_a == pytest.approx(torque_b, rel=1e-9)
+        else:
+            assert abs(torque_a) < 0.3 * abs(torque_b)
 
 @pytest.mark.timeout(60)
 def test_closed_loop_baseline_completes():
