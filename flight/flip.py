@@ -282,6 +282,8 @@ class BaselineConfig:
     # the collective to keep the torque, climb away (flip grid, baseline seed 11: 138 m)
     stopping_accel_fraction: float = STOPPING_ACCEL_FRACTION
     position_gain: float = 4.0             # laws (9)-(11) of 000, k = alpha
+    hold_max_tilt_rad: float = 0.6         # the hold's position laws (before the flip): at most
+                                           # this and the vehicle's own limit (Vehicle.tilt_limit_rad)
     land_position_gain: float = 1.5        # after recovery: altitude hold, horizontal damping ...
     land_max_tilt_rad: float = 0.07        # ... gently (the metrics' level is 5 degrees)
     ready_rate_rad_s: float = 0.05         # Appendix И: |roll rate| < 0.05 and |roll| < 2 deg
@@ -357,9 +359,10 @@ class BaselineFlip:
         torque = np.asarray(self.vehicle.inertia_kg_m2) * self.config.rate_gain_1_s * (rate_sp - rates)
         return self._mix(thrust_fraction * self._max_total_n, torque)
 
-    def _hold(self, x, point, roll, pitch, yaw, gain=None, max_tilt_rad: float = 0.6) -> np.ndarray:
+    def _hold(self, x, point, roll, pitch, yaw, gain=None, max_tilt_rad: float | None = None) -> np.ndarray:
         c, v = self.config, self.vehicle
         gain = c.position_gain if gain is None else gain
+        max_tilt_rad = v.tilt_limit_rad(math.degrees(c.hold_max_tilt_rad if max_tilt_rad is None else max_tilt_rad))
         roll_ref, pitch_ref, thrust = position_law(v.mass_kg, v.gravity_m_s2, x[0:3], x[3:6], point,
                                                    gain, gain, yaw, max_tilt_rad)
         torque = attitude_law(v.inertia_kg_m2, (roll, pitch, yaw), x[10:13], (roll_ref, pitch_ref, yaw),

@@ -48,6 +48,9 @@ class Vehicle:
     max_rotor_speed_rad_s: float | None = None
     rotor_inertia_kg_m2: float | None = None
     max_body_rate_rad_s: float | None = None
+    # the tilt this airframe's position laws may ask for (None: the position service's
+    # max_tilt_deg alone); a heavy frame with little torque needs less (q820.toml says why)
+    max_tilt_deg: float | None = None
 
     @functools.cached_property  # computed once: the mixer runs at 400 Hz
     def allocation(self) -> np.ndarray:
@@ -72,6 +75,12 @@ class Vehicle:
         span = self.max_thrust_n - self.min_thrust_n
         torque = np.abs(self.allocation[1:]).sum(axis=1) * span / 2.0
         return torque / np.asarray(self.inertia_kg_m2, dtype=np.float64)
+
+    def tilt_limit_rad(self, requested_deg: float) -> float:
+        """The tilt the position laws use: the smaller of the requested limit (the position
+        service's max_tilt_deg, live-tunable) and this airframe's own."""
+        limit = requested_deg if self.max_tilt_deg is None else min(requested_deg, self.max_tilt_deg)
+        return float(np.radians(limit))
 
     @property
     def inertia_matrix_kg_m2(self) -> np.ndarray:
@@ -103,6 +112,7 @@ _FIELDS: dict[str, tuple[str, bool]] = {
     "max_rotor_speed_rad_s": ("pos", False),
     "rotor_inertia_kg_m2": ("pos", False),
     "max_body_rate_rad_s": ("pos", False),
+    "max_tilt_deg": ("pos", False),
 }
 
 

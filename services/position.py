@@ -33,7 +33,8 @@ PARAMS = {
     # tilt the laws may ask for: law (8) saturates the x250's torque (~46 rad/s^2 about hover)
     # for any attitude-reference step over ~10 deg; at 35 deg the position and attitude loops
     # lost their separation under saturation when attitude steps handed back to position hold
-    # (a growing oscillation, the mixer raising the collective); 20 deg held on every seed tried
+    # (a growing oscillation, the mixer raising the collective); 20 deg held on every seed tried.
+    # A vehicle file's max_tilt_deg lowers it for that airframe (Vehicle.tilt_limit_rad)
     "max_tilt_deg": 20.0,
     "setpoint_timeout_s": 0.5,   # stale planner setpoint -> hold where we are
     "home_position_m": [0.0, 0.0, 0.0],  # where the EKF starts: the take-off point
@@ -144,7 +145,7 @@ def run(args) -> None:
             ref_pos = hold["position"] if stale else np.asarray(sp["position_m"])
             yaw_ref = yaw if stale else sp["attitude_rad"][2]
             r, pt, thrust = position_law(m_eff, g, pos, vel, ref_pos, k, alpha, yaw_ref,
-                                         max_tilt_rad=np.radians(p["max_tilt_deg"]))
+                                         max_tilt_rad=vehicle.tilt_limit_rad(p["max_tilt_deg"]))
             att_ref = [r, pt, yaw_ref]
         thrust = float(min(thrust, 4 * vehicle.max_thrust_n))
         velocities.append((t, vel.copy()))

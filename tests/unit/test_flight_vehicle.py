@@ -72,3 +72,18 @@ def test_bad_field_names_file_and_field(tmp_path, edit, field):
 def test_missing_file(tmp_path):
     with pytest.raises(VehicleError, match="not found"):
         load_vehicle(str(tmp_path / "none.toml"))
+
+
+def test_airframe_tilt_limit_lowers_the_position_service_limit(tmp_path):
+    """q820.toml limits its position laws to 10 deg (its torque saturates for reference steps
+    over ~5 deg); the x250 gives none, so the position service's max_tilt_deg applies; the
+    smaller of the two wins either way; a bad value is refused with the file and field."""
+    q820, x250 = load_vehicle("q820"), load_vehicle("x250")
+    assert q820.max_tilt_deg == 10.0 and x250.max_tilt_deg is None
+    assert q820.tilt_limit_rad(20.0) == pytest.approx(np.radians(10.0))
+    assert q820.tilt_limit_rad(5.0) == pytest.approx(np.radians(5.0))
+    assert x250.tilt_limit_rad(20.0) == pytest.approx(np.radians(20.0))
+    p = tmp_path / "bad.toml"
+    p.write_text((VEHICLES_DIR / "x250.toml").read_text() + "\nmax_tilt_deg = -5\n")
+    with pytest.raises(VehicleError, match="max_tilt_deg"):
+        load_vehicle(str(p))
