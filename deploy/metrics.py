@@ -12,7 +12,7 @@ truth samples.
 An attitude step is the attitude loop's response (figure 4 of 000: law (8) on the
 filters, and the motors): it is timed from the moment the attitude level holds the
 new reference (att/state euler_ref_rad), which reaches it one tick per hop after
-the planner's setpoint (planner -> position -> attitude: 20 ms in lockstep), and
+the planner's setpoint (planner -> position -> attitude: 15-20 ms in lockstep), and
 starts from the angle flown then. The same step timed from the planner's setpoint
 is kept as command_settle_s, the delay as reference_delay_s.
 """

@@ -19,6 +19,12 @@ def wrap_angle(a):
 STOPPING_ACCEL_FRACTION = 0.5
 
 
+def stopping_accel(max_angular_accel, fraction: float):
+    """The max_accel attitude_law caps with: this fraction of the airframe's angular
+    acceleration per axis; None (law (8) as printed) for a fraction of 0."""
+    return fraction * np.asarray(max_angular_accel, dtype=np.float64) if fraction > 0 else None
+
+
 def stopping_rate(error, gain, max_accel):
     """Rate that drives an angle error to zero: gain * error near zero, and beyond
     max_accel / gain^2 the rate from which max_accel still stops at the reference,

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flight.control import STOPPING_ACCEL_FRACTION, attitude_law, position_law, wrap_angle
+from flight.control import STOPPING_ACCEL_FRACTION, attitude_law, position_law, stopping_accel, wrap_angle
 from flight.mixer import mix
 from flight.quat import quat_to_euler
 from flight.vehicle import Vehicle
@@ -307,8 +307,7 @@ class BaselineFlip:
         self.rolling = False
         self.hold_point_m = None
         self._max_total_n = 4.0 * vehicle.max_thrust_n
-        fraction = config.stopping_accel_fraction
-        self._max_accel = fraction * vehicle.max_angular_accel_rad_s2 if fraction > 0 else None
+        self._max_accel = stopping_accel(vehicle.max_angular_accel_rad_s2, config.stopping_accel_fraction)
 
     def command(self, t_s: float, x) -> np.ndarray:
         c, v = self.config, self.vehicle

@@ -199,6 +199,9 @@ def motor_forces_update(forces_n, command_n, dt_s: float, motor_time_constant_s:
 
 # --- cost --------------------------------------------------------------------------
 
+_SERIES_BELOW = 1e-3  # 1 - |<q, q*>| below which the attitude error uses its series
+
+
 def attitude_error_sq_rad2(q, q_target):
     """(2 arccos|<q, q*>|)^2: the squared rotation angle between q and q* (0 at q* and -q*).
 
@@ -208,7 +211,7 @@ def attitude_error_sq_rad2(q, q_target):
     Sums rather than jnp.dot: XLA fuses them with the rest (a dot is a call of its own)."""
     d = jnp.abs(jnp.sum(q * q_target)) / jnp.sqrt(jnp.sum(q * q) * jnp.sum(q_target * q_target))
     s = 1.0 - d
-    near = s < 1e-3
+    near = s < _SERIES_BELOW
     series = 4.0 * (2.0 * s + s * s / 3.0)
     d_far = jnp.where(near, 0.5, jnp.clip(d, 0.0, 1.0))
     return jnp.where(near, series, 4.0 * jnp.arccos(d_far) ** 2)
@@ -233,7 +236,7 @@ def attitude_error_derivatives(q, q_target):
     eye = jnp.eye(q.shape[-1], dtype=q.dtype)
     hess_d = -(r[:, None] * u[None, :] + u[:, None] * r[None, :] + d * (eye - u[:, None] * u[None, :])) / (n * n)
     s = 1.0 - d
-    near = s < 1e-3
+    near = s < _SERIES_BELOW
     d_far = jnp.where(near, 0.5, jnp.clip(d, 0.0, 1.0))
     angle = jnp.arccos(d_far)
     root = jnp.sqrt(1.0 - d_far * d_far)

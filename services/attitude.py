@@ -28,7 +28,7 @@ from flight.attitude_filter import (
     GyroCarrier,
     accel_roll_pitch,
 )
-from flight.control import STOPPING_ACCEL_FRACTION, attitude_law
+from flight.control import STOPPING_ACCEL_FRACTION, attitude_law, stopping_accel
 from flight.gyrovertical import DEFAULT_PARAMS_FILE, GyroVertical, load_trained
 from flight.quat import quat_from_euler, quat_to_euler, quat_to_rotation
 from flight.vehicle import load_vehicle
@@ -141,7 +141,7 @@ def run(args) -> None:
     fraction = p["stopping_accel_fraction"]
     if not (isinstance(fraction, (int, float)) and not isinstance(fraction, bool) and 0.0 <= fraction <= 1.0):
         raise ValueError(f"{rt.where()} stopping_accel_fraction: must be in [0, 1], got {fraction!r}")
-    max_accel = fraction * vehicle.max_angular_accel_rad_s2 if fraction > 0 else None
+    max_accel = stopping_accel(vehicle.max_angular_accel_rad_s2, fraction)
     last_torque = {"u": np.zeros(3)}
     filt_state = {"q": np.array([1.0, 0.0, 0.0, 0.0])}
 

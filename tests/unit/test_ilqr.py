@@ -9,6 +9,8 @@ import pytest
 
 from flight.ilqr import (
     THESIS,
+    _backward_pass,
+    _solve_spd,
     Planner,
     attitude_error_sq_rad2,
     feedback_control,
@@ -21,7 +23,6 @@ from flight.ilqr import (
     motor_forces_update,
     warm_start,
 )
-from flight.ilqr import _backward_pass, _solve_spd
 from flight.quat import quat_from_euler
 from flight.vehicle import load_vehicle
 
