@@ -43,7 +43,6 @@ from flight.ilqr import (
     ILQRConfig,
     Planner,
     feedback_control,
-    hover_state,
     motor_forces_update,
     warm_start,
 )
@@ -107,7 +106,6 @@ def simulate_mpc(vehicle: Vehicle, planner: Planner, flip: FlipConfig, solve_rat
     machine.start(0.0, plant.x[:13])
     run = FlipRun()
     plan, plan_t_s = None, 0.0
-    hold_point_m = None
     tau = planner.config.motor_time_constant_s
     forces_est = plant.motor_thrust_n  # the plan's motor states: estimated from the commands
     for tick in range(int(max_time_s * sim.tick_rate_hz)):
@@ -117,10 +115,8 @@ def simulate_mpc(vehicle: Vehicle, planner: Planner, flip: FlipConfig, solve_rat
             phase = machine.update(t_s, x)
             if phase in (Phase.DONE,) or (phase == Phase.LAND and t_s - machine.phase_start_s >= after_recovery_s):
                 break
-            if phase == Phase.LAND:  # as the planner service: hover where it recovered, at the flip's altitude
-                if hold_point_m is None:
-                    hold_point_m = np.array([x[0], x[1], machine.flip_point_m[2]])
-                targets = np.repeat(hover_state(hold_point_m)[None], planner.config.horizon + 1, axis=0)
+            if phase == Phase.LAND:  # as the planner service: the hold after recovery
+                targets = machine.settle_targets(t_s, x)
             else:
                 targets = machine.targets(t_s, x)
             warm = None if plan is None else warm_start(plan, t_s - plan_t_s)

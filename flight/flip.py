@@ -28,7 +28,7 @@ import numpy as np
 
 from flight.control import STOPPING_ACCEL_FRACTION, attitude_law, position_law, stopping_accel, wrap_angle
 from flight.mixer import mix
-from flight.quat import quat_to_euler
+from flight.quat import quat_multiply, quat_to_euler
 from flight.vehicle import Vehicle
 
 TWO_PI = 2.0 * math.pi
@@ -46,6 +46,26 @@ class Phase(str, enum.Enum):
 def quat_from_roll(roll_rad: float) -> np.ndarray:
     """Rotation about the world x axis (yaw 0, pitch 0), [w, x, y, z]."""
     return np.array([math.cos(roll_rad / 2), math.sin(roll_rad / 2), 0.0, 0.0])
+
+
+def braking_reference(start_m, velocity_m_s, t_s, decel_m_s2: float):
+    """Horizontal position and velocity at times t_s (N,) after start of a straight-line stop
+    from velocity_m_s (2,) at constant deceleration decel_m_s2: (positions (N, 2), velocities
+    (N, 2)); at rest from v / decel on, at start + v |v| / (2 decel)."""
+    v0 = np.asarray(velocity_m_s, dtype=np.float64)
+    speed = float(np.linalg.norm(v0))
+    t = np.asarray(t_s, dtype=np.float64)[:, None]
+    if speed < 1e-9:
+        return np.repeat(np.asarray(start_m, dtype=np.float64)[None, :2], len(t), axis=0), np.zeros((len(t), 2))
+    direction = v0 / speed
+    tau = np.minimum(np.maximum(t, 0.0), speed / decel_m_s2)
+    travelled = speed * tau - 0.5 * decel_m_s2 * tau * tau
+    return np.asarray(start_m)[None, :2] + travelled * direction, (speed - decel_m_s2 * tau) * direction
+
+
+def quat_from_yaw(yaw_rad: float) -> np.ndarray:
+    """Rotation about the world z axis, [w, x, y, z]."""
+    return np.array([math.cos(yaw_rad / 2), 0.0, 0.0, math.sin(yaw_rad / 2)])
 
 
 def tilt_rad(q) -> float:
@@ -108,6 +128,22 @@ class FlipConfig:
     # horizontal velocity (p + v t, v), so nothing asks for a tilt; the braking is left to the
     # hold that follows (land / the flip item's settle).
     recovery_coast: bool = False
+    # False (thesis): recovery targets the heading the flip started with (yaw 0). True: the
+    # heading it has now, so the recovery levels and stops every rate, yaw's too, and
+    # leaves turning back to the flip's heading to the hold that follows (the plus frame's
+    # yaw authority is its weakest: turning back at up to 0.5 rad/s kept the body rates
+    # above the level criterion for 0.1 s after the tilt was within it, stack seed 19).
+    recovery_hold_heading: bool = False
+    # The hold after recovery (the runner's settle, at the flip's altitude). None (as before):
+    # hold where the recovery ended, so the plan brakes the turn's lateral speed and comes
+    # back, tilting past the level criterion (5 deg) for a while after the recovery. A
+    # value: stop along a straight line at this deceleration (0.5 m/s^2 asks ~3 deg of tilt)
+    # and hold where it stops.
+    settle_decel_m_s2: float | None = None
+    # ... and its heading: None, straight back to the flip's (yaw 0); a value: from the one
+    # the recovery ended with back to yaw 0 at this rate (the level criterion allows 0.5 rad/s
+    # of body rate in all; returning 12 deg at once took 0.58 rad/s, stack seed 19)
+    settle_yaw_rate_rad_s: float | None = None
     # The flip's own reference may begin with a wind-up: a roll of -windup_rad and back
     # over windup_s before the turn (lookahead only), pushing towards +y first so that the
     # turn's own lateral impulse (towards -y, forced by the roll torque) cancels out.
@@ -127,7 +163,8 @@ THESIS_FLIP = FlipConfig(takeoff_hover_check=False)
 # 0.66 -> 0.47 s, overshoot 16 -> 12 deg), but on estimates without the recovery's velocity
 # feedback a biased attitude estimate pushes the vehicle sideways unchecked and the hold then
 # brakes it tilted (stack on the estimators of be5319e, seeds 0 and 1: 1.3 -> 2.4 s)
-PROJECT_FLIP = FlipConfig(lookahead=True, flip_duration_s=0.9, windup_rad=0.3, windup_s=0.3, recovery_coast=True)
+PROJECT_FLIP = FlipConfig(lookahead=True, flip_duration_s=0.9, windup_rad=0.3, windup_s=0.3, recovery_coast=True,
+                          recovery_hold_heading=True, settle_decel_m_s2=0.5, settle_yaw_rate_rad_s=0.25)
 
 
 def smooth_roll_reference(t_s, duration_s: float):
@@ -165,6 +202,7 @@ class FlipPhaseMachine:
         self.phase_start_s = 0.0
         self.flip_point_m = np.zeros(3)  # where the flip started: held through recovery
         self.home_m = np.zeros(3)
+        self._settle = None  # (t_s, position (2,), velocity (2,), yaw) at the hold's start
 
     def start(self, t_s: float, x) -> None:
         self.home_m = np.array(x[0:3], dtype=np.float64)
@@ -196,6 +234,35 @@ class FlipPhaseMachine:
         elif self.phase == Phase.LAND and x[2] < c.landing_altitude_m:
             self._enter(Phase.DONE, t_s)
         return self.phase
+
+    def settle_hold_point(self, t_s: float, x) -> np.ndarray:
+        """Where the hold after recovery ends up (the first call, at the hold's start, fixes
+        it): at the flip's altitude, where the recovery ended, or with settle_decel_m_s2 where
+        a straight stop from the velocity then takes the vehicle."""
+        if self._settle is None:
+            x = np.asarray(x, dtype=np.float64)
+            self._settle = (t_s, x[0:2].copy(), x[3:5].copy() if self.config.settle_decel_m_s2 else np.zeros(2),
+                            quat_to_euler(x[6:10])[2] if self.config.settle_yaw_rate_rad_s else 0.0)
+        _, start_m, velocity_m_s, _ = self._settle
+        stop_m, _ = braking_reference(start_m, velocity_m_s, [np.inf], self.config.settle_decel_m_s2 or 1.0)
+        return np.array([stop_m[0, 0], stop_m[0, 1], self.flip_point_m[2]])
+
+    def settle_targets(self, t_s: float, x) -> np.ndarray:
+        """Target states (H+1, 13) of the hold after recovery: level, at the flip's altitude,
+        horizontally along the stop of settle_hold_point, turning back to yaw 0
+        (settle_yaw_rate_rad_s)."""
+        hold_m = self.settle_hold_point(t_s, x)
+        start_t_s, start_m, velocity_m_s, start_yaw_rad = self._settle
+        times = t_s - start_t_s + np.arange(self.horizon + 1) * self.dt_s
+        positions, velocities = braking_reference(start_m, velocity_m_s, times, self.config.settle_decel_m_s2 or 1.0)
+        targets = np.zeros((self.horizon + 1, 13))
+        targets[:, 0:2], targets[:, 2], targets[:, 3:5] = positions, hold_m[2], velocities
+        yaw_rate = -math.copysign(self.config.settle_yaw_rate_rad_s or 0.0, start_yaw_rad)
+        turning = times < abs(start_yaw_rad) / max(abs(yaw_rate), 1e-9)
+        yaws = np.where(turning, start_yaw_rad + yaw_rate * times, 0.0)
+        targets[:, 6:10] = np.array([quat_from_yaw(yaw) for yaw in yaws])
+        targets[:, 12] = np.where(turning, yaw_rate, 0.0)
+        return targets
 
     def targets(self, t_s: float, x) -> np.ndarray:
         """Target states (H+1, 13) for the current phase; the last repeats the one before."""
@@ -241,7 +308,11 @@ class FlipPhaseMachine:
         if self.phase == Phase.RECOVERY and c.recovery_coast:
             targets[:n, 0:2] = x[0:2] + x[3:5] * (np.arange(n) * self.dt_s)[:, None]
             targets[:n, 3:5] = x[3:5]
-        targets[:n, 6:10] = np.array([quat_from_roll(r) for r in rolls])
+        if self.phase == Phase.RECOVERY and c.recovery_hold_heading:
+            heading = quat_from_yaw(quat_to_euler(x[6:10])[2])
+            targets[:n, 6:10] = np.array([quat_multiply(heading, quat_from_roll(r)) for r in rolls])
+        else:
+            targets[:n, 6:10] = np.array([quat_from_roll(r) for r in rolls])
         targets[:n, 10:13] = rate
         targets[n] = targets[n - 1]
         if self.phase in (Phase.IDLE, Phase.DONE):

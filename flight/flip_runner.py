@@ -125,28 +125,29 @@ class FlipController:
         on the q820 their torque saturates easily and a handover in motion can limit-cycle)."""
         if self.settle_start_s is None:
             self.settle_start_s = t_s
-            self.hold_point_m = self._settle_point(x)
+            self.hold_point_m = self._settle_point(t_s, x)
         elif self.baseline is not None:
-            self.hold_point_m = self._settle_point(x)
+            self.hold_point_m = self._settle_point(t_s, x)
         calm = (tilt_rad(x[6:10]) < HANDOVER_TILT_RAD and np.linalg.norm(x[10:13]) < HANDOVER_RATE_RAD_S
                 and np.linalg.norm(x[3:6]) < HANDOVER_SPEED_M_S
                 and np.linalg.norm(x[0:3] - self.hold_point_m) < HANDOVER_DISTANCE_M)
         return t_s - self.settle_start_s >= settle_s and calm
 
-    def _settle_point(self, x) -> np.ndarray:
+    def _settle_point(self, t_s: float, x) -> np.ndarray:
         """Where the vehicle must be calm before handing back. The baseline holds the altitude it
         recovered at (it climbed 1 m to roll) and only damps its horizontal speed, so it stops
-        where it stops; the iLQR holds where the recovery ended, at the flip's altitude."""
+        where it stops; the iLQR holds at the flip's altitude, where the phase machine's hold
+        after recovery puts it (FlipPhaseMachine.settle_hold_point)."""
+        if self.machine is not None and self.machine.phase in (Phase.LAND, Phase.DONE):
+            return self.machine.settle_hold_point(t_s, x)
         if self.baseline is not None and self.baseline.hold_point_m is not None:
             z = self.baseline.hold_point_m[2]
-        elif self.machine is not None and self.machine.phase != Phase.TAKEOFF:
-            z = self.machine.flip_point_m[2]
         else:
             z = self.altitude_m
         return np.array([x[0], x[1], float(z)])
 
     def _ilqr_step(self, t_s, x, settle_s, solve) -> Step:
-        from flight.ilqr import hover_state, warm_start
+        from flight.ilqr import warm_start
         phase = self.machine.update(t_s, x[:13])
         done = False
         if phase in (Phase.LAND, Phase.DONE):
@@ -158,7 +159,7 @@ class FlipController:
             return step
         h = self.ilqr_config.horizon
         if self.hold_point_m is not None:
-            targets = np.repeat(hover_state(self.hold_point_m)[None], h + 1, axis=0)
+            targets = self.machine.settle_targets(t_s, x[:13])
         else:
             targets = self.machine.targets(t_s, x[:13])
         warm = None if self.plan is None else warm_start(self.plan, t_s - self.plan_t_s)

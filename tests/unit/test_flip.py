@@ -13,11 +13,12 @@ from flight.flip import (
     FlipPhaseMachine,
     Phase,
     RollAccumulator,
+    braking_reference,
     flip_metrics,
     quat_from_roll,
 )
 from flight.ilqr import hover_state
-from flight.quat import quat_from_euler
+from flight.quat import quat_from_euler, quat_to_euler
 from flight.vehicle import load_vehicle
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
@@ -93,6 +94,66 @@ def test_recovery_coast_levels_without_braking():
     held = m.targets(0.6, x)
     np.testing.assert_allclose(held[:10, 0:2], np.tile([0.3, 0.2], (10, 1)))
     np.testing.assert_allclose(held[:10, 3:6], 0.0)
+
+
+def test_recovery_hold_heading_levels_at_the_current_yaw():
+    """recovery_hold_heading: the recovery's targets keep the yaw the vehicle has (roll and
+    pitch still go to level); without it they turn back to yaw 0 as well."""
+    m = FlipPhaseMachine(FlipConfig(recovery_hold_heading=True), horizon=10, dt_s=0.1)
+    m.start(0.0, state(z=0.0))
+    m.update(0.0, state())
+    for roll in np.linspace(0.0, 2 * math.pi - 0.05, 30):
+        m.update(0.5, state(roll=roll, rates=(3.0, 0, 0)))
+    assert m.phase == Phase.RECOVERY
+    x = state(rates=(1.0, 0, 0.4))
+    x[6:10] = quat_from_euler(0.15, 0.0, 0.2)
+    for q in m.targets(0.6, x)[:10, 6:10]:
+        roll, pitch, yaw = quat_to_euler(q)
+        assert yaw == pytest.approx(0.2, abs=1e-9) and pitch == pytest.approx(0.0, abs=1e-9)
+    m.config = FlipConfig()
+    assert all(abs(quat_to_euler(q)[2]) < 1e-9 for q in m.targets(0.6, x)[:10, 6:10])
+
+
+def test_braking_reference_stops_in_a_straight_line():
+    t = np.array([0.0, 0.5, 1.0, 2.0, 10.0])
+    p, v = braking_reference([1.0, 2.0], [0.6, -0.8], t, 0.5)   # 1 m/s, stops after 2 s, 1 m on
+    direction = np.array([0.6, -0.8])
+    np.testing.assert_allclose(v, np.outer([1.0, 0.75, 0.5, 0.0, 0.0], direction), atol=1e-12)
+    np.testing.assert_allclose(p, [1.0, 2.0] + np.outer([0.0, 0.4375, 0.75, 1.0, 1.0], direction), atol=1e-12)
+    p, v = braking_reference([1.0, 2.0], [0.0, 0.0], t, 0.5)
+    np.testing.assert_allclose(p, np.tile([1.0, 2.0], (5, 1)))
+    np.testing.assert_allclose(v, 0.0)
+
+
+def test_settle_brakes_gently_and_turns_back_slowly():
+    """The hold after recovery (the project's settle_decel_m_s2, settle_yaw_rate_rad_s): a
+    straight stop from the velocity the recovery ended with, held where it stops, and the
+    heading back to 0 at the set rate; without them (the thesis) hover where it recovered."""
+    config = FlipConfig(settle_decel_m_s2=0.5, settle_yaw_rate_rad_s=0.25)
+    m = FlipPhaseMachine(config, horizon=10, dt_s=0.1)
+    m.start(0.0, state(z=0.0))
+    m.update(0.0, state())   # flip from (0, 0, 5)
+    x = state(z=4.6, v=(0.0, 0.5, 0.1))
+    x[0:2] = (0.2, -0.1)
+    x[6:10] = quat_from_euler(0.0, 0.0, 0.23)
+    hold = m.settle_hold_point(3.0, x)
+    np.testing.assert_allclose(hold, [0.2, -0.1 + 0.25, 5.0])   # 0.5^2 / (2 0.5) on along +y
+    targets = m.settle_targets(3.4, state(z=4.8))   # later calls keep the hold's start
+    k = 0.4 + np.arange(11) * 0.1
+    np.testing.assert_allclose(targets[:, 1], -0.1 + np.where(k < 1.0, 0.5 * k - 0.25 * k * k, 0.25))
+    np.testing.assert_allclose(targets[:, 4], np.maximum(0.5 - 0.5 * k, 0.0), atol=1e-12)
+    np.testing.assert_allclose(targets[:, 0], 0.2)
+    np.testing.assert_allclose(targets[:, 2], 5.0)
+    yaws = np.array([quat_to_euler(q)[2] for q in targets[:, 6:10]])
+    np.testing.assert_allclose(yaws, np.maximum(0.23 - 0.25 * k, 0.0), atol=1e-9)
+    np.testing.assert_allclose(targets[:, 12], np.where(k < 0.92, -0.25, 0.0))
+    np.testing.assert_allclose(targets[:, 10:12], 0.0)
+    thesis = FlipPhaseMachine(FlipConfig(), horizon=10, dt_s=0.1)
+    thesis.start(0.0, state(z=0.0))
+    thesis.update(0.0, state())
+    np.testing.assert_allclose(thesis.settle_hold_point(3.0, x), [0.2, -0.1, 5.0])
+    held = thesis.settle_targets(3.0, x)
+    np.testing.assert_allclose(held, np.repeat(hover_state([0.2, -0.1, 5.0])[None], 11, axis=0))
 
 
 def synthetic_flip(overshoot_rad=0.3, sink_m=0.8):
