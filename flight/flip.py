@@ -202,7 +202,8 @@ class FlipPhaseMachine:
         self.phase_start_s = 0.0
         self.flip_point_m = np.zeros(3)  # where the flip started: held through recovery
         self.home_m = np.zeros(3)
-        self._settle = None  # (t_s, position (2,), velocity (2,), yaw) at the hold's start
+        self._settle = None  # (t_s, yaw) at the hold's start
+        self._brake = None   # (t_s, position (2,), velocity (2,)) the stop is planned from
 
     def start(self, t_s: float, x) -> None:
         self.home_m = np.array(x[0:3], dtype=np.float64)
@@ -236,15 +237,27 @@ class FlipPhaseMachine:
         return self.phase
 
     def settle_hold_point(self, t_s: float, x) -> np.ndarray:
-        """Where the hold after recovery ends up (the first call, at the hold's start, fixes
-        it): at the flip's altitude, where the recovery ended, or with settle_decel_m_s2 where
-        a straight stop from the velocity then takes the vehicle."""
+        """Where the hold after recovery ends up: at the flip's altitude, where the recovery
+        ended (the first call, at the hold's start), or with settle_decel_m_s2 where a straight
+        stop from the velocity then takes the vehicle. While that stop lasts, a vehicle that
+        would stop further on (it slowed less than planned: still accelerating off a tilted
+        recovery, a heavier plant climbing back) moves the stop on from where it is now, so
+        the plan never asks it to come back against its own speed."""
+        x = np.asarray(x, dtype=np.float64)
+        decel = self.config.settle_decel_m_s2
         if self._settle is None:
-            x = np.asarray(x, dtype=np.float64)
-            self._settle = (t_s, x[0:2].copy(), x[3:5].copy() if self.config.settle_decel_m_s2 else np.zeros(2),
-                            quat_to_euler(x[6:10])[2] if self.config.settle_yaw_rate_rad_s else 0.0)
-        _, start_m, velocity_m_s, _ = self._settle
-        stop_m, _ = braking_reference(start_m, velocity_m_s, [np.inf], self.config.settle_decel_m_s2 or 1.0)
+            self._settle = (t_s, quat_to_euler(x[6:10])[2] if self.config.settle_yaw_rate_rad_s else 0.0)
+            self._brake = (t_s, x[0:2].copy(), x[3:5].copy() if decel else np.zeros(2))
+        elif decel:
+            start_t_s, start_m, velocity_m_s = self._brake
+            speed = float(np.linalg.norm(velocity_m_s))
+            if speed > 0.0 and t_s - start_t_s < speed / decel:
+                planned = braking_reference(start_m, velocity_m_s, [np.inf], decel)[0][0]
+                now = braking_reference(x[0:2], x[3:5], [np.inf], decel)[0][0]
+                if np.dot(now - planned, velocity_m_s) > 0.0:
+                    self._brake = (t_s, x[0:2].copy(), x[3:5].copy())
+        _, start_m, velocity_m_s = self._brake
+        stop_m, _ = braking_reference(start_m, velocity_m_s, [np.inf], decel or 1.0)
         return np.array([stop_m[0, 0], stop_m[0, 1], self.flip_point_m[2]])
 
     def settle_targets(self, t_s: float, x) -> np.ndarray:
@@ -252,11 +265,14 @@ class FlipPhaseMachine:
         horizontally along the stop of settle_hold_point, turning back to yaw 0
         (settle_yaw_rate_rad_s)."""
         hold_m = self.settle_hold_point(t_s, x)
-        start_t_s, start_m, velocity_m_s, start_yaw_rad = self._settle
-        times = t_s - start_t_s + np.arange(self.horizon + 1) * self.dt_s
-        positions, velocities = braking_reference(start_m, velocity_m_s, times, self.config.settle_decel_m_s2 or 1.0)
+        brake_t_s, start_m, velocity_m_s = self._brake
+        positions, velocities = braking_reference(start_m, velocity_m_s,
+                                                  t_s - brake_t_s + np.arange(self.horizon + 1) * self.dt_s,
+                                                  self.config.settle_decel_m_s2 or 1.0)
         targets = np.zeros((self.horizon + 1, 13))
         targets[:, 0:2], targets[:, 2], targets[:, 3:5] = positions, hold_m[2], velocities
+        start_t_s, start_yaw_rad = self._settle
+        times = t_s - start_t_s + np.arange(self.horizon + 1) * self.dt_s
         yaw_rate = -math.copysign(self.config.settle_yaw_rate_rad_s or 0.0, start_yaw_rad)
         turning = times < abs(start_yaw_rad) / max(abs(yaw_rate), 1e-9)
         yaws = np.where(turning, start_yaw_rad + yaw_rate * times, 0.0)
