@@ -3,8 +3,8 @@ state (the ablation) and on the stack's own estimates (the default cascade, the 
 level's gyro carrier through the inversion).
 
 The figures are those of the pure closed loop on the same plant (bench/flip_sim.py,
-project config at 100 Hz: altitude loss 0.62 m, drift 0.41 m, overshoot 9 deg,
-recovery 0.37 s, duration 1.9 s) with a margin for the stack's transport delays
+project config at 100 Hz: altitude loss 0.62 m, drift 0.41 m, overshoot 8 deg,
+recovery 0.31 s, duration 1.8 s) with a margin for the stack's transport delays
 (one tick per hop) and its state taken from pos/state and att/state (on truth, seed 0:
 0.66 m / 0.37 m / 12 deg / 0.47 s).
 """
@@ -65,21 +65,24 @@ def test_flip_lockstep_is_deterministic(flip_lockstep, tmp_path):
         assert again[k] == first[k], k
 
 
-def test_project_flip_completes_on_estimates(tmp_path):
+@pytest.mark.parametrize("seed", [0, 1])
+def test_project_flip_meets_the_issue_targets_on_estimates(tmp_path, seed):
     """The default estimators: the attitude filter (gyro-bias state, acceleration reference)
     hands over to the gyro-carried quaternion past 45 deg / 6 rad/s and takes back near level;
     the position EKF pins the attitude past 60 deg and predicts through the camera's ~0.5 s
-    without markers. Bounds are looser than on truth (seed 0 flies 0.63 m / 0.41 m / 10 deg /
-    0.43 s)."""
-    proc, m = fly(tmp_path, MISSION)
+    without markers. Issue 5's targets on two seeds (seeds 0 / 1 fly 0.62 / 0.60 m of altitude
+    loss, 0.42 m drift, recovery 0.32 / 0.33 s): altitude loss <= 1.0 m, recovery <= 0.5 s.
+    The XY drift target (0.27 m) is not met (docs/flip.md: the roll torque of the plus
+    frame's one rotor pair pushes sideways while tilted); bounded here at 0.5 m."""
+    proc, m = fly(tmp_path, MISSION, seed=seed)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert m["completed"] and not m["crashed"], proc.stdout
     f = m["flip"]
     assert f["completed"] and not f["aborted"] and not f["hit_ground"], f
-    assert f["altitude_loss_m"] < 1.5, f
-    assert f["xy_drift_m"] < 1.5, f
-    assert f["overshoot_deg"] < 30.0, f
-    assert f["recovery_s"] < 1.0, f
+    assert f["altitude_loss_m"] <= 1.0, f
+    assert f["recovery_s"] <= 0.5, f
+    assert f["xy_drift_m"] < 0.5, f
+    assert f["overshoot_deg"] < 20.0, f
     assert f["failed_solves"] == 0 and f["motor_fallbacks"] == {}, f
     # the attitude was pinned (not fused) in the position EKF through the inversion, and the
     # estimates stayed close to the truth over the flight
@@ -91,8 +94,8 @@ def test_project_flip_completes_on_estimates(tmp_path):
 def test_project_flip_completes_on_estimates_10_percent_heavier(tmp_path):
     """The plant is 10 % heavier than the airframe file says (the services are not told): the
     position EKF learns the thrust scale in the hover before the flip, the laws and the motor
-    driver divide the collective by it, and the flip completes (seed 0: 0.81 m / 0.65 m /
-    16 deg / 1.61 s). Without the thrust-scale state the vehicle held 0.15 m low and the flip
+    driver divide the collective by it, and the flip completes (seed 0: 0.82 m / 0.41 m /
+    14 deg / 0.44 s). Without the thrust-scale state the vehicle held 0.15 m low and the flip
     never started, or, started, crashed."""
     proc, m = fly(tmp_path, MISSION, "--set", "sim.mass_scale=1.1")
     assert proc.returncode == 0, proc.stdout + proc.stderr
