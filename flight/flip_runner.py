@@ -125,9 +125,8 @@ class FlipController:
         on the q820 their torque saturates easily and a handover in motion can limit-cycle)."""
         if self.settle_start_s is None:
             self.settle_start_s = t_s
-            self.hold_point_m = self._settle_point(t_s, x)
-        elif self.baseline is not None:
-            self.hold_point_m = self._settle_point(t_s, x)
+        # every step: the baseline's hold and the phase machine's stop both move on
+        self.hold_point_m = self._settle_point(t_s, x)
         calm = (tilt_rad(x[6:10]) < HANDOVER_TILT_RAD and np.linalg.norm(x[10:13]) < HANDOVER_RATE_RAD_S
                 and np.linalg.norm(x[3:6]) < HANDOVER_SPEED_M_S
                 and np.linalg.norm(x[0:3] - self.hold_point_m) < HANDOVER_DISTANCE_M)
