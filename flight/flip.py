@@ -63,6 +63,11 @@ def braking_reference(start_m, velocity_m_s, t_s, decel_m_s2: float):
     return np.asarray(start_m)[None, :2] + travelled * direction, (speed - decel_m_s2 * tau) * direction
 
 
+def stopping_point(start_m, velocity_m_s, decel_m_s2: float) -> np.ndarray:
+    """Where braking_reference comes to rest (2,)."""
+    return braking_reference(start_m, velocity_m_s, [np.inf], decel_m_s2)[0][0]
+
+
 def quat_from_yaw(yaw_rad: float) -> np.ndarray:
     """Rotation about the world z axis, [w, x, y, z]."""
     return np.array([math.cos(yaw_rad / 2), 0.0, 0.0, math.sin(yaw_rad / 2)])
@@ -252,13 +257,12 @@ class FlipPhaseMachine:
             start_t_s, start_m, velocity_m_s = self._brake
             speed = float(np.linalg.norm(velocity_m_s))
             if speed > 0.0 and t_s - start_t_s < speed / decel:
-                planned = braking_reference(start_m, velocity_m_s, [np.inf], decel)[0][0]
-                now = braking_reference(x[0:2], x[3:5], [np.inf], decel)[0][0]
-                if np.dot(now - planned, velocity_m_s) > 0.0:
+                further = stopping_point(x[0:2], x[3:5], decel) - stopping_point(start_m, velocity_m_s, decel)
+                if np.dot(further, velocity_m_s) > 0.0:
                     self._brake = (t_s, x[0:2].copy(), x[3:5].copy())
         _, start_m, velocity_m_s = self._brake
-        stop_m, _ = braking_reference(start_m, velocity_m_s, [np.inf], decel or 1.0)
-        return np.array([stop_m[0, 0], stop_m[0, 1], self.flip_point_m[2]])
+        stop_m = stopping_point(start_m, velocity_m_s, decel or 1.0)  # no decel: zero velocity, stays
+        return np.array([stop_m[0], stop_m[1], self.flip_point_m[2]])
 
     def settle_targets(self, t_s: float, x) -> np.ndarray:
         """Target states (H+1, 13) of the hold after recovery: level, at the flip's altitude,

@@ -32,6 +32,23 @@ def state(z=5.0, roll=0.0, rates=(0.0, 0.0, 0.0), v=(0.0, 0.0, 0.0)):
     return x
 
 
+def machine_in_flip(config: FlipConfig) -> FlipPhaseMachine:
+    """A phase machine (horizon 10, dt 0.1 s) that took off and started its flip at (0, 0, 5)."""
+    m = FlipPhaseMachine(config, horizon=10, dt_s=0.1)
+    m.start(0.0, state(z=0.0))
+    m.update(0.0, state())
+    return m
+
+
+def machine_in_recovery(config: FlipConfig) -> FlipPhaseMachine:
+    """machine_in_flip, then turned to 355 deg: in recovery."""
+    m = machine_in_flip(config)
+    for roll in np.linspace(0.0, 2 * math.pi - 0.05, 30):
+        m.update(0.5, state(roll=roll, rates=(3.0, 0, 0)))
+    assert m.phase == Phase.RECOVERY
+    return m
+
+
 def test_roll_accumulates_through_inversion():
     acc = RollAccumulator()
     acc.reset(quat_from_roll(0.0))
@@ -74,12 +91,7 @@ def test_flip_targets_lead_the_roll_adaptively():
 def test_recovery_coast_levels_without_braking():
     """recovery_coast: the horizontal targets move on at the current velocity (nothing asks
     for a braking tilt); the altitude is the flip's, the attitude level at rest."""
-    m = FlipPhaseMachine(FlipConfig(recovery_coast=True), horizon=10, dt_s=0.1)
-    m.start(0.0, state(z=0.0))
-    m.update(0.0, state())
-    for roll in np.linspace(0.0, 2 * math.pi - 0.05, 30):
-        m.update(0.5, state(roll=roll, rates=(3.0, 0, 0)))
-    assert m.phase == Phase.RECOVERY
+    m = machine_in_recovery(FlipConfig(recovery_coast=True))
     x = state(z=4.5, roll=2 * math.pi + 0.1, rates=(1.0, 0, 0), v=(0.5, -1.0, -0.8))
     x[0:2] = (0.3, 0.2)
     targets = m.targets(0.6, x)
@@ -99,12 +111,7 @@ def test_recovery_coast_levels_without_braking():
 def test_recovery_hold_heading_levels_at_the_current_yaw():
     """recovery_hold_heading: the recovery's targets keep the yaw the vehicle has (roll and
     pitch still go to level); without it they turn back to yaw 0 as well."""
-    m = FlipPhaseMachine(FlipConfig(recovery_hold_heading=True), horizon=10, dt_s=0.1)
-    m.start(0.0, state(z=0.0))
-    m.update(0.0, state())
-    for roll in np.linspace(0.0, 2 * math.pi - 0.05, 30):
-        m.update(0.5, state(roll=roll, rates=(3.0, 0, 0)))
-    assert m.phase == Phase.RECOVERY
+    m = machine_in_recovery(FlipConfig(recovery_hold_heading=True))
     x = state(rates=(1.0, 0, 0.4))
     x[6:10] = quat_from_euler(0.15, 0.0, 0.2)
     for q in m.targets(0.6, x)[:10, 6:10]:
@@ -130,9 +137,7 @@ def test_settle_brakes_gently_and_turns_back_slowly():
     straight stop from the velocity the recovery ended with, held where it stops, and the
     heading back to 0 at the set rate; without them (the thesis) hover where it recovered."""
     config = FlipConfig(settle_decel_m_s2=0.5, settle_yaw_rate_rad_s=0.25)
-    m = FlipPhaseMachine(config, horizon=10, dt_s=0.1)
-    m.start(0.0, state(z=0.0))
-    m.update(0.0, state())   # flip from (0, 0, 5)
+    m = machine_in_flip(config)   # flip from (0, 0, 5)
     x = state(z=4.6, v=(0.0, 0.5, 0.1))
     x[0:2] = (0.2, -0.1)
     x[6:10] = quat_from_euler(0.0, 0.0, 0.23)
@@ -148,9 +153,7 @@ def test_settle_brakes_gently_and_turns_back_slowly():
     np.testing.assert_allclose(yaws, np.maximum(0.23 - 0.25 * k, 0.0), atol=1e-9)
     np.testing.assert_allclose(targets[:, 12], np.where(k < 0.92, -0.25, 0.0))
     np.testing.assert_allclose(targets[:, 10:12], 0.0)
-    thesis = FlipPhaseMachine(FlipConfig(), horizon=10, dt_s=0.1)
-    thesis.start(0.0, state(z=0.0))
-    thesis.update(0.0, state())
+    thesis = machine_in_flip(FlipConfig())
     np.testing.assert_allclose(thesis.settle_hold_point(3.0, x), [0.2, -0.1, 5.0])
     held = thesis.settle_targets(3.0, x)
     np.testing.assert_allclose(held, np.repeat(hover_state([0.2, -0.1, 5.0])[None], 11, axis=0))
@@ -160,9 +163,7 @@ def test_settle_moves_the_stop_on_only_while_the_vehicle_outruns_it():
     """A vehicle still speeding up when the hold starts would be asked to come back against
     its own speed: while the planned stop lasts, a farther stop from the current state moves
     it on; a vehicle braking at least as planned, or one pushed after the stop (wind), keeps it."""
-    m = FlipPhaseMachine(FlipConfig(settle_decel_m_s2=0.5), horizon=10, dt_s=0.1)
-    m.start(0.0, state(z=0.0))
-    m.update(0.0, state())
+    m = machine_in_flip(FlipConfig(settle_decel_m_s2=0.5))
     x = state(v=(0.0, 0.5, 0.0))
     np.testing.assert_allclose(m.settle_hold_point(3.0, x), [0.0, 0.25, 5.0])
     faster = state(v=(0.0, 0.55, 0.0))
