@@ -57,6 +57,11 @@ class ILQRConfig:
     # None: the thesis's model, rotor speeds act at once. A value: the rotor forces are
     # states lagging the command by this time constant (the plant's 20 ms motors).
     motor_time_constant_s: float | None = None
+    # True: once the iterations are over, one more linearisation and backward pass at the
+    # returned plan, so its gains K are that plan's. False: the gains of the last backward
+    # pass (linearised at the plan the last line search started from; the usual iLQR
+    # output, and one backward pass less per solve).
+    gains_at_returned_plan: bool = True
 
     def __post_init__(self):
         if self.integrator not in ("euler", "rk4"):
@@ -74,7 +79,7 @@ THESIS = ILQRConfig(
     name="thesis", dt_s=0.1, horizon=10, max_iterations=5, integrator="euler",
     state_weight=(1.0, 1.0, 10.0, 1.0, 1.0, 1.0, 12.5, 5.0, 5.0, 1.0),
     terminal_weight=(1.0, 1.0, 10.0, 0.1, 0.1, 0.1, 25.0, 10.0, 10.0, 1.0),
-    control_weight=1e-3,
+    control_weight=1e-3, gains_at_returned_plan=False,  # the thesis's solve ends at its last pass
 )
 
 PROJECT = ILQRConfig(
@@ -308,7 +313,7 @@ def make_cost_derivatives(config: ILQRConfig) -> tuple[Callable, Callable]:
 class Solution(NamedTuple):
     states: jax.Array        # (H+1, 13)
     controls: jax.Array      # (H, 4) rotor speeds, rad/s
-    gains: jax.Array         # (H, 4, 13) feedback K at the returned plan
+    gains: jax.Array         # (H, 4, 13) feedback K (at the returned plan: gains_at_returned_plan)
     feedforward: jax.Array   # (H, 4) k of the last backward pass (~0 when converged)
     cost: jax.Array          # final cost
     initial_cost: jax.Array  # cost of the initial (warm-start) rollout
@@ -337,37 +342,45 @@ def _matmul(a, b):
 
 
 def _solve_spd(a, rhs):
-    """Solve a x = rhs for a small symmetric a (n, n) by an L D L' factorisation written out
-    entry by entry (n = 4 controls): one reciprocal per pivot and the rest products, which
-    XLA fuses, where LAPACK's potrf and trsm are a call each and every sqrt or divide is a
-    fusion of its own. Returns (x, positive_definite); x is garbage when not positive definite."""
-    n = a.shape[0]
-    low = [[None] * n for _ in range(n)]   # unit lower triangle
-    d, inv_d = [None] * n, [None] * n
-    pd = jnp.array(True)
-    for j in range(n):
-        d[j] = a[j, j] - sum(low[j][k] * low[j][k] * d[k] for k in range(j))
-        pd = pd & (d[j] > 0.0)
-        inv_d[j] = 1.0 / jnp.where(d[j] > 0.0, d[j], 1.0)
-        for i in range(j + 1, n):
-            low[i][j] = (a[i, j] - sum(low[i][k] * low[j][k] * d[k] for k in range(j))) * inv_d[j]
-    y = []
-    for i in range(n):  # low y = rhs
-        y.append(rhs[i] - sum(low[i][k] * y[k] for k in range(i)))
-    x = [None] * n
-    for i in reversed(range(n)):  # low' x = y / d
-        x[i] = y[i] * inv_d[i] - sum(low[k][i] * x[k] for k in range(i + 1, n))
-    return jnp.stack(x), pd
+    """Solve a x = rhs for a symmetric 4 x 4 a (the controls' Quu) by its adjugate over its
+    determinant, from the 2 x 2 minors of its top and bottom row pairs. Every entry is a
+    polynomial in a's entries and one reciprocal, so XLA fuses the inverse into one kernel
+    (an L D L' factorisation chains a division per pivot: a kernel each, in every step of
+    the backward pass). Positive definite by Sylvester's criterion (leading minors > 0).
+    Returns x, all NaN when a is not positive definite."""
+    (a00, a01, a02, a03), (a10, a11, a12, a13), (a20, a21, a22, a23), (a30, a31, a32, a33) = (
+        [a[i, j] for j in range(4)] for i in range(4))
+    s0, s1, s2 = a00 * a11 - a10 * a01, a00 * a12 - a10 * a02, a00 * a13 - a10 * a03
+    s3, s4, s5 = a01 * a12 - a11 * a02, a01 * a13 - a11 * a03, a02 * a13 - a12 * a03
+    c5, c4, c3 = a22 * a33 - a32 * a23, a21 * a33 - a31 * a23, a21 * a32 - a31 * a22
+    c2, c1, c0 = a20 * a33 - a30 * a23, a20 * a32 - a30 * a22, a20 * a31 - a30 * a21
+    det = s0 * c5 - s1 * c4 + s2 * c3 + s3 * c2 - s4 * c1 + s5 * c0
+    minor3 = a00 * (a11 * a22 - a12 * a21) - a01 * (a10 * a22 - a12 * a20) + a02 * (a10 * a21 - a11 * a20)
+    pd = (a00 > 0.0) & (s0 > 0.0) & (minor3 > 0.0) & (det > 0.0)
+    adjugate = jnp.stack([
+        jnp.stack([a11 * c5 - a12 * c4 + a13 * c3, -a01 * c5 + a02 * c4 - a03 * c3,
+                   a31 * s5 - a32 * s4 + a33 * s3, -a21 * s5 + a22 * s4 - a23 * s3]),
+        jnp.stack([-a10 * c5 + a12 * c2 - a13 * c1, a00 * c5 - a02 * c2 + a03 * c1,
+                   -a30 * s5 + a32 * s2 - a33 * s1, a20 * s5 - a22 * s2 + a23 * s1]),
+        jnp.stack([a10 * c4 - a11 * c2 + a13 * c0, -a00 * c4 + a01 * c2 - a03 * c0,
+                   a30 * s4 - a31 * s2 + a33 * s0, -a20 * s4 + a21 * s2 - a23 * s0]),
+        jnp.stack([-a10 * c3 + a11 * c1 - a12 * c0, a00 * c3 - a01 * c1 + a02 * c0,
+                   -a30 * s3 + a31 * s1 - a32 * s0, a20 * s3 - a21 * s1 + a22 * s0])])
+    return _matmul(adjugate, rhs) / jnp.where(pd, det, jnp.nan)  # divided last: it fuses
 
 
 def _backward_pass(derivs, mu):
-    """Riccati recursion with Quu + mu I; returns K, k, expected decrease terms, all-PD flag.
+    """Riccati recursion with Quu + mu I.
 
     Written on the augmented vector z = [x, 1, u]: the value function is one matrix
     V = [Vxx vx; vx' .] and a step is M = F' V F + L with F = [A 0 B; 0 1 0] and L the
     stage cost's [lxx lx lxu; lx' 0 lu'; lux lu luu]; then Qxx, qx, Qux, qu, Quu are
     blocks of M, the gains [K k] = -Quu^-1 [Qux qu] and the new V is
-    M_zz + G' Quu G + G' [Qux qu] + [Qux qu]' G, G = [K k] (the usual update, 13+1 wide)."""
+    M_zz + G' Quu G + G' [Qux qu] + [Qux qu]' G, G = [K k] (the usual update, 13+1 wide).
+    A step is a dozen XLA kernels, run horizon x iterations times per solve, so each
+    is placed to fuse: V symmetrised as the next step reads it, the PD test carried as
+    NaN (checked once after the scan) rather than as a flag in the loop.
+    Returns (K, k, ok); K and k are 0 when not ok (some Quu + mu I not PD)."""
     A, B, lx, lu, lxx, luu, lux, vx_final, vxx_final = derivs
     horizon, n_x, n_u = B.shape
     n_a = n_x + 1
@@ -382,22 +395,20 @@ def _backward_pass(derivs, mu):
     v_final = jnp.block([[vxx_final, vx_final[:, None]], [vx_final[None, :], jnp.zeros((1, 1), dtype)]])
     regularisation = mu * jnp.eye(n_u, dtype=dtype)
 
-    def step(carry, d):
-        v, ok = carry
+    def step(v, d):
+        v = 0.5 * (v + v.T)  # symmetrised here, where it fuses into the product, not after
         f, l = d
         m = _matmul(f.T, _matmul(v, f)) + l
         quu, q_u = m[n_a:, n_a:], m[n_a:, :n_a]          # Quu, [Qux qu]
-        g, pd = _solve_spd(quu + regularisation, q_u)
-        g = jnp.where(pd, -g, 0.0)                        # [K k]
-        quu_g = _matmul(quu, g)
+        g = -_solve_spd(quu + regularisation, q_u)       # [K k]; NaN if not PD, and so
+        quu_g = _matmul(quu, g)                           # every earlier step's too
         g_q = _matmul(g.T, q_u)
-        v_new = m[:n_a, :n_a] + _matmul(g.T, quu_g) + g_q + g_q.T
-        ff = g[:, n_x]
-        decrease = jnp.stack([jnp.sum(ff * q_u[:, n_x]), 0.5 * jnp.sum(ff * quu_g[:, n_x])])
-        return (0.5 * (v_new + v_new.T), ok & pd), (g, decrease)
+        return m[:n_a, :n_a] + _matmul(g.T, quu_g) + g_q + g_q.T, g
 
-    (_, ok), (g, decrease) = jax.lax.scan(step, (v_final, jnp.array(True)), (F, L), reverse=True)
-    return g[:, :, :n_x], g[:, :, n_x], decrease.sum(axis=0), ok
+    _, g = jax.lax.scan(step, v_final, (F, L), reverse=True)
+    ok = jnp.all(jnp.isfinite(g))
+    g = jnp.where(ok, g, 0.0)
+    return g[:, :, :n_x], g[:, :, n_x], ok
 
 
 def make_solver(dynamics, stage_cost, terminal_cost, config: ILQRConfig, u_min, u_max,
@@ -460,23 +471,30 @@ def make_solver(dynamics, stage_cost, terminal_cost, config: ILQRConfig, u_min, 
                     jnp.where(accept, cand_costs[best], cost), mu, it + 1, converged)
 
         # Each pass linearises and runs the backward pass at the current plan, then the
-        # line search; once the solve is over, one more pass only refreshes the gains, so
-        # the returned K belong to the returned plan and the model is traced once.
+        # line search. With gains_at_returned_plan, once the solve is over one more pass
+        # only refreshes the gains, so the returned K belong to the returned plan and the
+        # model is traced once; without, the loop stops as soon as the solve is over.
+        refresh = config.gains_at_returned_plan
+
         def iterate(carry):
             states, controls, cost, mu, it, converged, _, _, over, _ = carry
-            gains, ffs, _, pd = _backward_pass(derivatives(states, controls, x_targets, u_targets), mu)
-            states, controls, cost, mu, it, converged = jax.lax.cond(
-                over, lambda: (states, controls, cost, mu, it, converged),
-                lambda: improve(states, controls, cost, mu, it, gains, ffs, pd))
-            gains = jnp.where(pd, gains, 0.0)
+            gains, ffs, pd = _backward_pass(derivatives(states, controls, x_targets, u_targets), mu)
+            if refresh:
+                states, controls, cost, mu, it, converged = jax.lax.cond(
+                    over, lambda: (states, controls, cost, mu, it, converged),
+                    lambda: improve(states, controls, cost, mu, it, gains, ffs, pd))
+            else:
+                states, controls, cost, mu, it, converged = improve(
+                    states, controls, cost, mu, it, gains, ffs, pd)
             now_over = converged | (it >= config.max_iterations) | (mu >= mu_max)
             return states, controls, cost, mu, it, converged, gains, ffs, now_over, over
 
         init = (states0, controls0, cost0, jnp.asarray(config.regularisation_init, cost0.dtype),
                 jnp.array(0), jnp.array(False), jnp.zeros(controls0.shape + (x0.shape[0],), cost0.dtype),
                 jnp.zeros_like(controls0), jnp.array(False), jnp.array(False))
+        done = -1 if refresh else -2  # refresh: one pass after the one that ended the solve
         states, controls, cost, _, it, converged, gains, ffs, _, _ = jax.lax.while_loop(
-            lambda carry: ~carry[-1], iterate, init)
+            lambda carry: ~carry[done], iterate, init)
         return Solution(states, controls, gains, ffs, cost, cost0, it, converged)
 
     return solve

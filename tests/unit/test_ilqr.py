@@ -77,6 +77,25 @@ def test_solver_cost_decreases_monotonically_with_iterations(planner):
     assert all(b <= a + 1e-6 * a for a, b in itertools.pairwise(costs))
 
 
+def test_gains_of_the_last_pass_or_of_the_returned_plan():
+    """gains_at_returned_plan=False returns the last backward pass's gains: those of the plan
+    the last line search started from, i.e. what one iteration fewer with the refresh gives
+    (the refresh pass linearises at the plan it returns, with the same regularisation)."""
+    x0 = hover_state([1.0, -0.5, 4.0])
+    x0[6:10] = quat_from_euler(0.4, -0.2, 0.0)
+    targets = np.repeat(hover_state([0, 0, 5])[None], THESIS.horizon + 1, axis=0)
+
+    def solve(iterations, refresh):
+        config = dataclasses.replace(THESIS, max_iterations=iterations, relative_tolerance=0.0,
+                                     gains_at_returned_plan=refresh)
+        return Planner(VEHICLE, config, warm_up=False).solve(x0, targets)
+    last_pass, refreshed_before, refreshed = solve(3, False), solve(2, True), solve(3, True)
+    scale = np.abs(refreshed.gains).max()
+    assert np.abs(last_pass.gains - refreshed_before.gains).max() <= 1e-6 * scale
+    np.testing.assert_array_equal(last_pass.controls, refreshed.controls)  # same plan either way
+    assert np.abs(last_pass.gains - refreshed.gains).max() > 1e-5 * scale  # not the same gains (close: iLQR converges)
+
+
 def test_converges_to_hover_thrust_from_a_perturbed_state(planner):
     x0 = hover_state([0.2, -0.1, 4.8])
     x0[6:10] = quat_from_euler(0.1, -0.05, 0.0)
@@ -165,24 +184,26 @@ def test_structured_cost_derivatives_equal_autodiff(config, n):
 
 
 def test_small_spd_solve_matches_numpy_and_flags_indefinite():
-    """The written-out L D L' solve of the backward pass: float32 accuracy as LAPACK's on
-    Quu-like matrices (condition up to 1e4), and an indefinite matrix is reported."""
+    """The adjugate solve of the backward pass: float32 accuracy as LAPACK's on Quu-like
+    matrices (condition up to 1e4), and a matrix that is not positive definite gives NaN
+    (an indefinite one whose determinant is positive too: Sylvester's other minors)."""
     rng = np.random.default_rng(5)
     for cond in (1.0, 1e2, 1e4):
         q, _ = np.linalg.qr(rng.normal(size=(4, 4)))
         a = (q * np.logspace(0, np.log10(cond), 4) * 1e-3) @ q.T
         rhs = rng.normal(size=(4, 14))
-        x, pd = _solve_spd(jnp.asarray(a, jnp.float32), jnp.asarray(rhs, jnp.float32))
+        x = _solve_spd(jnp.asarray(a, jnp.float32), jnp.asarray(rhs, jnp.float32))
         want = np.linalg.solve(a, rhs)
-        assert bool(pd)
         assert np.abs(np.asarray(x) - want).max() <= 1e-5 * cond * np.abs(want).max()
-    _, pd = _solve_spd(jnp.asarray(np.diag([1.0, 2.0, -0.1, 3.0]), jnp.float32), jnp.ones((4, 3), jnp.float32))
-    assert not bool(pd)
+    for diagonal in ([1.0, 2.0, -0.1, 3.0], [-1.0, 2.0, -0.1, 3.0], [1.0, -2.0, -0.1, 3.0], [1.0, 2.0, 3.0, 0.0]):
+        x = _solve_spd(jnp.asarray(np.diag(diagonal), jnp.float32), jnp.ones((4, 3), jnp.float32))
+        assert np.all(np.isnan(np.asarray(x))), diagonal
 
 
 def test_backward_pass_is_the_riccati_recursion():
     """The augmented backward pass against the textbook recursion in float64 numpy, on random
-    linearisations: gains K, feedforward k and the expected decrease."""
+    linearisations: gains K and feedforward k; a step that is not PD is reported and its
+    pass returns zero gains."""
     rng = np.random.default_rng(8)
     horizon, n_x, n_u, mu = 5, 13, 4, 1e-3
     A = np.eye(n_x) + 0.1 * rng.normal(size=(horizon, n_x, n_x))
@@ -193,7 +214,7 @@ def test_backward_pass_is_the_riccati_recursion():
     lux = 0.01 * rng.normal(size=(horizon, n_u, n_x))
     vx_final, vxx_final = rng.normal(size=n_x), np.eye(n_x) * 2.0
     vx, vxx = vx_final, vxx_final
-    want_gains, want_ffs, want_decrease = [], [], np.zeros(2)
+    want_gains, want_ffs = [], []
     for t in reversed(range(horizon)):
         a, b = A[t], B[t]
         qx, qu = lx[t] + a.T @ vx, lu[t] + b.T @ vx
@@ -203,15 +224,19 @@ def test_backward_pass_is_the_riccati_recursion():
         vx = qx + gain.T @ quu @ ff + gain.T @ qu + qux.T @ ff
         vxx = qxx + gain.T @ quu @ gain + gain.T @ qux + qux.T @ gain
         vxx = 0.5 * (vxx + vxx.T)
-        want_decrease += [ff @ qu, 0.5 * ff @ quu @ ff]
         want_gains.insert(0, gain)
         want_ffs.insert(0, ff)
     derivs = tuple(jnp.asarray(v, jnp.float32) for v in (A, B, lx, lu, lxx, luu, lux, vx_final, vxx_final))
-    gains, ffs, decrease, ok = _backward_pass(derivs, mu)
+    gains, ffs, ok = _backward_pass(derivs, mu)
     assert bool(ok)
     np.testing.assert_allclose(gains, np.stack(want_gains), rtol=1e-3, atol=1e-4)
     np.testing.assert_allclose(ffs, np.stack(want_ffs), rtol=1e-3, atol=1e-4)
-    np.testing.assert_allclose(decrease, want_decrease, rtol=1e-3)
+    luu_indefinite = luu.copy()
+    luu_indefinite[2] = -np.eye(n_u)  # a step whose Quu is not PD: reported, no NaN out
+    derivs = (*derivs[:5], jnp.asarray(luu_indefinite, jnp.float32), *derivs[6:])
+    gains, ffs, ok = _backward_pass(derivs, mu)
+    assert not bool(ok)
+    assert np.all(np.asarray(gains) == 0.0) and np.all(np.asarray(ffs) == 0.0)
 
 
 def test_motor_lag_model_forces_follow_the_command_exactly():
