@@ -79,7 +79,7 @@ def run(args) -> None:
         plan = valid[-1]
         if plan is not held["plans"][-1]:
             count("plan_fallback_previous")
-        x = body_state(t, att, pos)
+        x = body_state(t, att, pos, vehicle, held["forces"])
         if plan.state_dim == 17:
             x = np.concatenate([x, held["forces"]])
         u = plan.control(t, x, u_max)

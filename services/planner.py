@@ -112,8 +112,9 @@ def run(args) -> None:
         att = attitude.latest()
         if att is None:
             return None
-        n = forces["n"] if forces["n"] is not None else np.zeros(4)
-        return np.concatenate([body_state(t, att, pos), n])
+        if forces["n"] is None:
+            return np.concatenate([body_state(t, att, pos), np.zeros(4)])
+        return np.concatenate([body_state(t, att, pos, vehicle, forces["n"]), forces["n"]])
 
     if controllers:
         planner = Planner(mission, fly_flip)

@@ -1,5 +1,6 @@
 """The service side of the flip (issue 5): plan execution, the plan message, the flip item."""
 
+import math
 
 import numpy as np
 import pytest
@@ -50,6 +51,32 @@ def test_body_state_carries_the_estimates_to_now():
     assert np.allclose(x[0:3], [1.015, 2.0, 4.985])
     assert quat_to_euler(x[6:10])[0] == pytest.approx(0.25)
     assert np.allclose(propagate_attitude(q, [0.0, 0.0, 0.0], 1.0), q)
+
+
+def test_body_state_carries_the_translation_by_the_model():
+    """With the vehicle and the rotor forces flown, velocity and position are carried with
+    the model's acceleration: matches the plant integrated over the same age (inverted,
+    collective 2 g: the body falls at 3 g; at constant velocity it would be 3 cm/s off
+    per ms of age)."""
+    from flight.plan import thrust_acceleration
+    from flight.vehicle import load_vehicle
+    from simulator.plant import Plant
+    vehicle = load_vehicle("q820")
+    q = quat_from_euler(math.pi, 0.0, 0.0)  # upside down
+    forces = np.full(4, vehicle.mass_kg * 9.81 * 2.0 / 4.0)
+    v0 = np.array([0.5, 0.0, 0.0])
+    accel = thrust_acceleration(vehicle, q, forces, v0)
+    assert np.allclose(accel, [-0.1 * 0.5 / vehicle.mass_kg, 0.0, -3.0 * 9.81], atol=1e-6)
+    att = {"header": {"t_s": 1.0}, "quaternion_wxyz": list(q), "rate_rad_s": [0.0, 0.0, 0.0]}
+    pos = {"header": {"t_s": 0.99}, "position_m": [0.0, 0.0, 5.0], "velocity_m_s": list(v0)}
+    x = body_state(1.0, att, pos, vehicle, forces)
+    plant = Plant(vehicle, position_m=(0.0, 0.0, 5.0), velocity_m_s=v0, motor_thrust_n=forces)
+    plant.x[6:10] = q
+    for _ in range(50):
+        plant.step(0.0002, forces, np.zeros(3))
+    assert np.allclose(x[3:6], plant.x[3:6], atol=2e-3)
+    assert np.allclose(x[0:3], plant.x[0:3], atol=1e-5)
+    assert np.allclose(body_state(1.0, att, pos)[3:6], v0)  # without the model: constant velocity
 
 
 def test_loop_rate_is_a_multiple_of_every_solve_rate():
