@@ -261,9 +261,9 @@ def test_closed_loop_baseline_completes():
 def test_closed_loop_project_flip_meets_targets():
     """Slow (~15-25 s): take-off, flip and recovery of the PROJECT MPC on the simulator plant.
 
-    At 50 Hz re-solve (the bench runs 100 Hz): 0.63 m / 0.40 m / 0.32 s. The issue's 0.27 m
-    drift is not reached: the roll torque needs one rotor at full thrust, and that thrust
-    pushes sideways while tilted (see FlipConfig.windup_rad)."""
+    At 50 Hz re-solve (the bench runs 100 Hz): 0.82 m / 0.28 m / 0.42 s (100 Hz: 0.89 / 0.27 /
+    0.44). Drift is the lateral impulse of the rolling rotor pair (see FlipConfig.windup_rad
+    and PROJECT's horizontal weights)."""
     from bench.flip_sim import PROJECT_FLIP, PROJECT_SOLVE_RATE_HZ, simulate_mpc
     from flight.ilqr import PROJECT, Planner
     vehicle = load_vehicle("q820")
@@ -272,7 +272,7 @@ def test_closed_loop_project_flip_meets_targets():
     assert m.completed
     assert max(p[2] for p in run.position_m) >= 5.0 - 0.1
     assert m.altitude_loss_m <= 1.0
-    assert m.xy_drift_m <= 0.5
+    assert m.xy_drift_m <= 0.32
     assert m.recovery_s <= 0.5
 
 
