@@ -112,9 +112,8 @@ def run(args) -> None:
         att = attitude.latest()
         if att is None:
             return None
-        if forces["n"] is None:
-            return np.concatenate([body_state(t, att, pos), np.zeros(4)])
-        return np.concatenate([body_state(t, att, pos, vehicle, forces["n"]), forces["n"]])
+        n = forces["n"]  # None until a motors message: carried at constant velocity
+        return np.concatenate([body_state(t, att, pos, vehicle, n), n if n is not None else np.zeros(4)])
 
     if controllers:
         planner = Planner(mission, fly_flip)
