@@ -20,7 +20,7 @@ import numpy as np
 import schemas
 from flight.attitude_filter import quat_tilt as tilt_rad
 from flight.control import altitude_law, position_law
-from flight.position_ekf import PositionEKF, PositionEKFParams
+from flight.position_ekf import LaggedMotorInput, PositionEKF, PositionEKFParams
 from flight.quat import quat_to_euler
 from flight.vehicle import load_vehicle
 from services.runtime import Runtime, main_guard, service_parser
@@ -65,11 +65,10 @@ def run(args) -> None:
     if estimate:
         ekf = PositionEKF(vehicle, rt.table("ekf", PositionEKFParams.from_dict), dt=1.0 / rt.rate_hz)
         attitude = rt.inbox(schemas.ATTITUDE_STATE, "attitude")
-        motors = rt.inbox(schemas.MOTOR_PWM, "motors")
+        motors = rt.inbox(schemas.MOTOR_PWM, "motors", keep=32)  # every 400 Hz command of a step
         poses = rt.inbox(schemas.VISION_POSE, "vision", keep=16)
         started = {"ekf": False, "refused": 0}
-        lagged_u = np.zeros(4)  # motor forces after the motors' first-order lag, as the plant has it
-        lag_gain = 1.0 - np.exp(-1.0 / (rt.rate_hz * vehicle.motor_time_constant_s))
+        rotor_forces = LaggedMotorInput(vehicle.motor_time_constant_s)  # the plant's motor lag
     else:
         truth = rt.inbox(schemas.TRUTH, "sim")
     planner = rt.inbox(schemas.PLANNER_SETPOINT, "planner")
@@ -94,12 +93,10 @@ def run(args) -> None:
         if not started["ekf"]:
             ekf.initialize(t, np.asarray(p["home_position_m"], dtype=float))
             started["ekf"] = True
-        out = motors.latest()  # what the mixer really asked of the motors (after saturation)
-        if out is not None:
-            lagged_u[:] += lag_gain * (vehicle.allocation @ np.asarray(out["thrust_n"]) - lagged_u)
-        u = lagged_u
+        for out in motors.take():  # what the mixer really asked of the motors (after saturation)
+            rotor_forces.add(out["header"]["t_s"], out["thrust_n"])
         if t > ekf.t:
-            ekf.predict(t, u)
+            ekf.predict(t, vehicle.allocation @ rotor_forces.mean_to(t))
         att = attitude.latest()
         if att is not None and att["state_source"] == "estimate" \
                 and tilt_rad(att["quaternion_wxyz"]) > np.radians(p["attitude_pin_tilt_deg"]):

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from flight.position_ekf import (
+    LaggedMotorInput,
     PositionEKF,
     PositionEKFError,
     PositionEKFParams,
@@ -446,3 +447,48 @@ def test_pinned_attitude_drives_the_prediction_and_survives_a_delayed_fix():
     # a camera fix from 50 ms ago replays the predictions; the pins are re-applied there
     ok, _ = ekf.update_position(t - 0.05, ekf.position, np.eye(3) * 1e-4)
     assert ok and ekf.euler == pytest.approx([-math.pi, 0.0, 0.0], abs=1e-9)
+
+
+# --------------------------------------------------------------------------- motor input
+def test_lagged_motor_input_is_the_mean_of_the_plants_lag_over_every_command():
+    """The mean force over a 10 ms step equals the plant's motor lag integrated finely
+    under the same 400 Hz commands, each held from its stamp; a command stamped at the
+    step's end waits for the next step; the old way (latest command only) is far off."""
+    tau, tick = 0.02, 0.0025
+    rng = np.random.default_rng(3)
+    commands = [(k * tick, rng.uniform(0.0, 6.5, 4)) for k in range(41)]  # 0 .. 100 ms
+    lag = LaggedMotorInput(tau)
+    lag.add(*commands[0])
+    fine, force, sub = [], commands[0][1].copy(), 400
+    for t0, c in commands[:-1]:  # the plant: Euler on a fine grid, each command held a tick
+        for _ in range(sub):
+            force = force + (c - force) * (tick / sub) / tau
+            fine.append(force.copy())
+    fine = np.array(fine)
+    per_step = 4 * sub
+    for step in range(10):
+        t_end = (step + 1) * 0.01
+        for t_cmd, c in commands:
+            if step * 0.01 < t_cmd <= t_end:
+                lag.add(t_cmd, c)
+        mean = lag.mean_to(t_end)
+        expected = fine[step * per_step:(step + 1) * per_step].mean(axis=0)
+        np.testing.assert_allclose(mean, expected, atol=2e-3)
+        np.testing.assert_allclose(lag.forces, fine[(step + 1) * per_step - 1], atol=2e-3)
+    # the latest command lagged over the whole step (the former input) misses by ~0.5 N
+    latest = commands[4][1]
+    old = commands[0][1] + (latest - commands[0][1]) * (1 - math.exp(-0.01 / tau))
+    assert np.max(np.abs(old - fine[:per_step].mean(axis=0))) > 0.3
+
+
+def test_lagged_motor_input_late_and_degenerate():
+    lag = LaggedMotorInput(0.02)
+    np.testing.assert_array_equal(lag.mean_to(1.0), np.zeros(4))  # nothing sent: nothing flown
+    lag.add(1.0, [2.0] * 4)
+    np.testing.assert_allclose(lag.mean_to(1.01), [2.0] * 4)      # steady: the command itself
+    lag.add(1.005, [4.0] * 4)  # older than the forces integrated: holds from now on
+    mean = lag.mean_to(1.02)
+    assert 2.0 < mean[0] < 4.0 and lag.t == 1.02
+    np.testing.assert_array_equal(lag.mean_to(1.02), lag.forces)  # no time: the forces now
+    with pytest.raises(PositionEKFError, match="time_constant_s"):
+        LaggedMotorInput(0.0)
