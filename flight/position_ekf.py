@@ -99,6 +99,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 from scipy.stats import chi2
 
+from flight.plan import motor_forces_update
 from flight.vehicle import Vehicle
 
 __all__ = [
@@ -712,7 +713,7 @@ class LaggedMotorInput:
                 decay = math.exp(-h / self.tau)
                 c, f0 = self.command, self.forces
                 total += h * (c + (f0 - c) * (self.tau / h) * (1.0 - decay))
-                self.forces = c + (f0 - c) * decay
+                self.forces = motor_forces_update(f0, c, h, self.tau)
                 self.t = end
             if end >= t_s:
                 break
