@@ -117,7 +117,12 @@ class Launcher:
         # the recorder first so it sees everything; the simulator last, it drives the clock
         order = sorted(names, key=lambda n: (n != "recorder", n == "sim"))
         for name in order:
-            self._spawn(name, self.service_argv(name))
+            proc = self._spawn(name, self.service_argv(name))
+            if nice := self.stack.service(name).nice:
+                try:
+                    os.setpriority(os.PRIO_PROCESS, proc.pid, nice)
+                except OSError as exc:  # it still runs, at the default priority: say so
+                    print(f"zenpilot: {name}: could not set nice {nice}: {exc}", file=sys.stderr)
 
     def wait_alive(self, names: list[str], timeout_s: float = 30.0) -> set[str]:
         """Wait for every service's liveliness token; returns the ones still missing."""

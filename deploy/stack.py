@@ -14,6 +14,7 @@ A stack file is TOML:
     [services.attitude]
     machine = "vehicle"
     rate_hz = 200
+    nice = 0                  # OS scheduling niceness (0..19): above 0 yields the CPU to the loops
     [services.attitude.params]
     state_source = "truth"
 
@@ -65,6 +66,7 @@ class ServiceSpec:
     machine: str
     rate_hz: float  # 0: event driven
     params: dict[str, Any] = field(default_factory=dict)
+    nice: int = 0  # OS niceness the launcher gives the process: >0 for work the flight must not wait for
 
 
 @dataclass(frozen=True)
@@ -137,7 +139,7 @@ def load_stack(path: str | Path | None = None) -> Stack:
         where = f"{path}: [services.{name}]"
         if name not in SERVICE_MODULES:
             raise StackError(f"{where}: unknown service (known: {', '.join(SERVICE_MODULES)})")
-        unknown = set(s) - {"machine", "rate_hz", "params"}
+        unknown = set(s) - {"machine", "rate_hz", "params", "nice"}
         if unknown:
             raise StackError(f"{where}: unknown key(s) {sorted(unknown)}")
         machine = _expect(s.get("machine", next(iter(machines))), str, f"{where} machine")
@@ -146,7 +148,11 @@ def load_stack(path: str | Path | None = None) -> Stack:
         rate = _expect(s.get("rate_hz", 0.0), float, f"{where} rate_hz")
         if rate < 0 or (rate > 0 and abs(tick_rate / rate - round(tick_rate / rate)) > 1e-9):
             raise StackError(f"{where}: rate_hz {rate} must divide the tick rate {tick_rate}")
-        services[name] = ServiceSpec(name, machine, rate, dict(_expect(s.get("params", {}), dict, f"{where} params")))
+        nice = _expect(s.get("nice", 0), int, f"{where} nice")
+        if not 0 <= nice <= 19:  # raising a process's priority needs privileges; lowering it does not
+            raise StackError(f"{where}: nice {nice} must be within 0..19")
+        services[name] = ServiceSpec(name, machine, rate, dict(_expect(s.get("params", {}), dict, f"{where} params")),
+                                     nice)
     for needed in ("sim", "motors", "attitude", "position", "planner"):
         if needed not in services:
             raise StackError(f"{path}: the stack needs a [services.{needed}] section")

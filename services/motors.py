@@ -34,7 +34,10 @@ from services.runtime import Runtime, main_guard, service_parser
 
 NAME = "motors"
 PARAMS = {
-    "command_timeout_s": 0.1,  # no fresh attitude command for this long -> motors to minimum
+    # no fresh attitude command for this long -> motors to minimum (counted: "command_timeout").
+    # Until then the last command holds: a controller that misses a few cycles on a busy computer
+    # must not drop the vehicle, one that has died must not fly it for long.
+    "command_timeout_s": 0.25,
     "output": "sim",            # "sim" | "mavlink"
     "mavlink_endpoint": "udpout:127.0.0.1:14560",  # pymavlink connection string (output = "mavlink")
     "mavlink_target_system": 1,
@@ -55,7 +58,7 @@ def run(args) -> None:
     kf = vehicle.thrust_coefficient_kf
     u_max = vehicle.max_rotor_speed_rad_s
     dt_tick = 1.0 / rt.rate_hz if rt.rate_hz > 0 else 1.0 / rt.tick_rate
-    held = {"plans": [], "seen": -1, "forces": np.zeros(4), "mode": ""}
+    held = {"plans": [], "seen": -1, "forces": np.zeros(4), "mode": "", "stale": False}
 
     def count(reason: str) -> None:
         rt.rejected[reason] = rt.rejected.get(reason, 0) + 1
@@ -90,7 +93,12 @@ def run(args) -> None:
     def step(t: float) -> None:
         cmd, sp = command.latest(), setpoint.latest()
         armed = sp is not None and sp["armed"]
-        if not armed or cmd is None or t - cmd["header"]["t_s"] > rt.params["command_timeout_s"]:
+        stale = cmd is not None and t - cmd["header"]["t_s"] > rt.params["command_timeout_s"]
+        if armed and stale and not held["stale"]:
+            count("command_timeout")
+            rt.problem(f"no attitude command for {t - cmd['header']['t_s']:.3f} s: motors to minimum")
+        held["stale"] = stale
+        if not armed or cmd is None or stale:
             held["forces"] = motor_forces_update(held["forces"], np.zeros(4), dt_tick, vehicle.motor_time_constant_s)
             out.put({**idle, "armed": bool(armed)}, t_s=t)
             if link:

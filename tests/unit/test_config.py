@@ -16,6 +16,8 @@ def test_default_stack_loads():
     stack = load_stack()
     assert stack.vehicle == "x250"
     assert stack.period_ticks("attitude") == 2 and stack.period_ticks("position") == 4
+    # the bridge yields the CPU to the flight loops; the loops run at the default priority
+    assert stack.service("mavlink").nice == 10 and stack.service("attitude").nice == 0
 
 
 @pytest.mark.parametrize("text, needle", [
@@ -24,6 +26,8 @@ def test_default_stack_loads():
     ("[stack]\n[machines.a]\n[services.bogus]\n", "unknown service"),
     ("[stack]\n[machines.a]\n[services.sim]\nmachine = 'b'\n", "machine 'b'"),
     ("[stack]\ntick_rate_hz = 400\n[machines.a]\n[services.sim]\nrate_hz = 300\n", "must divide"),
+    ("[stack]\n[machines.a]\n[services.sim]\nnice = -5\n", "[services.sim]: nice -5 must be within 0..19"),
+    ("[stack]\n[machines.a]\n[services.sim]\nnice = 'low'\n", "[services.sim] nice: expected int"),
 ])
 def test_bad_stack_is_refused_with_location(tmp_path, text, needle):
     f = tmp_path / "s.toml"
