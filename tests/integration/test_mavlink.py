@@ -1,7 +1,8 @@
 """A pymavlink ground station flies the real-time stack through the MAVLink bridge.
 
 The stack runs with no mission (the planner waits for commands) and, to be
-steady on 2 shared cores in real time, on the truth-state ablation; the
+steady on 2 shared cores in real time, on the truth-state ablation with only the
+flight services and the bridge (tests/integration/stacks/realtime-truth.toml); the
 bridge sends to a free UDP port where this test listens, as QGroundControl
 listens on 14550. ZENPILOT_MAVLINK_FLOOD_S sets how long garbage is sprayed
 (the issue asks for a minute; 10 s by default here).
@@ -35,7 +36,10 @@ pytestmark = pytest.mark.integration
 mavlink = mavutil.mavlink
 # The stack runs in real time on the truth-state ablation unless ZENPILOT_MAVLINK_ESTIMATES=1:
 # real time with the whole estimator cascade does not hold its rates on 2 cores (README, benchmarks).
-STATE_FLAGS = () if os.environ.get("ZENPILOT_MAVLINK_ESTIMATES") == "1" else TRUTH_STATE
+ESTIMATES = os.environ.get("ZENPILOT_MAVLINK_ESTIMATES") == "1"
+STATE_FLAGS = () if ESTIMATES else TRUTH_STATE
+# on the truth state: a stack of the flight services and the bridge only (the file says why)
+STACK_FLAGS = () if ESTIMATES else ("--stack", str(ROOT / "tests" / "integration" / "stacks" / "realtime-truth.toml"))
 FLOOD_S = float(os.environ.get("ZENPILOT_MAVLINK_FLOOD_S", "60"))  # the issue: a minute
 
 
@@ -113,7 +117,7 @@ def stack(tmp_path_factory):
     env = dict(os.environ, ZENPILOT_STATE_DIR=str(tmp))
     router, udp = f"tcp/127.0.0.1:{free_port()}", free_udp_port()
     gcs = Gcs(udp)
-    up = zp("up", "-d", "--router", router, "--out", str(tmp / "run"), *STATE_FLAGS,
+    up = zp("up", "-d", "--router", router, "--out", str(tmp / "run"), *STACK_FLAGS, *STATE_FLAGS,
             "--set", "planner.mission=none", "--set", f"mavlink.endpoint=udpout:127.0.0.1:{udp}", env=env)
     try:
         assert up.returncode == 0, up.stdout + up.stderr
