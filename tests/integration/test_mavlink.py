@@ -30,14 +30,13 @@ import schemas  # noqa: E402
 from deploy.launcher import client_session, free_port  # noqa: E402
 from flight import mavframes as mf  # noqa: E402
 
-from .conftest import ROOT, TRUTH_STATE  # noqa: E402
+from .conftest import ROOT  # noqa: E402
 
 pytestmark = pytest.mark.integration
 mavlink = mavutil.mavlink
 # The stack runs in real time on the truth-state ablation unless ZENPILOT_MAVLINK_ESTIMATES=1:
 # real time with the whole estimator cascade does not hold its rates on 2 cores (README, benchmarks).
 ESTIMATES = os.environ.get("ZENPILOT_MAVLINK_ESTIMATES") == "1"
-STATE_FLAGS = () if ESTIMATES else TRUTH_STATE
 # on the truth state: a stack of the flight services and the bridge only (the file says why)
 STACK_FLAGS = () if ESTIMATES else ("--stack", str(ROOT / "tests" / "integration" / "stacks" / "realtime-truth.toml"))
 FLOOD_S = float(os.environ.get("ZENPILOT_MAVLINK_FLOOD_S", "60"))  # the issue: a minute
@@ -117,7 +116,7 @@ def stack(tmp_path_factory):
     env = dict(os.environ, ZENPILOT_STATE_DIR=str(tmp))
     router, udp = f"tcp/127.0.0.1:{free_port()}", free_udp_port()
     gcs = Gcs(udp)
-    up = zp("up", "-d", "--router", router, "--out", str(tmp / "run"), *STACK_FLAGS, *STATE_FLAGS,
+    up = zp("up", "-d", "--router", router, "--out", str(tmp / "run"), *STACK_FLAGS,
             "--set", "planner.mission=none", "--set", f"mavlink.endpoint=udpout:127.0.0.1:{udp}", env=env)
     try:
         assert up.returncode == 0, up.stdout + up.stderr
@@ -189,7 +188,7 @@ def test_gcs_arms_takes_off_holds_lands(stack):
             att_err.append(max(abs(m.roll - roll), abs(m.pitch - pitch),
                                abs(math.remainder(m.yaw - yaw, 2 * math.pi))))
     assert len(pos_err) > 20 and len(att_err) > 20
-    pos_tol = 0.05 if STATE_FLAGS else 0.15
+    pos_tol = 0.15 if ESTIMATES else 0.05
     assert max(pos_err) < pos_tol and max(att_err) < math.radians(3.0), (max(pos_err), max(att_err))
     assert abs(gcs.latest["LOCAL_POSITION_NED"].z + 2.0) < 0.1
     # a live gain change through the parameter protocol reaches the position level
