@@ -263,6 +263,7 @@ def compute_metrics(log: dict[str, list[dict]], info: dict, vehicle_id: int = 0)
     if m["flip"] is not None:  # a flip that reaches the ground is a crash, whatever the flags say
         low = float(np.min(pos[in_flip, 2]))
         m["flip"]["min_altitude_m"] = _f(low)
+        m["flip"]["max_altitude_m"] = _f(float(np.max(pos[in_flip, 2])))  # a climb before the turn shows here
         m["flip"]["hit_ground"] = bool(low < GROUND_Z_M)
         if low < GROUND_Z_M:
             m["crashed"] = True

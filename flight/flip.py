@@ -149,11 +149,16 @@ class FlipConfig:
     # the recovery ended with back to yaw 0 at this rate (the level criterion allows 0.5 rad/s
     # of body rate in all; returning 12 deg at once took 0.58 rad/s, stack seed 19)
     settle_yaw_rate_rad_s: float | None = None
-    # The flip's own reference may begin with a wind-up: a roll of -windup_rad and back
-    # over windup_s before the turn (lookahead only), pushing towards +y first so that the
-    # turn's own lateral impulse (towards -y, forced by the roll torque) cancels out.
+    # The flip's own reference (lookahead only) starts the turn windup_s after the phase
+    # does (the time to climb, climb_m) and may wind up in it: a roll of -windup_rad and
+    # back, pushing towards +y first against the turn's own lateral impulse (towards -y,
+    # forced by the roll torque).
     windup_rad: float = 0.0
     windup_s: float = 0.0
+    # The flip phase's altitude target above the flip's start (m): upside down the rotors
+    # pull towards the ground, so a target above asks the plan to climb before the turn
+    # and carry the speed through it. Recovery holds the start's altitude again.
+    climb_m: float = 0.0
     level_tolerance_rad: float = 0.1       # recovery -> land: roll back within this ...
     level_rate_rad_s: float = 0.5          # ... and body rates below this
     landing_altitude_m: float = 0.2        # land -> done below this
@@ -162,13 +167,16 @@ class FlipConfig:
 
 THESIS_FLIP = FlipConfig(takeoff_hover_check=False)
 # the project's flip (the one source: flight/flip_runner.py and bench/flip_sim.py fly it): a
-# look-ahead quintic turn of 0.9 s after a 0.3 rad wind-up (a -0.3 rad roll and back over
-# 0.3 s pushes towards +y before the turn, whose roll torque forces a lateral impulse
-# towards -y). recovery_coast stays off: on truth it levels sooner (stack, seed 0: recovery
+# look-ahead quintic turn of 0.9 s, 0.3 s after the phase starts, with the altitude target 1 m
+# above the start: the plan climbs in those 0.3 s and carries the upward speed through the
+# inverted half (stack on estimates, seeds 0/1/2/15: altitude loss 0.93-0.97 -> 0.20-0.23 m;
+# the vehicle peaks ~1.15 m above the start). No wind-up roll with the climb: pushing towards
+# +y first only moved the turn's lateral swing (+-0.25 m about the start) towards -y.
+# recovery_coast stays off: on truth it levels sooner (stack, seed 0: recovery
 # 0.66 -> 0.47 s, overshoot 16 -> 12 deg), but on estimates without the recovery's velocity
 # feedback a biased attitude estimate pushes the vehicle sideways unchecked and the hold then
 # brakes it tilted (stack on the estimators of be5319e, seeds 0 and 1: 1.3 -> 2.4 s)
-PROJECT_FLIP = FlipConfig(lookahead=True, flip_duration_s=0.9, windup_rad=0.3, windup_s=0.3, recovery_coast=True,
+PROJECT_FLIP = FlipConfig(lookahead=True, flip_duration_s=0.9, windup_rad=0.0, windup_s=0.3, climb_m=1.0, recovery_coast=True,
                           recovery_hold_heading=True, settle_decel_m_s2=0.5, settle_yaw_rate_rad_s=0.25)
 
 
@@ -299,6 +307,7 @@ class FlipPhaseMachine:
         elif self.phase == Phase.FLIP:
             t_local = t_s - self.phase_start_s
             position[:] = self.flip_point_m
+            position[:, 2] += c.climb_m
             if c.lookahead:
                 roll_ref, rate_ref = flip_reference(t_local + np.arange(n) * self.dt_s, c)
                 error = roll_ref - roll_now

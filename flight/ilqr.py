@@ -82,14 +82,15 @@ THESIS = ILQRConfig(
     control_weight=1e-3, gains_at_returned_plan=False,  # the thesis's solve ends at its last pass
 )
 
-# Horizontal position weighted 250 (was 80): the flip's drift is the lateral impulse of
-# the one rotor pair that rolls a plus frame; heavier, the plan keeps the vehicle nearer
-# its start at the price of height (stack, estimates, seeds 0/1: drift 0.44 -> 0.31 m,
-# loss 0.60 -> 0.86 m, recovery 0.28 -> 0.42 s; 350 gains no drift, loses 0.1 m more).
+# Horizontal position weighted 900: the flip's drift is the lateral impulse of the one
+# rotor pair that rolls a plus frame, and the plan keeps it small at the price of height,
+# which the flip's climb (PROJECT_FLIP.climb_m, flight/flip.py) buys back (closed loop on
+# the plant, bench/flip_sim.py, climb 1 m: weight 250 -> 600 -> 900, loss 0.00 / 0.00 /
+# 0.12 m, drift 0.39 / 0.25 / 0.23 m; without the climb, 250 lost 0.89 m).
 PROJECT = ILQRConfig(
     name="project", dt_s=0.025, horizon=32, max_iterations=8, integrator="rk4",
-    state_weight=(250.0, 250.0, 40.0, 4.0, 4.0, 4.0, 60.0, 10.0, 10.0, 5.0),
-    terminal_weight=(250.0, 250.0, 40.0, 4.0, 4.0, 4.0, 60.0, 10.0, 10.0, 5.0),
+    state_weight=(900.0, 900.0, 40.0, 4.0, 4.0, 4.0, 60.0, 10.0, 10.0, 5.0),
+    terminal_weight=(900.0, 900.0, 40.0, 4.0, 4.0, 4.0, 60.0, 10.0, 10.0, 5.0),
     control_weight=1e-5, motor_time_constant_s=0.02,
 )
 

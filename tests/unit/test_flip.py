@@ -261,9 +261,9 @@ def test_closed_loop_baseline_completes():
 def test_closed_loop_project_flip_meets_targets():
     """Slow (~15-25 s): take-off, flip and recovery of the PROJECT MPC on the simulator plant.
 
-    At 50 Hz re-solve (the bench runs 100 Hz): 0.82 m / 0.28 m / 0.42 s (100 Hz: 0.89 / 0.27 /
-    0.44). Drift is the lateral impulse of the rolling rotor pair (see FlipConfig.windup_rad
-    and PROJECT's horizontal weights)."""
+    At 50 Hz re-solve (the bench runs 100 Hz): 0.08 m / 0.23 m / 0.40 s (100 Hz: 0.12 / 0.23 /
+    0.41), the climb (PROJECT_FLIP.climb_m) peaking ~1.15 m above the start. Drift is the
+    lateral impulse of the rolling rotor pair (see PROJECT's horizontal weights)."""
     from bench.flip_sim import PROJECT_FLIP, PROJECT_SOLVE_RATE_HZ, simulate_mpc
     from flight.ilqr import PROJECT, Planner
     vehicle = load_vehicle("q820")
@@ -271,9 +271,19 @@ def test_closed_loop_project_flip_meets_targets():
     m = run.metrics
     assert m.completed
     assert max(p[2] for p in run.position_m) >= 5.0 - 0.1
-    assert m.altitude_loss_m <= 1.0
-    assert m.xy_drift_m <= 0.32
+    assert m.altitude_loss_m <= 0.5
+    assert m.xy_drift_m <= 0.27
     assert m.recovery_s <= 0.5
+
+
+def test_flip_phase_targets_the_climb_and_recovery_the_start_altitude():
+    c = FlipConfig(lookahead=True, flip_duration_s=0.9, windup_s=0.3, climb_m=1.0)
+    m = FlipPhaseMachine(c, horizon=8, dt_s=0.05)
+    m.start(0.0, state(z=0.0))
+    assert m.update(1.0, state(z=5.02)) == Phase.FLIP
+    np.testing.assert_allclose(m.targets(1.0, state(z=5.02))[:, 2], 6.02)
+    m.phase = Phase.RECOVERY
+    np.testing.assert_allclose(m.targets(2.0, state(z=5.9))[:, 2], 5.02)
 
 
 def test_flip_reference_winds_up_then_turns():
