@@ -261,9 +261,10 @@ def compute_metrics(log: dict[str, list[dict]], info: dict, vehicle_id: int = 0)
         m["crashed"] = bool(np.any(landed & flying) or (m["max_tilt_deg"] or 0.0) > 60.0)
     m["flip"] = _flip(log, p, sp, truth, truth_t, sp_idx) if truth and in_flip.any() else None
     if m["flip"] is not None:  # a flip that reaches the ground is a crash, whatever the flags say
-        low = float(np.min(pos[in_flip, 2]))
+        flip_z = pos[in_flip, 2]
+        low = float(np.min(flip_z))
         m["flip"]["min_altitude_m"] = _f(low)
-        m["flip"]["max_altitude_m"] = _f(float(np.max(pos[in_flip, 2])))  # a climb before the turn shows here
+        m["flip"]["max_altitude_m"] = _f(float(np.max(flip_z)))  # a climb before the turn shows here
         m["flip"]["hit_ground"] = bool(low < GROUND_Z_M)
         if low < GROUND_Z_M:
             m["crashed"] = True

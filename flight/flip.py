@@ -176,7 +176,7 @@ THESIS_FLIP = FlipConfig(takeoff_hover_check=False)
 # 0.66 -> 0.47 s, overshoot 16 -> 12 deg), but on estimates without the recovery's velocity
 # feedback a biased attitude estimate pushes the vehicle sideways unchecked and the hold then
 # brakes it tilted (stack on the estimators of be5319e, seeds 0 and 1: 1.3 -> 2.4 s)
-PROJECT_FLIP = FlipConfig(lookahead=True, flip_duration_s=0.9, windup_rad=0.0, windup_s=0.3, climb_m=1.0, recovery_coast=True,
+PROJECT_FLIP = FlipConfig(lookahead=True, flip_duration_s=0.9, windup_s=0.3, climb_m=1.0, recovery_coast=True,
                           recovery_hold_heading=True, settle_decel_m_s2=0.5, settle_yaw_rate_rad_s=0.25)
 
 
