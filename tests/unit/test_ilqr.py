@@ -21,6 +21,7 @@ from flight.ilqr import (
     make_cost_derivatives,
     make_dynamics,
     motor_forces_update,
+    solver_compiler_options,
     warm_start,
 )
 from flight.quat import quat_from_euler
@@ -265,3 +266,20 @@ def test_planner_with_motor_model_pads_13_state_inputs():
     np.testing.assert_allclose(plan.states[0, 13:], VEHICLE.hover_thrust_per_motor_n)
     u = feedback_control(plan, 0.0, p.full_state(hover_state([0, 0, 4.9])), p.u_max_rad_s)
     assert np.all(np.isfinite(u))
+
+
+def test_solver_compiler_options_leave_the_plan_unchanged(planner, monkeypatch):
+    """The CPU options (YNNPACK's small-dot fusion off) change how XLA runs the solve, not
+    what it computes: the same plan, to float32 rounding, as XLA's defaults."""
+    import flight.ilqr as ilqr
+    if jax.default_backend() == "cpu":
+        assert solver_compiler_options() == ilqr.CPU_SOLVER_OPTIONS
+    x0 = hover_state([0.3, -0.2, 4.6])
+    targets = np.repeat(hover_state([0.0, 0.0, 5.0])[None], THESIS.horizon + 1, axis=0)
+    monkeypatch.setattr(ilqr, "solver_compiler_options", lambda: {})
+    default = Planner(VEHICLE, THESIS, warm_up=False).solve(x0, targets)
+    tuned = planner.solve(x0, targets)
+    assert tuned.iterations == default.iterations
+    np.testing.assert_allclose(tuned.controls, default.controls, rtol=1e-4, atol=1e-2)
+    np.testing.assert_allclose(tuned.states, default.states, rtol=1e-4, atol=1e-5)
+    assert tuned.cost == pytest.approx(default.cost, rel=1e-4)
