@@ -9,6 +9,8 @@ file (the thesis's values). Not project code.
 """
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 from jax import grad, hessian, jacobian, jit
@@ -40,8 +42,11 @@ def quat_to_rot_matrix(q):
     ])
 
 
-def make_thesis_ilqr(vehicle: Vehicle, dt: float = 0.1, horizon: int = 10):
-    """The thesis's ILQROptimizer.solve(x0, u_init, x_target_traj, u_target_traj, ...)."""
+def make_thesis_ilqr(vehicle: Vehicle, dt: float = 0.1, horizon: int = 10, compiler_options: dict | None = None):
+    """The thesis's ILQROptimizer.solve(x0, u_init, x_target_traj, u_target_traj, ...).
+    compiler_options: XLA options for the four functions solve calls (the benchmark gives
+    it the project solver's, to show what they are worth here); None: JAX's defaults."""
+    top_jit = functools.partial(jit, compiler_options=compiler_options) if compiler_options else jit
     m, arm = vehicle.mass_kg, vehicle.motor_positions_m[0][0]
     inertia = jnp.diag(jnp.asarray(vehicle.inertia_kg_m2))
     kf, km = vehicle.thrust_coefficient_kf, vehicle.moment_coefficient_km
@@ -76,7 +81,7 @@ def make_thesis_ilqr(vehicle: Vehicle, dt: float = 0.1, horizon: int = 10):
         new_quat /= jnp.linalg.norm(new_quat + 1e-8)
         return jnp.concatenate([new_pos, new_vel, new_quat, new_omega])
 
-    @jit
+    @top_jit
     def simulate_trajectory(x0, U):
         X = [x0]
         for k in range(horizon):
@@ -100,7 +105,7 @@ def make_thesis_ilqr(vehicle: Vehicle, dt: float = 0.1, horizon: int = 10):
         lux = jacobian(grad(scalar_cost, argnums=1), argnums=0)(x, u)
         return lx, lu, lxx, luu, lux
 
-    @jit
+    @top_jit
     def backward_pass(X, U, x_target_traj, u_target_traj, Q, R, Qf):
         Vx = grad(lambda x: jnp.dot(x - x_target_traj[-1], Qf @ (x - x_target_traj[-1])))(X[-1])
         Vxx = Qf
@@ -122,7 +127,7 @@ def make_thesis_ilqr(vehicle: Vehicle, dt: float = 0.1, horizon: int = 10):
             k_list.insert(0, kff)
         return K_list, k_list
 
-    @jit
+    @top_jit
     def forward_pass(X, U, k_list, K_list, alpha):
         x = X[0]
         X_new, U_new = [x], []
@@ -133,7 +138,7 @@ def make_thesis_ilqr(vehicle: Vehicle, dt: float = 0.1, horizon: int = 10):
             X_new.append(x)
         return jnp.stack(X_new), jnp.stack(U_new)
 
-    @jit
+    @top_jit
     def cost_function_traj_flip(x_traj, u_traj, x_target_traj, u_target_traj, Q, R, Qf):
         def step_cost(x, u, x_target, u_target, is_terminal=False):
             position_error = x[0:3] - x_target[0:3]

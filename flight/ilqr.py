@@ -19,6 +19,7 @@ clips inside f, which zeroes f's Jacobian at the limits and stalls the solver).
 from __future__ import annotations
 
 import functools
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -28,6 +29,34 @@ import jax.numpy as jnp
 import numpy as np
 
 from flight.vehicle import Vehicle
+
+# How XLA runs the solver on the CPU. Its runtime launches a kernel per fused operation and
+# goes through its executor at every step of a while loop (the scans), which on matrices this
+# small costs more than the arithmetic. Two settings (bench/ilqr.py, THESIS setting 0.46 ms
+# -> 0.22 ms, PROJECT 2.1 -> 1.2 ms; the plans the same, tests/unit/test_ilqr.py):
+# - YNNPACK off for the solver's jit: XLA hands it the small dots (the backward pass's F' V F),
+#   each call several of XLA's own fused loops, and a loop holding one is never compiled whole;
+# - XLA's small-while-loop hoisting for loops touching under SMALL_LOOP_BYTES: such a loop is
+#   compiled as one function. Its default (~1 KB) takes none of the solver's; 1 MB takes the
+#   THESIS solve whole and the PROJECT one's scans, but not its iteration loop (slower whole).
+CPU_SOLVER_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": ""}
+SMALL_LOOP_BYTES = 1_000_000
+
+
+def _request_small_loop_hoisting() -> None:
+    """Add the small-loop threshold to XLA_FLAGS. XLA reads XLA_FLAGS once, at the process's
+    first JAX operation, and it has no per-jit form, so this runs when flight.ilqr is imported
+    (the planner service, the bench and the tests import it before computing anything); after
+    an earlier JAX operation it has no effect (slower, same plans). Left alone when XLA_FLAGS
+    already sets backend options, or with ZENPILOT_XLA_DEFAULTS=1."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if os.environ.get("ZENPILOT_XLA_DEFAULTS") == "1" or "xla_backend_extra_options" in flags:
+        return
+    option = f"--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold={SMALL_LOOP_BYTES}"
+    os.environ["XLA_FLAGS"] = f"{flags} {option}".strip()
+
+
+_request_small_loop_hoisting()
 
 BODY_DIM = 13
 STATE_DIM = BODY_DIM  # without the motor model; Planner.state_dim is 17 with it
@@ -508,13 +537,6 @@ def make_solver(dynamics, stage_cost, terminal_cost, config: ILQRConfig, u_min, 
 
 # --- planner (compiled once) -------------------------------------------------------
 
-# XLA options for the solver's jit. On the CPU, XLA hands small dots (the backward pass's
-# 18 x 18 product F' V F) to YNNPACK, whose per-call cost is several of XLA's own fused
-# loops: off, the THESIS-setting solve takes 0.36 ms instead of 0.46 ms and the PROJECT
-# one 1.4 ms instead of 2.1 ms (bench/ilqr.py). Other backends ignore the option.
-CPU_SOLVER_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": ""}
-
-
 @functools.cache
 def solver_compiler_options() -> dict:
     """CPU_SOLVER_OPTIONS on the CPU where this jaxlib knows them (a probe compile of a
@@ -615,6 +637,15 @@ class Planner:
         return Plan(np.asarray(states, np.float64), np.asarray(controls, np.float64),
                     np.asarray(gains, np.float64), np.asarray(ffs, np.float64),
                     float(cost), float(cost0), int(iterations), bool(converged > 0.5), self.config.dt_s)
+
+    def loops_compiled_whole(self) -> int:
+        """How many of the solve's while loops XLA compiled as one function each (the
+        small-loop hoisting above; 0 where it did not apply). A diagnostic for the bench."""
+        x0 = self.full_state(hover_state(np.zeros(3)))
+        args = [np.zeros(shape, np.float32) for shape in (
+            x0.shape, (self.config.horizon, CONTROL_DIM), (self.config.horizon + 1,) + x0.shape,
+            (self.config.horizon, CONTROL_DIM))]
+        return self._solve.lower(*args).compile().as_text().count('xla_cpu_small_call="true"')
 
     def compiled_count(self) -> int:
         """Number of compiled versions of the solve (1 after warm-up if shapes never change)."""

@@ -56,6 +56,9 @@ def flip_controllers(rt: Runtime, mission) -> dict:
     for m in methods:
         print(f"zenpilot-planner: building the {m} flip controller", flush=True)
         controllers[m] = FlipController(vehicle, m, rate)
+        if controllers[m].planner is not None:  # XLA's small-loop option took (flight/ilqr.py), or not
+            whole = controllers[m].planner.loops_compiled_whole()
+            print(f"zenpilot-planner: {m}: {whole} of the solver's loops compiled whole", flush=True)
     loop = loop_rate_hz(rt.rate_hz, rt.tick_rate, [c.solve_rate_hz for c in controllers.values()])
     if loop != rt.rate_hz:
         print(f"zenpilot-planner: loop at {loop:g} Hz for the flip's re-solves", flush=True)

@@ -283,3 +283,35 @@ def test_solver_compiler_options_leave_the_plan_unchanged(planner, monkeypatch):
     np.testing.assert_allclose(tuned.controls, default.controls, rtol=1e-4, atol=1e-2)
     np.testing.assert_allclose(tuned.states, default.states, rtol=1e-4, atol=1e-5)
     assert tuned.cost == pytest.approx(default.cost, rel=1e-4)
+
+
+PLAN_IN_A_FRESH_PROCESS = """
+import json, numpy as np
+from flight.ilqr import THESIS, Planner, hover_state
+from flight.vehicle import load_vehicle
+planner = Planner(load_vehicle("q820"), THESIS)
+x0 = hover_state([0.3, -0.2, 4.6])
+plan = planner.solve(x0, np.repeat(hover_state([0.0, 0.0, 5.0])[None], THESIS.horizon + 1, axis=0))
+print(json.dumps({"whole": planner.loops_compiled_whole(), "controls": plan.controls.tolist(),
+                  "cost": plan.cost}))
+"""
+
+
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="XLA's CPU runtime option")
+def test_small_loop_hoisting_compiles_the_thesis_solve_whole_and_plans_the_same():
+    """flight.ilqr asks XLA (XLA_FLAGS, on import) to compile small while loops as one
+    function each: a fresh process that imports it gets the THESIS solve's loops so, and
+    plans as a process left at XLA's defaults (ZENPILOT_XLA_DEFAULTS=1) does."""
+    import json
+    import os
+    import subprocess
+    import sys
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "ZENPILOT_XLA_DEFAULTS")}
+    runs = [subprocess.Popen([sys.executable, "-c", PLAN_IN_A_FRESH_PROCESS], cwd=root, text=True,
+                             stdout=subprocess.PIPE, env=dict(env, **extra))
+            for extra in ({}, {"ZENPILOT_XLA_DEFAULTS": "1"})]
+    hoisted, default = (json.loads(run.communicate(timeout=300)[0].splitlines()[-1]) for run in runs)
+    assert hoisted["whole"] >= 3 and default["whole"] <= 1
+    np.testing.assert_allclose(hoisted["controls"], default["controls"], rtol=1e-4, atol=1e-2)
+    assert hoisted["cost"] == pytest.approx(default["cost"], rel=1e-4)
