@@ -116,7 +116,8 @@ THESIS = ILQRConfig(
 # rotor pair that rolls a plus frame, and the plan keeps it small at the price of height,
 # which the flip's climb (PROJECT_FLIP.climb_m, flight/flip.py) buys back (closed loop on
 # the plant, bench/flip_sim.py, climb 1 m: weight 250 -> 600 -> 900, loss 0.00 / 0.00 /
-# 0.12 m, drift 0.39 / 0.25 / 0.23 m; without the climb, 250 lost 0.89 m).
+# 0.12 m, drift 0.39 / 0.25 / 0.23 m; without the climb, 250 lost 0.89 m; the project's
+# 1.5 m climb: 900 loses none, drift 0.23 m).
 PROJECT = ILQRConfig(
     name="project", dt_s=0.025, horizon=32, max_iterations=8, integrator="rk4",
     state_weight=(900.0, 900.0, 40.0, 4.0, 4.0, 4.0, 60.0, 10.0, 10.0, 5.0),

@@ -261,8 +261,8 @@ def test_closed_loop_baseline_completes():
 def test_closed_loop_project_flip_meets_targets():
     """Slow (~15-25 s): take-off, flip and recovery of the PROJECT MPC on the simulator plant.
 
-    At 50 Hz re-solve (the bench runs 100 Hz): 0.08 m / 0.23 m / 0.40 s (100 Hz: 0.12 / 0.23 /
-    0.41), the climb (PROJECT_FLIP.climb_m) peaking ~1.15 m above the start. Drift is the
+    At 50 Hz re-solve (the bench runs 100 Hz): 0 m / 0.24 m / 0.41 s (100 Hz: 0 / 0.23 /
+    0.43), the climb (PROJECT_FLIP.climb_m) peaking ~1.6 m above the start. Drift is the
     lateral impulse of the rolling rotor pair (see PROJECT's horizontal weights)."""
     from bench.flip_sim import PROJECT_FLIP, PROJECT_SOLVE_RATE_HZ, simulate_mpc
     from flight.ilqr import PROJECT, Planner
