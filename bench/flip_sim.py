@@ -1,6 +1,7 @@
 """Closed-loop flip on the simulator plant (truth state, no noise), pure: no services.
 
     .venv/bin/python bench/flip_sim.py [--which thesis,project,baseline] [--project-rate-hz 100]
+        [--climb-m 1.5] [--windup-s 0.3]
 
 The plant runs RK4 at 2 kHz (SimConfig: 400 Hz ticks x 5 substeps) with its 20 ms
 motor lag and drag. The MPC re-solves from the true state at solve_rate_hz; at
@@ -16,6 +17,7 @@ The solve is taken as instantaneous (its compute time is reported, not simulated
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from dataclasses import dataclass, field
@@ -161,6 +163,13 @@ def _report(name: str, run: FlipRun) -> str:
     line = (f"{name:9s} completed={m.completed!s:5s} altitude_loss_m={m.altitude_loss_m:6.3f} "
             f"xy_drift_m={m.xy_drift_m:6.3f} overshoot_deg={m.overshoot_deg:6.1f} "
             f"recovery_s={m.recovery_s:6.3f} duration_s={m.duration_s:6.3f}")
+    if m.completed:  # heights about the flip's start: its peak, the lowest point after it
+        phases = [Phase(p) for p in run.phase]
+        start = phases.index(Phase.FLIP)
+        end = start + int(round(m.duration_s * SIM.tick_rate_hz))
+        z = np.asarray(run.position_m)[start:end + 1, 2] - run.position_m[start][2]
+        peak = int(np.argmax(z))
+        line += f" peak_m={z[peak]:+.2f} lowest_after_peak_m={np.min(z[peak:]):+.2f}"
     if run.solves:
         line += (f"  solves={run.solves} failed={run.failed_solves} "
                  f"solve_ms_median={1e3 * np.median(run.solve_s):.1f} max={1e3 * np.max(run.solve_s):.1f}")
@@ -175,14 +184,21 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--which", default="thesis,project,baseline")
     parser.add_argument("--project-rate-hz", type=float, default=PROJECT_SOLVE_RATE_HZ)
+    parser.add_argument("--climb-m", type=float, default=PROJECT_FLIP.climb_m,
+                        help="the project flip's climb before the turn (FlipConfig.climb_m)")
+    parser.add_argument("--windup-s", type=float, default=PROJECT_FLIP.windup_s,
+                        help="... and the time it leaves for it (FlipConfig.windup_s)")
     args = parser.parse_args(argv)
+    if args.climb_m < 0 or args.windup_s < 0 or args.project_rate_hz <= 0:
+        parser.error("--climb-m and --windup-s must be >= 0, --project-rate-hz > 0")
+    project_flip = dataclasses.replace(PROJECT_FLIP, climb_m=args.climb_m, windup_s=args.windup_s)
     vehicle = load_vehicle("q820")
     print("$ .venv/bin/python bench/flip_sim.py " + " ".join(sys.argv[1:] if argv is None else argv))
     which = args.which.split(",")
     if "thesis" in which:
         print(_report(f"thesis@{THESIS_SOLVE_RATE_HZ:g}Hz", run_mpc(vehicle, THESIS, THESIS_FLIP, THESIS_SOLVE_RATE_HZ)))
     if "project" in which:
-        print(_report(f"project@{args.project_rate_hz:g}Hz", run_mpc(vehicle, PROJECT, PROJECT_FLIP, args.project_rate_hz)))
+        print(_report(f"project@{args.project_rate_hz:g}Hz", run_mpc(vehicle, PROJECT, project_flip, args.project_rate_hz)))
     if "baseline" in which:
         print(_report("baseline", simulate_baseline(vehicle)))
         print(_report("baseline@17rad/s", simulate_baseline(vehicle, THESIS_BASELINE)))
