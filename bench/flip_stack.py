@@ -115,7 +115,7 @@ def main(argv=None) -> None:
             ok = [f for (m, f) in runs if f.get("completed") and m and not m.get("crashed")]
             rows.append({
                 "method": method, "scenario": scenario, "n": len(runs), "completed": len(ok),
-                "missions": sum(1 for m, _ in runs if m and m.get("completed")),
+                "missions": sum(1 for m, _ in runs if m and m.get("completed") and not m.get("crashed")),
                 **{k: summary([f.get(k) for f in ok]) for k in FIELDS},
                 "solve_ms_p50": summary([f.get("solve_ms_p50") for f in flips if f.get("method") != "baseline"]),
                 "plan_rate_hz": summary([f.get("plan_rate_hz") for f in flips]),

@@ -97,7 +97,8 @@ class FlipController:
         self.solves = self.failed_solves = self.overrun_solves = 0
 
     # -- the item ----------------------------------------------------------------
-    def start(self, t_s: float, x, altitude_m: float) -> None:
+    def start(self, t_s: float, x, altitude_m: float, baseline_climb_m: float = 1.0) -> None:
+        """baseline_climb_m: the baseline's full-thrust climb above altitude_m before its roll."""
         self._reset()
         self.started_s = t_s
         x = np.asarray(x, dtype=np.float64)
@@ -105,7 +106,7 @@ class FlipController:
         self.start_point_m = np.array([x[0], x[1], altitude_m])
         if self.method == "baseline":
             self.baseline = BaselineFlip(self.vehicle, BaselineConfig(hover_altitude_m=altitude_m,
-                                                                      flip_altitude_m=altitude_m + 1.0))
+                                                                      flip_altitude_m=altitude_m + baseline_climb_m))
         else:
             config = replace(self.flip_config, flip_altitude_m=altitude_m)
             self.machine = FlipPhaseMachine(config, self.ilqr_config.horizon, self.ilqr_config.dt_s)

@@ -19,11 +19,13 @@ Item types and their keys (defaults in ITEM_KEYS):
   goto      position_m yaw_deg settle_s hold_s    step the reference; measured after settle_s
   attitude  roll_deg pitch_deg yaw_deg duration_s attitude reference, altitude held
   land      descent_rate_m_s            descend until landed, then disarm
-  flip      method altitude_m settle_s timeout_s   a 360-degree roll flip (document 001):
-            method "ilqr-project" | "ilqr-thesis" | "baseline"; the flip controller
-            (given by the planner service, see MissionRunner.flip) flies it from the
-            altitude altitude_m (>= 5 m) and holds settle_s after recovery; the mission
+  flip      method altitude_m settle_s timeout_s baseline_climb_m   a 360-degree roll flip
+            (document 001): method "ilqr-project" | "ilqr-thesis" | "baseline"; the flip
+            controller (given by the planner service, see MissionRunner.flip) flies it from
+            the altitude altitude_m (>= 5 m) and holds settle_s after recovery; the mission
             goes on from where it recovered. Without a flip controller the mission fails.
+            baseline_climb_m: the baseline's full-thrust climb before its roll (Appendix И:
+            1 m, 5 -> 6 m; 0: it rolls from the hover).
 """
 
 from __future__ import annotations
@@ -44,7 +46,8 @@ ITEM_KEYS: dict[str, dict] = {
     "goto": {"position_m": None, "yaw_deg": 0.0, "settle_s": 4.0, "hold_s": 2.0},
     "attitude": {"roll_deg": 0.0, "pitch_deg": 0.0, "yaw_deg": 0.0, "duration_s": 1.0},
     "land": {"descent_rate_m_s": 0.5},
-    "flip": {"method": "ilqr-project", "altitude_m": 5.0, "settle_s": 1.0, "timeout_s": 15.0},
+    "flip": {"method": "ilqr-project", "altitude_m": 5.0, "settle_s": 1.0, "timeout_s": 15.0,
+             "baseline_climb_m": 1.0},
 }
 FLIP_METHODS = ("ilqr-project", "ilqr-thesis", "baseline")
 FLIP_MIN_ALTITUDE_M = 5.0  # a safe altitude, as in 001
@@ -115,6 +118,8 @@ def load_mission(name_or_path: str) -> Mission:
             item[key] = value
         if kind == "flip" and item["altitude_m"] < FLIP_MIN_ALTITUDE_M:
             raise MissionError(f"{where}: a flip needs altitude_m >= {FLIP_MIN_ALTITUDE_M:g} (got {item['altitude_m']})")
+        if kind == "flip" and item["baseline_climb_m"] < 0:
+            raise MissionError(f"{where}: baseline_climb_m must be >= 0 (got {item['baseline_climb_m']})")
         if any(v is None for v in item.values()):
             raise MissionError(f"{where}: {kind} needs " + ", ".join(k for k, v in item.items() if v is None))
         items.append(item)

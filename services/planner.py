@@ -97,7 +97,7 @@ def run(args) -> None:
             return "takeoff", False, False, flip["pos"]
         x = flip["x"] if c.state_dim == 17 else flip["x"][:13]
         if starting:
-            c.start(t, x, item["altitude_m"])
+            c.start(t, x, item["altitude_m"], item["baseline_climb_m"])
             flip["steps"] = 0
         ratio = max(1, round(rt.rate_hz / c.solve_rate_hz))
         s = c.step(t, x, item["settle_s"], solve=flip["steps"] % ratio == 0)

@@ -61,6 +61,15 @@ def test_bad_mission_names_the_item(tmp_path):
         load_mission(str(f))
 
 
+def test_flip_item_refuses_a_negative_baseline_climb(tmp_path):
+    f = tmp_path / "m.toml"
+    f.write_text('[mission]\nname="m"\nvehicle="q820"\n[[items]]\ntype="flip"\nbaseline_climb_m=-1.0\n')
+    with pytest.raises(MissionError, match=r"items\[0\]: baseline_climb_m must be >= 0"):
+        load_mission(str(f))
+    from_hover = load_mission(str(ROOT / "tests/integration/missions/flip-short-baseline-from-hover.toml"))
+    assert [i.get("baseline_climb_m") for i in from_hover.items if i["type"] == "flip"] == [0.0]
+
+
 def test_mission_runner_flies_hover_phases():
     runner = MissionRunner(load_mission("hover"))
     t, z = 0.0, 0.0

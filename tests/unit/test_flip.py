@@ -327,3 +327,35 @@ def test_baseline_flip_item_hands_back_after_recovery():
     assert {"flip", "recovery", "settle"} <= phases
     assert step.done, f"not handed back after {t:.1f} s (z {plant.position_m[2]:.2f} m)"
     assert plant.position_m[2] > 5.0
+
+
+@pytest.mark.parametrize("climb_m", [1.0, 0.0])
+def test_baseline_needs_its_climb_to_keep_its_height(climb_m):
+    """Appendix И's fixed sequence rolls at low thrust: ~1 s of the turn without lift. With its
+    full-thrust climb first (1 m, the default) it reaches the roll fast enough to rise through
+    it; rolled from the hover (baseline_climb_m 0) it falls metres (on the stack: to the ground
+    from 5 m). Truth plant, no noise, the planner service's FlipController."""
+    from bench.flip_sim import _plant_command, _tick, SIM
+    from flight.flip_runner import FlipController
+    from simulator.plant import Plant
+    vehicle = load_vehicle("q820")
+    hover = vehicle.hover_thrust_per_motor_n
+    plant = Plant(vehicle, position_m=(0.0, 0.0, 5.0), motor_thrust_n=np.full(4, hover))
+    ctrl = FlipController(vehicle, "baseline")
+    ctrl.start(0.0, plant.x[:13], 5.0, baseline_climb_m=climb_m)
+    kf = vehicle.thrust_coefficient_kf
+    forces, lowest_m, phase = np.full(4, hover), 5.0, "takeoff"
+    for tick in range(int(4.0 * SIM.tick_rate_hz)):
+        if tick % 2 == 0:  # 200 Hz
+            step = ctrl.step(tick / SIM.tick_rate_hz, plant.x[:13], settle_s=0.5, solve=True)
+            phase = step.phase
+            if phase == "settle":  # recovered
+                break
+            forces = kf * np.asarray(step.plan["controls_rad_s"]) ** 2
+        _tick(plant, SIM, _plant_command(vehicle, forces))
+        lowest_m = min(lowest_m, plant.position_m[2])
+    assert phase == "settle"
+    if climb_m > 0:
+        assert lowest_m > 5.0 - 0.01
+    else:
+        assert lowest_m < 5.0 - 2.0, lowest_m
