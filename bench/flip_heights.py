@@ -35,6 +35,16 @@ TURN_START_RAD = math.radians(3.0)
 FIELDS = ("roll+3", "peak", "lowest", "turn_loss", "fall", "excursion")
 
 
+def heights(z, roll_rad) -> dict[str, float]:
+    """From the flip's start to its recovery's end: z (m) about the start, accumulated roll (rad)."""
+    z = np.asarray(z, dtype=np.float64)
+    turn = int(np.argmax(np.asarray(roll_rad) > TURN_START_RAD))
+    peak = int(np.argmax(z))
+    lowest = float(np.min(z[peak:]))
+    return {"roll+3": float(z[turn]), "peak": float(z[peak]), "lowest": lowest,
+            "turn_loss": float(z[turn]) - lowest, "fall": float(z[peak]) - lowest}
+
+
 def flip_heights(flight_dir: Path) -> dict[str, float]:
     flip = json.loads((flight_dir / "metrics.json").read_text())["flip"]
     if not flip or not flip.get("completed"):
@@ -52,16 +62,8 @@ def flip_heights(flight_dir: Path) -> dict[str, float]:
     roll = RollAccumulator()
     roll.reset(truth[start]["quaternion_wxyz"])
     rolls = np.array([roll.update(m["quaternion_wxyz"]) for m in truth[start:end + 1]])
-    z = position[start:end + 1, 2] - position[start, 2]
-    turn = int(np.argmax(rolls > TURN_START_RAD))
-    peak = int(np.argmax(z))
-    lowest = float(np.min(z[peak:]))
     return {
-        "roll+3": float(z[turn]),
-        "peak": float(z[peak]),
-        "lowest": lowest,
-        "turn_loss": float(z[turn]) - lowest,
-        "fall": float(z[peak]) - lowest,
+        **heights(position[start:end + 1, 2] - position[start, 2], rolls),
         "excursion": float(np.max(np.linalg.norm(position[start:, :2] - position[start, :2], axis=1))),
     }
 

@@ -27,6 +27,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.flip_heights import heights
 from flight.flip import (
     PROJECT_FLIP,
     THESIS_BASELINE,
@@ -37,6 +38,7 @@ from flight.flip import (
     FlipMetrics,
     FlipPhaseMachine,
     Phase,
+    RollAccumulator,
     flip_metrics,
 )
 from flight.ilqr import (
@@ -168,8 +170,10 @@ def _report(name: str, run: FlipRun) -> str:
         start = phases.index(Phase.FLIP)
         end = start + int(round(m.duration_s * SIM.tick_rate_hz))
         z = np.asarray(run.position_m)[start:end + 1, 2] - run.position_m[start][2]
-        peak = int(np.argmax(z))
-        line += f" peak_m={z[peak]:+.2f} lowest_after_peak_m={np.min(z[peak:]):+.2f}"
+        roll = RollAccumulator()
+        roll.reset(run.quaternion[start])
+        h = heights(z, [roll.update(q) for q in run.quaternion[start:end + 1]])
+        line += f" peak_m={h['peak']:+.2f} lowest_after_peak_m={h['lowest']:+.2f}"
     if run.solves:
         line += (f"  solves={run.solves} failed={run.failed_solves} "
                  f"solve_ms_median={1e3 * np.median(run.solve_s):.1f} max={1e3 * np.max(run.solve_s):.1f}")

@@ -397,6 +397,8 @@ class BaselineConfig:
 
 
 THESIS_BASELINE = BaselineConfig(roll_rate_rad_s=17.0, max_rate_rad_s=17.0)
+# Appendix И's full-thrust climb from the hover to its roll (5 -> 6 m); a flip item may change it
+BASELINE_CLIMB_M = BaselineConfig.flip_altitude_m - BaselineConfig.hover_altitude_m
 
 
 class BaselineFlip:

@@ -28,6 +28,7 @@ import numpy as np
 from flight.flip import (
     PROJECT_FLIP,
     THESIS_FLIP,
+    BASELINE_CLIMB_M,
     BaselineConfig,
     BaselineFlip,
     FlipPhaseMachine,
@@ -97,7 +98,7 @@ class FlipController:
         self.solves = self.failed_solves = self.overrun_solves = 0
 
     # -- the item ----------------------------------------------------------------
-    def start(self, t_s: float, x, altitude_m: float, baseline_climb_m: float = 1.0) -> None:
+    def start(self, t_s: float, x, altitude_m: float, baseline_climb_m: float = BASELINE_CLIMB_M) -> None:
         """baseline_climb_m: the baseline's full-thrust climb above altitude_m before its roll."""
         self._reset()
         self.started_s = t_s

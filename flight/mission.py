@@ -37,6 +37,8 @@ from pathlib import Path
 
 import numpy as np
 
+from flight.flip import BASELINE_CLIMB_M
+
 MISSIONS_DIR = Path(__file__).resolve().parent.parent / "deploy" / "missions"
 
 ITEM_KEYS: dict[str, dict] = {
@@ -47,7 +49,7 @@ ITEM_KEYS: dict[str, dict] = {
     "attitude": {"roll_deg": 0.0, "pitch_deg": 0.0, "yaw_deg": 0.0, "duration_s": 1.0},
     "land": {"descent_rate_m_s": 0.5},
     "flip": {"method": "ilqr-project", "altitude_m": 5.0, "settle_s": 1.0, "timeout_s": 15.0,
-             "baseline_climb_m": 1.0},
+             "baseline_climb_m": BASELINE_CLIMB_M},
 }
 FLIP_METHODS = ("ilqr-project", "ilqr-thesis", "baseline")
 FLIP_MIN_ALTITUDE_M = 5.0  # a safe altitude, as in 001

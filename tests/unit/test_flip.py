@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from flight.flip import (
+    BASELINE_CLIMB_M,
     BaselineConfig,
     BaselineFlip,
     FlipConfig,
@@ -301,10 +302,9 @@ def test_thesis_take_off_checks_the_altitude_only():
     assert m.update(0.1, state(z=5.05, v=(0, 0, 1.0))) == Phase.FLIP
 
 
-def test_baseline_flip_item_hands_back_after_recovery():
-    """The flip item of the planner service with the baseline ends (done) once the vehicle is
-    calm where the baseline holds after recovery: that is above the item's altitude (it climbs
-    1 m to roll), so settling towards the item's altitude never ended (flip-aborted)."""
+def _fly_baseline_item(climb_m: float = BASELINE_CLIMB_M, max_s: float = 12.0):
+    """The planner service's baseline flip item (FlipController) from a 5 m hover on the truth
+    plant, its controller at 200 Hz: yields (t_s, step, plant) at every controller step."""
     from bench.flip_sim import _plant_command, _tick, SIM
     from flight.flip_runner import FlipController
     from simulator.plant import Plant
@@ -312,18 +312,27 @@ def test_baseline_flip_item_hands_back_after_recovery():
     hover = vehicle.hover_thrust_per_motor_n
     plant = Plant(vehicle, position_m=(0.0, 0.0, 5.0), motor_thrust_n=np.full(4, hover))
     ctrl = FlipController(vehicle, "baseline")
-    ctrl.start(0.0, plant.x[:13], 5.0)
+    ctrl.start(0.0, plant.x[:13], 5.0, baseline_climb_m=climb_m)
     kf = vehicle.thrust_coefficient_kf
-    phases, forces = set(), np.full(4, hover)
-    for tick in range(int(12.0 * SIM.tick_rate_hz)):
+    forces = np.full(4, hover)
+    for tick in range(int(max_s * SIM.tick_rate_hz)):
         t = tick / SIM.tick_rate_hz
         if tick % 2 == 0:  # 200 Hz
             step = ctrl.step(t, plant.x[:13], settle_s=0.5, solve=True)
-            phases.add(step.phase)
-            if step.done:
-                break
+            yield t, step, plant
             forces = kf * np.asarray(step.plan["controls_rad_s"]) ** 2
         _tick(plant, SIM, _plant_command(vehicle, forces))
+
+
+def test_baseline_flip_item_hands_back_after_recovery():
+    """The flip item of the planner service with the baseline ends (done) once the vehicle is
+    calm where the baseline holds after recovery: that is above the item's altitude (it climbs
+    1 m to roll), so settling towards the item's altitude never ended (flip-aborted)."""
+    phases = set()
+    for t, step, plant in _fly_baseline_item():
+        phases.add(step.phase)
+        if step.done:
+            break
     assert {"flip", "recovery", "settle"} <= phases
     assert step.done, f"not handed back after {t:.1f} s (z {plant.position_m[2]:.2f} m)"
     assert plant.position_m[2] > 5.0
@@ -335,26 +344,12 @@ def test_baseline_needs_its_climb_to_keep_its_height(climb_m):
     full-thrust climb first (1 m, the default) it reaches the roll fast enough to rise through
     it; rolled from the hover (baseline_climb_m 0) it falls metres (on the stack: to the ground
     from 5 m). Truth plant, no noise, the planner service's FlipController."""
-    from bench.flip_sim import _plant_command, _tick, SIM
-    from flight.flip_runner import FlipController
-    from simulator.plant import Plant
-    vehicle = load_vehicle("q820")
-    hover = vehicle.hover_thrust_per_motor_n
-    plant = Plant(vehicle, position_m=(0.0, 0.0, 5.0), motor_thrust_n=np.full(4, hover))
-    ctrl = FlipController(vehicle, "baseline")
-    ctrl.start(0.0, plant.x[:13], 5.0, baseline_climb_m=climb_m)
-    kf = vehicle.thrust_coefficient_kf
-    forces, lowest_m, phase = np.full(4, hover), 5.0, "takeoff"
-    for tick in range(int(4.0 * SIM.tick_rate_hz)):
-        if tick % 2 == 0:  # 200 Hz
-            step = ctrl.step(tick / SIM.tick_rate_hz, plant.x[:13], settle_s=0.5, solve=True)
-            phase = step.phase
-            if phase == "settle":  # recovered
-                break
-            forces = kf * np.asarray(step.plan["controls_rad_s"]) ** 2
-        _tick(plant, SIM, _plant_command(vehicle, forces))
+    lowest_m = 5.0
+    for _, step, plant in _fly_baseline_item(climb_m, max_s=4.0):
         lowest_m = min(lowest_m, plant.position_m[2])
-    assert phase == "settle"
+        if step.phase == "settle":  # recovered
+            break
+    assert step.phase == "settle"
     if climb_m > 0:
         assert lowest_m > 5.0 - 0.01
     else:
