@@ -1,4 +1,10 @@
-"""Mixer (body wrench -> rotor forces) and the linear force <-> PWM map of document 000."""
+"""Mixer (body wrench -> rotor forces) and the linear force <-> PWM map of document 000.
+
+The 400 Hz paths (mix, thrust_to_pwm, pwm_to_thrust) work on Python floats with the
+vehicle's M^-1 and limits read once per vehicle: numpy's ~1 us per call on 4-vectors was
+most of their time. tests/unit/test_mixer_fast.py checks them against the former numpy
+versions (tests/unit/sim_reference.py), saturation cases included.
+"""
 from __future__ import annotations
 
 import numpy as np
@@ -6,6 +12,36 @@ import numpy as np
 from flight.vehicle import Vehicle
 
 _EPS = 1e-12
+
+
+class _Consts:
+    """What the mixer reads of a vehicle, as floats (vehicles are frozen)."""
+
+    __slots__ = ("m_inv", "lo", "hi", "limit", "pwm_min", "pwm_max", "pwm_span", "max_thrust")
+
+    def __init__(self, vehicle: Vehicle):
+        self.m_inv = tuple(tuple(row) for row in np.asarray(vehicle.allocation_inv, dtype=np.float64).tolist())
+        self.lo, self.hi = float(vehicle.min_thrust_n), float(vehicle.max_thrust_n)
+        self.limit = self.hi - self.lo
+        self.pwm_min, self.pwm_max = float(vehicle.pwm_min_us), float(vehicle.pwm_max_us)
+        self.pwm_span = vehicle.pwm_max_us - vehicle.pwm_min_us
+        self.max_thrust = vehicle.max_thrust_n
+
+
+_CONSTS: dict[int, tuple[Vehicle, _Consts]] = {}  # id(vehicle) -> (vehicle, its constants)
+
+
+def _consts(vehicle: Vehicle) -> _Consts:
+    # keyed by identity (hashing a dataclass of tuples costs more than the mixing); the
+    # entry holds the vehicle, so an id is never reused while its entry is alive
+    entry = _CONSTS.get(id(vehicle))
+    if entry is not None and entry[0] is vehicle:
+        return entry[1]
+    if len(_CONSTS) >= 64:
+        _CONSTS.clear()
+    c = _Consts(vehicle)
+    _CONSTS[id(vehicle)] = (vehicle, c)
+    return c
 
 
 def _spread(f: np.ndarray) -> float:
@@ -27,6 +63,23 @@ def _max_scale(base: np.ndarray, part: np.ndarray, limit: float) -> float:
     return max(0.0, s)
 
 
+def _max_scale_floats(base, part, limit: float) -> float:
+    """_max_scale on sequences of 4 floats."""
+    s = 1.0
+    for bi, pi in zip(base, part):
+        for bj, pj in zip(base, part):
+            dp = pi - pj
+            if dp > _EPS:
+                s = min(s, (limit - (bi - bj)) / dp)
+    return max(0.0, s)
+
+
+def _clip(x: float, lo: float, hi: float) -> float:
+    """np.clip on floats: min(max(x, lo), hi), NaN kept."""
+    x = lo if x < lo else x
+    return hi if x > hi else x
+
+
 def mix(vehicle: Vehicle, thrust_n: float, torque_nm) -> tuple[np.ndarray, bool]:
     """F = M^-1 u with saturation to [min_thrust_n, max_thrust_n].
 
@@ -36,6 +89,51 @@ def mix(vehicle: Vehicle, thrust_n: float, torque_nm) -> tuple[np.ndarray, bool]
     roll/pitch; then the collective is shifted so every motor fits.
     Returns (forces_n (4,), saturated).
     """
+    forces, saturated = mix_floats(vehicle, thrust_n, torque_nm)
+    return np.array(forces), saturated
+
+
+def mix_floats(vehicle: Vehicle, thrust_n: float, torque_nm) -> tuple[list, bool]:
+    """mix() with the forces as a list of 4 floats (the same numbers)."""
+    if type(torque_nm) in (list, tuple) and len(torque_nm) == 3:
+        t0, t1, t2 = float(torque_nm[0]), float(torque_nm[1]), float(torque_nm[2])
+    else:
+        t0, t1, t2 = np.asarray(torque_nm, dtype=np.float64).reshape(3).tolist()
+    if (t0 - t0) + (t1 - t1) + (t2 - t2) != 0.0:  # a non-finite torque: numpy's NaN rules
+        forces, saturated = _mix_array(vehicle, thrust_n, (t0, t1, t2))
+        return forces.tolist(), saturated
+    c = _consts(vehicle)
+    lo, hi, limit = c.lo, c.hi, c.limit
+    (_, a1, a2, a3), (_, b1, b2, b3), (_, c1, c2, c3), (_, d1, d2, d3) = c.m_inv
+    saturated = False
+
+    rp = [a1 * t0 + a2 * t1, b1 * t0 + b2 * t1, c1 * t0 + c2 * t1, d1 * t0 + d2 * t1]  # roll/pitch part
+    yw = [a3 * t2, b3 * t2, c3 * t2, d3 * t2]                                          # yaw part
+    both = [rp[0] + yw[0], rp[1] + yw[1], rp[2] + yw[2], rp[3] + yw[3]]
+    if max(both) - min(both) > limit + _EPS:
+        saturated = True
+        spread_rp = max(rp) - min(rp)
+        if spread_rp > limit:
+            k = limit / spread_rp  # roll/pitch alone do not fit: drop yaw, scale them
+            rp = [rp[0] * k, rp[1] * k, rp[2] * k, rp[3] * k]
+            yw = [0.0, 0.0, 0.0, 0.0]
+        else:
+            k = _max_scale_floats(rp, yw, limit)
+            yw = [yw[0] * k, yw[1] * k, yw[2] * k, yw[3] * k]
+    diff = [rp[0] + yw[0], rp[1] + yw[1], rp[2] + yw[2], rp[3] + yw[3]]
+
+    # Collective: the validated vehicle's M^-1 [T,0,0,0] is T/4 per motor.
+    collective = float(thrust_n) / 4.0
+    shifted = _clip(collective, lo - min(diff), hi - max(diff))
+    if abs(shifted - collective) > 1e-9:
+        saturated = True
+    # clip only removes rounding here
+    return [_clip(shifted + diff[0], lo, hi), _clip(shifted + diff[1], lo, hi),
+            _clip(shifted + diff[2], lo, hi), _clip(shifted + diff[3], lo, hi)], saturated
+
+
+def _mix_array(vehicle: Vehicle, thrust_n: float, torque_nm) -> tuple[np.ndarray, bool]:
+    """mix() in numpy: what mix_floats uses for a non-finite torque (NaN in, NaN out)."""
     torque = np.asarray(torque_nm, dtype=np.float64).reshape(3)
     m_inv = vehicle.allocation_inv
     lo, hi = vehicle.min_thrust_n, vehicle.max_thrust_n
@@ -65,14 +163,32 @@ def mix(vehicle: Vehicle, thrust_n: float, torque_nm) -> tuple[np.ndarray, bool]
 def thrust_to_pwm(vehicle: Vehicle, forces_n) -> np.ndarray:
     """Linear map of 000: pwm = pwm_min + F/max_thrust*(pwm_max-pwm_min), clipped."""
     f = np.asarray(forces_n, dtype=np.float64)
+    if f.shape == (4,):
+        return np.array(thrust_to_pwm_floats(vehicle, f.tolist()))
     span = vehicle.pwm_max_us - vehicle.pwm_min_us
     pwm = vehicle.pwm_min_us + f / vehicle.max_thrust_n * span
     return np.clip(pwm, vehicle.pwm_min_us, vehicle.pwm_max_us)
 
 
+def thrust_to_pwm_floats(vehicle: Vehicle, forces_n) -> list:
+    """thrust_to_pwm on a sequence of floats, as a list."""
+    c = _consts(vehicle)
+    lo, hi, span, f_max = c.pwm_min, c.pwm_max, c.pwm_span, c.max_thrust
+    return [_clip(lo + f / f_max * span, lo, hi) for f in forces_n]
+
+
 def pwm_to_thrust(vehicle: Vehicle, pwm_us) -> np.ndarray:
     """Inverse of thrust_to_pwm, clipped to [min_thrust_n, max_thrust_n]."""
     p = np.asarray(pwm_us, dtype=np.float64)
+    if p.shape == (4,):
+        return np.array(pwm_to_thrust_floats(vehicle, p.tolist()))
     span = vehicle.pwm_max_us - vehicle.pwm_min_us
     f = (p - vehicle.pwm_min_us) / span * vehicle.max_thrust_n
     return np.clip(f, vehicle.min_thrust_n, vehicle.max_thrust_n)
+
+
+def pwm_to_thrust_floats(vehicle: Vehicle, pwm_us) -> list:
+    """pwm_to_thrust on a sequence of floats, as a list."""
+    c = _consts(vehicle)
+    p_min, span, f_max, f_min = c.pwm_min, c.pwm_span, c.max_thrust, c.lo
+    return [_clip((p - p_min) / span * f_max, f_min, f_max) for p in pwm_us]

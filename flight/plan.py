@@ -128,7 +128,27 @@ def motor_forces_update(forces_n, command_n, dt_s: float, motor_time_constant_s:
     """Rotor forces after dt_s under a held command with a first-order lag (as
     flight.ilqr.motor_forces_update and the simulator's motors)."""
     decay = math.exp(-dt_s / motor_time_constant_s)
-    return np.asarray(command_n) + (np.asarray(forces_n) - np.asarray(command_n)) * decay
+    c = np.asarray(command_n)
+    return c + (np.asarray(forces_n) - c) * decay
+
+
+# allocation matrices seen by scale_collective -> (the matrix, the first column of its inverse);
+# by identity: a vehicle's allocation is computed once (Vehicle.allocation) and never changed
+_COLLECTIVE_COLUMN: dict[int, tuple[np.ndarray, tuple]] = {}
+
+
+def _collective_column(allocation) -> tuple | None:
+    """M^-1 [1, 0, 0, 0] as 4 floats for a 4x4 allocation array, else None."""
+    entry = _COLLECTIVE_COLUMN.get(id(allocation))
+    if entry is not None and entry[0] is allocation:
+        return entry[1]
+    if type(allocation) is not np.ndarray or allocation.shape != (4, 4):
+        return None
+    if len(_COLLECTIVE_COLUMN) >= 64:
+        _COLLECTIVE_COLUMN.clear()
+    column = tuple(np.linalg.solve(allocation, np.array([1.0, 0.0, 0.0, 0.0])).tolist())
+    _COLLECTIVE_COLUMN[id(allocation)] = (allocation, column)
+    return column
 
 
 def scale_collective(allocation, forces_n, factor: float) -> np.ndarray:
@@ -139,7 +159,18 @@ def scale_collective(allocation, forces_n, factor: float) -> np.ndarray:
     heavier). The driver sends scale_collective(A, plan forces, 1/s) so the vehicle
     accelerates as planned, and the planner models what was sent as
     scale_collective(A, sent, s). Torques are left alone: a payload changes mass, not
-    what a rotor force does about the centre."""
-    wrench = np.asarray(allocation) @ np.asarray(forces_n, dtype=np.float64)
-    wrench[0] *= factor
-    return np.linalg.solve(allocation, wrench)
+    what a rotor force does about the centre.
+
+    Computed as F + M^-1 [(factor - 1) T, 0, 0, 0] with T the collective of F (M^-1's
+    first column cached per allocation): the same as solving M F' = [factor T, torques]."""
+    f = np.asarray(forces_n, dtype=np.float64)
+    column = _collective_column(allocation) if f.shape == (4,) else None
+    if column is None:
+        wrench = np.asarray(allocation) @ f
+        wrench[0] *= factor
+        return np.linalg.solve(allocation, wrench)
+    f0, f1, f2, f3 = f.tolist()
+    r0, r1, r2, r3 = allocation[0].tolist()
+    extra = (factor - 1.0) * (r0 * f0 + r1 * f1 + r2 * f2 + r3 * f3)
+    k0, k1, k2, k3 = column
+    return np.array([f0 + k0 * extra, f1 + k1 * extra, f2 + k2 * extra, f3 + k3 * extra])

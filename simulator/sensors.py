@@ -28,14 +28,49 @@ class Imu:
         self.gyro_bias = rng.normal(0.0, math.sqrt(cfg.gyro_bias_var), 3)
         self.accel_bias = rng.normal(0.0, math.sqrt(cfg.accel_bias_var), 3)
 
+    # the biases are kept as floats (sampled at 400 Hz); read and set as arrays
+    @property
+    def gyro_bias(self) -> np.ndarray:
+        return np.array(self._gyro_bias)
+
+    @gyro_bias.setter
+    def gyro_bias(self, value) -> None:
+        self._gyro_bias = np.asarray(value, dtype=np.float64).reshape(3).tolist()
+
+    @property
+    def accel_bias(self) -> np.ndarray:
+        return np.array(self._accel_bias)
+
+    @accel_bias.setter
+    def accel_bias(self, value) -> None:
+        self._accel_bias = np.asarray(value, dtype=np.float64).reshape(3).tolist()
+
     def sample(self, rotation, rate_rad_s, accel_world_m_s2, gravity_m_s2: float) -> dict:
-        specific_world = np.asarray(accel_world_m_s2) - np.array([0.0, 0.0, -gravity_m_s2])
-        gyro = rate_rad_s + self.gyro_bias + self.rng.normal(0.0, self.gyro_std, 3)
-        accel = rotation.T @ specific_world + self.accel_bias + self.rng.normal(0.0, self.accel_std, 3)
+        r = np.asarray(rotation, dtype=np.float64).reshape(9).tolist()
+        return self.sample_rows(r, np.asarray(rate_rad_s, dtype=np.float64).reshape(3).tolist(),
+                                np.asarray(accel_world_m_s2, dtype=np.float64).reshape(3).tolist(),
+                                float(gravity_m_s2))
+
+    def sample_rows(self, r, rate_rad_s, accel_world_m_s2, gravity_m_s2: float) -> dict:
+        """sample() on floats: r = R body->world row-major (9), rate and acceleration (3 each).
+
+        The draws are those of four normal(0, std, 3) calls in turn (gyro noise, accel noise,
+        gyro walk, accel walk), taken as one standard_normal(12): numpy's normal(0, s) is
+        s * its standard normal, so the noise and the generator's state are unchanged."""
+        z = self.rng.standard_normal(12).tolist()
+        gs, as_, gw, aw = self.gyro_std, self.accel_std, self.gyro_walk, self.accel_walk
+        gb, ab = self._gyro_bias, self._accel_bias
+        sx, sy, sz = accel_world_m_s2
+        sz = sz + gravity_m_s2  # specific force: a - g
+        wx, wy, wz = rate_rad_s
+        gyro = [wx + gb[0] + gs * z[0], wy + gb[1] + gs * z[1], wz + gb[2] + gs * z[2]]
+        accel = [r[0] * sx + r[3] * sy + r[6] * sz + ab[0] + as_ * z[3],
+                 r[1] * sx + r[4] * sy + r[7] * sz + ab[1] + as_ * z[4],
+                 r[2] * sx + r[5] * sy + r[8] * sz + ab[2] + as_ * z[5]]
         # bias walk after the sample: the bias of this sample is the one drawn before
-        self.gyro_bias = self.gyro_bias + self.rng.normal(0.0, self.gyro_walk, 3)
-        self.accel_bias = self.accel_bias + self.rng.normal(0.0, self.accel_walk, 3)
-        return {"gyro_rad_s": [float(e) for e in gyro], "accel_m_s2": [float(e) for e in accel]}
+        self._gyro_bias = [gb[0] + gw * z[6], gb[1] + gw * z[7], gb[2] + gw * z[8]]
+        self._accel_bias = [ab[0] + aw * z[9], ab[1] + aw * z[10], ab[2] + aw * z[11]]
+        return {"gyro_rad_s": gyro, "accel_m_s2": accel}
 
 
 def altitude_to_pressure_pa(altitude_m: float) -> float:
@@ -64,8 +99,15 @@ class Magnetometer:
         self.noise_ut = cfg.mag_noise_ut
 
     def sample(self, rotation) -> dict:
-        b = rotation.T @ self.field_world_ut + self.rng.normal(0.0, self.noise_ut, 3)
-        return {"field_ut": [float(e) for e in b]}
+        return self.sample_rows(np.asarray(rotation, dtype=np.float64).reshape(9).tolist())
+
+    def sample_rows(self, r) -> dict:
+        """sample() with R body->world row-major as 9 floats."""
+        fx, fy, fz = self.field_world_ut.tolist()
+        n0, n1, n2 = self.rng.normal(0.0, self.noise_ut, 3).tolist()
+        return {"field_ut": [r[0] * fx + r[3] * fy + r[6] * fz + n0,
+                             r[1] * fx + r[4] * fy + r[7] * fz + n1,
+                             r[2] * fx + r[5] * fy + r[8] * fz + n2]}
 
 
 class MarkerCamera:

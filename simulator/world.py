@@ -9,11 +9,11 @@ from collections import deque
 
 import numpy as np
 
-from flight.mixer import pwm_to_thrust
+from flight.mixer import pwm_to_thrust_floats
 from flight.vehicle import Vehicle
 from simulator.battery import Battery
 from simulator.config import SimConfig
-from simulator.plant import Plant
+from simulator.plant import Plant, rotation_rows
 from simulator.sensors import Barometer, Imu, Magnetometer, MarkerCamera
 
 _RATE_KEYS = {"imu": "imu_rate_hz", "baro": "baro_rate_hz", "mag": "mag_rate_hz",
@@ -48,10 +48,16 @@ class Simulator:
         start_in_air = cfg.initial_position_m[2] > 0.0
         motors = np.full(4, vehicle.hover_thrust_per_motor_n) if start_in_air else np.zeros(4)
         self.plant = Plant(vehicle, cfg.initial_position_m, cfg.initial_yaw_rad, motors)
-        self._thrust_cmd_n = motors.copy()
+        self._thrust_cmd_n = motors.tolist()  # floats
 
         self._wind_const = np.asarray(cfg.wind_m_s, dtype=np.float64)
+        self._wind_const_f = self._wind_const.tolist()
         self._gust = self._wind_rng.normal(0.0, cfg.gust_std_m_s, 3)  # stationary start
+        # Gauss-Markov gust, exact discretisation over one tick: g <- a g + b n
+        self._gust_a = a = math.exp(-self._dt_tick_s / cfg.gust_tau_s)
+        self._gust_b = cfg.gust_std_m_s * math.sqrt(1.0 - a * a)
+        self._divisors = tuple(self._divisor[topic] for topic in self.TOPICS)
+        self._g = float(vehicle.gravity_m_s2)
         self._pending_frames: deque = deque()   # (publish_tick, exposure_t_s, fields)
         self._outputs_tick = -1
         self._outputs: list = []
@@ -64,7 +70,21 @@ class Simulator:
 
     @property
     def wind_m_s(self) -> np.ndarray:
-        return self._wind_const + self._gust
+        return np.array(self._wind)
+
+    @property
+    def _wind(self) -> list:
+        """The wind now as 3 floats: constant + gust."""
+        (a, b, c), (d, e, f) = self._wind_const_f, self._gust_f
+        return [a + d, b + e, c + f]
+
+    @property
+    def _gust(self) -> np.ndarray:
+        return np.array(self._gust_f)
+
+    @_gust.setter
+    def _gust(self, value) -> None:
+        self._gust_f = np.asarray(value, dtype=np.float64).reshape(3).tolist()
 
     @property
     def landed(self) -> bool:
@@ -73,16 +93,19 @@ class Simulator:
     @property
     def state(self) -> dict:
         """Ground truth now, as plain Python values (the 'truth' message fields)."""
+        return self._truth(self.plant.acceleration_floats(self._wind))
+
+    def _truth(self, acc) -> dict:
         p = self.plant
-        acc = p.acceleration_m_s2(self._thrust_cmd_n, self.wind_m_s)
+        x = p.x.tolist()
         return {
-            "position_m": [float(e) for e in p.position_m],
-            "velocity_m_s": [float(e) for e in p.velocity_m_s],
-            "quaternion_wxyz": [float(e) for e in p.quaternion],
-            "rate_rad_s": [float(e) for e in p.rate_rad_s],
-            "acceleration_m_s2": [float(e) for e in acc],
-            "motor_thrust_n": [float(e) for e in p.motor_thrust_n],
-            "wind_m_s": [float(e) for e in self.wind_m_s],
+            "position_m": x[0:3],
+            "velocity_m_s": x[3:6],
+            "quaternion_wxyz": x[6:10],
+            "rate_rad_s": x[10:13],
+            "acceleration_m_s2": list(acc),
+            "motor_thrust_n": x[13:17],
+            "wind_m_s": list(self._wind),
             "landed": bool(p.landed),
         }
 
@@ -97,53 +120,63 @@ class Simulator:
         """
         if self._outputs_tick == self.tick:
             return list(self._outputs)
+        tick = self.tick
         t = self.t
         p = self.plant
-        rot = p.rotation
+        d_imu, d_baro, d_mag, d_camera, d_truth, d_battery = self._divisors
         out: list[tuple[str, float, dict]] = []
-        if self._due("imu"):
-            acc = p.acceleration_m_s2(self._thrust_cmd_n, self.wind_m_s)
-            sample = self.imu.sample(rot, p.rate_rad_s, acc, self.vehicle.gravity_m_s2)
-            self._pending_imu.append((self.tick + self._imu_delay_ticks, t, sample))
-        while self._pending_imu and self._pending_imu[0][0] <= self.tick:
+        rot = acc = None
+        if tick % d_imu == 0:
+            x = p.x.tolist()
+            rot = rotation_rows(*x[6:10])
+            acc = p.acceleration_floats(self._wind)
+            sample = self.imu.sample_rows(rot, x[10:13], acc, self._g)
+            self._pending_imu.append((tick + self._imu_delay_ticks, t, sample))
+        while self._pending_imu and self._pending_imu[0][0] <= tick:
             _, sample_t, sample = self._pending_imu.popleft()
             out.append(("imu", sample_t, sample))
-        if self._due("baro"):
-            out.append(("baro", t, self.baro.sample(float(p.position_m[2]))))
-        if self._due("mag"):
-            out.append(("mag", t, self.mag.sample(rot)))
+        if tick % d_baro == 0:
+            out.append(("baro", t, self.baro.sample(float(p.x[2]))))
+        if tick % d_mag == 0:
+            if rot is None:
+                rot = p.rotation_rows()
+            out.append(("mag", t, self.mag.sample_rows(rot)))
         cfg = self.config
         silent = 0.0 <= cfg.camera_outage_start_s <= t < cfg.camera_outage_start_s + cfg.camera_outage_s
-        if self._due("camera") and not silent:
+        if tick % d_camera == 0 and not silent:
             frame = self.camera.sample(p.position_m, p.quaternion)
             if frame is not None:
-                self._pending_frames.append((self.tick + self._camera_delay_ticks, t, frame))
-        while self._pending_frames and self._pending_frames[0][0] <= self.tick:
+                self._pending_frames.append((tick + self._camera_delay_ticks, t, frame))
+        while self._pending_frames and self._pending_frames[0][0] <= tick:
             _, exposure_t, frame = self._pending_frames.popleft()
             out.append(("camera", exposure_t, frame))
-        if self._due("truth"):
-            out.append(("truth", t, self.state))
-        if self._due("battery"):
+        if tick % d_truth == 0:
+            out.append(("truth", t, self._truth(acc if acc is not None else p.acceleration_floats(self._wind))))
+        if tick % d_battery == 0:
             out.append(("battery", t, self.battery.fields()))
-        self._outputs_tick = self.tick
+        self._outputs_tick = tick
         self._outputs = out
         return list(out)
 
     def step(self, pwm_us, armed: bool) -> None:
         """Advance one tick with the PWM held constant (zero thrust when disarmed)."""
         pwm = np.asarray(pwm_us, dtype=np.float64)
-        if pwm.shape != (4,) or not np.all(np.isfinite(pwm)):
+        if pwm.shape != (4,):
             raise ValueError(f"step: pwm_us must be 4 finite numbers, got {pwm_us!r}")
-        self.outputs()  # make sure this tick's samples/exposures happened (determinism)
-        self._thrust_cmd_n = pwm_to_thrust(self.vehicle, pwm) if armed else np.zeros(4)
-        wind = self.wind_m_s
+        p0, p1, p2, p3 = pwm.tolist()
+        if not (math.isfinite(p0) and math.isfinite(p1) and math.isfinite(p2) and math.isfinite(p3)):
+            raise ValueError(f"step: pwm_us must be 4 finite numbers, got {pwm_us!r}")
+        if self._outputs_tick != self.tick:
+            self.outputs()  # make sure this tick's samples/exposures happened (determinism)
+        cmd = pwm_to_thrust_floats(self.vehicle, (p0, p1, p2, p3)) if armed else [0.0, 0.0, 0.0, 0.0]
+        self._thrust_cmd_n = cmd
         n = self.config.physics_substeps
-        dt = self._dt_tick_s / n
-        for _ in range(n):
-            self.plant.step(dt, self._thrust_cmd_n, wind)
-        self.battery.step(self._dt_tick_s, self.plant.motor_thrust_n)
+        self.plant._advance(self._dt_tick_s / n, n, cmd, self._wind)
+        self.battery.step(self._dt_tick_s, self.plant.x[13:17])
         self.tick += 1
-        # Gauss-Markov gust, exact discretisation over one tick
-        cfg = self.config
-        a = math.exp(-self._dt_tick_s / cfg.gust_tau_s)
-        self._gust = a * self._gust + cfg.gust_std_m_s * math.sqrt(1.0 - a * a) * self._wind_rng.normal(0.0, 1.0, 3)
+        if self._gust_b != 0.0:
+            # (with no gust, the wind's own generator is not drawn from: nothing else uses it)
+            a, b = self._gust_a, self._gust_b
+            n0, n1, n2 = self._wind_rng.normal(0.0, 1.0, 3).tolist()
+            g0, g1, g2 = self._gust_f
+            self._gust_f = [a * g0 + b * n0, a * g1 + b * n1, a * g2 + b * n2]

@@ -1,0 +1,143 @@
+"""Time of the simulator's 400 Hz tick and of the motor driver's per-step mixing, against
+the 2.5 ms period they must fit in, with the former numpy implementation as the baseline.
+
+    python bench/sim_step.py [--vehicle x250] [--ticks 2000] [--calls 20000] [--rounds 5]
+
+Per tick: Simulator.outputs() + Simulator.step() (5 RK4 substeps, the sensors due at that
+tick, the truth, the battery; no Zenoh), hovering in the air and resting on the ground.
+Per call: the mixer and the helpers services/motors.py calls every step. Each figure is the
+best of --rounds rounds (mean per tick or call within a round); "old" is
+tests/unit/sim_reference.py (the numpy code before the float rewrite), run in the same
+process on the same inputs, the two alternating round by round.
+"""
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from flight.mixer import mix, thrust_to_pwm  # noqa: E402
+from flight.plan import motor_forces_update, scale_collective  # noqa: E402
+from flight.vehicle import load_vehicle  # noqa: E402
+from simulator import SimConfig, Simulator  # noqa: E402
+from simulator.plant import Plant  # noqa: E402
+from tests.unit.sim_reference import (RefPlant, RefSimulator, ref_mix, ref_motor_forces_update,  # noqa: E402
+                                      ref_scale_collective, ref_thrust_to_pwm)
+
+PERIOD_US = 1e6 / 400.0
+
+
+def best_us(fn, n: int, rounds: int, other=None, other_best=None) -> float:
+    """Best mean time per call of fn over `rounds` rounds of n calls (alternating with other)."""
+    best = float("inf")
+    for _ in range(rounds):
+        t0 = time.perf_counter()
+        fn(n)
+        best = min(best, (time.perf_counter() - t0) / n * 1e6)
+        if other is not None:
+            t0 = time.perf_counter()
+            other(n)
+            other_best[0] = min(other_best[0], (time.perf_counter() - t0) / n * 1e6)
+    return best
+
+
+def pair_us(new, old, n: int, rounds: int) -> tuple[float, float]:
+    old_best = [float("inf")]
+    return best_us(new, n, rounds, old, old_best), old_best[0]
+
+
+def sim_loop(sim_cls, vehicle, cfg, pwm, armed):
+    sim = sim_cls(vehicle, cfg, seed=0)
+    for _ in range(40):  # past the first camera frame and truth
+        sim.outputs()
+        sim.step(pwm, armed)
+
+    def run(n):
+        for _ in range(n):
+            sim.outputs()
+            sim.step(pwm, armed)
+    return run
+
+
+def calls(fn, *args):
+    def run(n):
+        for _ in range(n):
+            fn(*args)
+    return run
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--vehicle", default="x250")
+    ap.add_argument("--ticks", type=int, default=2000, help="simulator ticks per round (default 2000 = 5 s)")
+    ap.add_argument("--calls", type=int, default=20000, help="calls per round for the per-call rows")
+    ap.add_argument("--rounds", type=int, default=5)
+    args = ap.parse_args()
+    print("$ python " + " ".join(shlex.quote(a) for a in sys.argv))
+    v = load_vehicle(args.vehicle)
+    hover = v.hover_thrust_per_motor_n
+    hover_pwm = thrust_to_pwm(v, np.full(4, hover))
+    air = SimConfig(initial_position_m=(0.0, 0.0, 1.0))
+    rows = []
+
+    def row(name, new, old, n):
+        t_new, t_old = pair_us(new, old, n, args.rounds)
+        rows.append((name, t_new, t_old))
+
+    row("sim tick: outputs+step, hover in the air", sim_loop(Simulator, v, air, hover_pwm, True),
+        sim_loop(RefSimulator, v, air, hover_pwm, True), args.ticks)
+    row("sim tick: outputs+step, resting disarmed", sim_loop(Simulator, v, SimConfig(), [1000.0] * 4, False),
+        sim_loop(RefSimulator, v, SimConfig(), [1000.0] * 4, False), args.ticks)
+    gusty = SimConfig(initial_position_m=(0.0, 0.0, 1.0), gust_std_m_s=0.5, camera_drop_rate=0.1)
+    row("sim tick: outputs+step, gusts + drops", sim_loop(Simulator, v, gusty, hover_pwm, True),
+        sim_loop(RefSimulator, v, gusty, hover_pwm, True), args.ticks)
+
+    new_p, old_p = Plant(v, position_m=(0, 0, 100.0)), RefPlant(v, position_m=(0, 0, 100.0))
+    cmd, wind = np.full(4, hover), np.array([1.0, 0.0, 0.0])
+
+    def old_substeps(n):
+        for _ in range(n):
+            for _ in range(5):
+                old_p.step(0.0005, cmd, wind)
+    row("plant: 5 RK4 substeps (one tick)", calls(new_p.advance, 0.0005, 5, cmd, wind), old_substeps, args.ticks)
+
+    torque = [0.01, -0.02, 0.003]
+    row("mix, unsaturated", calls(mix, v, 4 * hover, torque), calls(ref_mix, v, 4 * hover, torque), args.calls)
+    big = [1.0, 0.5, 0.01]
+    row("mix, roll/pitch saturated", calls(mix, v, 4 * hover, big), calls(ref_mix, v, 4 * hover, big), args.calls)
+    forces = mix(v, 4 * hover, torque)[0]
+    row("thrust_to_pwm", calls(thrust_to_pwm, v, forces), calls(ref_thrust_to_pwm, v, forces), args.calls)
+    a = v.allocation
+    row("scale_collective", calls(scale_collective, a, forces, 1.01), calls(ref_scale_collective, a, forces, 1.01),
+        args.calls)
+    held = np.zeros(4)
+    row("motor_forces_update", calls(motor_forces_update, held, forces, 0.0025, 0.02),
+        calls(ref_motor_forces_update, held, forces, 0.0025, 0.02), args.calls)
+
+    def driver(mix_fn, pwm_fn, scale_fn, lag_fn):
+        def run(n):
+            h = np.zeros(4)
+            for _ in range(n):
+                f, _ = mix_fn(v, 4 * hover, torque)
+                pwm_fn(v, f)
+                h = lag_fn(h, scale_fn(a, f, 1.01), 0.0025, 0.02)
+        return run
+    row("motor driver step: mix+pwm+scale+lag", driver(mix, thrust_to_pwm, scale_collective, motor_forces_update),
+        driver(ref_mix, ref_thrust_to_pwm, ref_scale_collective, ref_motor_forces_update), args.calls)
+
+    print(f"vehicle {v.name}, best of {args.rounds} rounds; period 2.5 ms (400 Hz)")
+    w = max(len(r[0]) for r in rows)
+    print(f"{'':{w}}  {'new us':>8}  {'old us':>8}  {'old/new':>7}  {'new %':>6}  {'old %':>6}")
+    for name, t_new, t_old in rows:
+        print(f"{name:{w}}  {t_new:8.2f}  {t_old:8.2f}  {t_old / t_new:6.1f}x  {100 * t_new / PERIOD_US:5.2f}%  "
+              f"{100 * t_old / PERIOD_US:5.2f}%")
+
+
+if __name__ == "__main__":
+    main()
