@@ -12,11 +12,21 @@ Delay compensation and latency metrics work from it, never from arrival time.
 Decoding is strict: anything that does not match the definition raises one
 `SchemaError` whose `reason` is one of `REASONS`, so receivers can count
 rejected messages per reason and drop them.
+
+How it is fast: each `Message` compiles its definition once, at construction,
+into specialised encode/decode/validate functions (`_compile`) that do only
+the cheap exact checks a valid message needs. They decide nothing about a bad
+message: whenever one of their checks fails they hand the message to the
+reference path (`_validate_reference`, `_encode_reference`: the generic
+validator walking the Field definitions), which finds the reason and the
+detail text. So the compiled path may only ever accept what the reference
+path accepts; every reason and message text comes from the reference path.
 """
 
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -75,6 +85,16 @@ class Message:
 
     def __post_init__(self):
         self._by_name.update({f.name: f for f in self.fields})
+        for name, value in _compile(self).items():  # the definition is frozen: compile it once
+            object.__setattr__(self, name, value)
+
+    def __getstate__(self):  # pickle/deepcopy: the definition, not its compiled functions
+        return {k: v for k, v in self.__dict__.items() if k not in _COMPILED}
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        for name, value in _compile(self).items():
+            object.__setattr__(self, name, value)
 
     def key(self, vehicle: int | str = 0, service: str | None = None) -> str:
         topic = self.topic.format(service=service) if "{service}" in self.topic else self.topic
@@ -84,47 +104,16 @@ class Message:
     def encode(self, t_s: float, seq: int, source: str, values: dict[str, Any]) -> bytes:
         """Validate `values` and pack them; invalid values raise SchemaError
         on the sender's side, so a NaN is never put on the wire."""
-        doc = {"version": self.version, "header": {"t_s": float(t_s), "seq": int(seq), "source": source}}
-        for f in self.fields:
-            if f.name not in values:
-                raise SchemaError("missing_field", self.name, f.name)
-            doc[f.name] = _plain(values[f.name])
-        extra = set(values) - set(self._by_name)
-        if extra:
-            raise SchemaError("unknown_field", self.name, ", ".join(sorted(extra)))
-        self.validate(doc)
-        return msgpack.packb(doc, use_bin_type=True)
+        return self._encode(t_s, seq, source, values)
 
     # -- decoding -------------------------------------------------------
     def decode(self, payload: bytes) -> dict:
         """Unpack and validate; returns the map (header included)."""
-        try:
-            doc = msgpack.unpackb(payload, raw=False, strict_map_key=True)
-        except Exception as exc:  # msgpack raises several unrelated types
-            raise SchemaError("malformed", self.name, f"not MessagePack ({type(exc).__name__})") from None
-        self.validate(doc)
-        return doc
+        return self._decode(payload)
 
     def validate(self, doc: Any) -> None:
-        if not isinstance(doc, dict):
-            raise SchemaError("malformed", self.name, f"expected a map, got {type(doc).__name__}")
-        version = doc.get("version")
-        if version is None:
-            raise SchemaError("missing_field", self.name, "version")
-        if version != self.version:
-            raise SchemaError("wrong_version", self.name, f"got {version!r}, expected {self.version}")
-        _check_header(self.name, doc.get("header"))
-        for f in self.fields:
-            if f.name not in doc:
-                raise SchemaError("missing_field", self.name, f.name)
-            _check_field(self.name, f, doc[f.name])
-        if len(doc) != len(self.fields) + 2:
-            extra = set(doc) - set(self._by_name) - {"version", "header"}
-            raise SchemaError("unknown_field", self.name, ", ".join(sorted(map(str, extra))))
-        if self.check is not None:
-            problem = self.check(doc)
-            if problem:
-                raise SchemaError("wrong_length", self.name, problem)
+        """Raise SchemaError unless `doc` (a decoded map) matches the definition."""
+        self._validate(doc)
 
 
 HEADER_FIELDS = (
@@ -132,6 +121,46 @@ HEADER_FIELDS = (
     Field("seq", "int", "sequence number per sender and key, from 0", min=0),
     Field("source", "str", "name of the sending service"),
 )
+
+
+# ---------------------------------------------------------------- reference path
+# The generic validator: slow, but it is the definition of what is valid and of
+# every reason and detail text. The compiled functions fall back to it.
+
+def _validate_reference(m: Message, doc: Any) -> None:
+    if not isinstance(doc, dict):
+        raise SchemaError("malformed", m.name, f"expected a map, got {type(doc).__name__}")
+    version = doc.get("version")
+    if version is None:
+        raise SchemaError("missing_field", m.name, "version")
+    if version != m.version:
+        raise SchemaError("wrong_version", m.name, f"got {version!r}, expected {m.version}")
+    _check_header(m.name, doc.get("header"))
+    for f in m.fields:
+        if f.name not in doc:
+            raise SchemaError("missing_field", m.name, f.name)
+        _check_field(m.name, f, doc[f.name])
+    if len(doc) != len(m.fields) + 2:
+        extra = set(doc) - set(m._by_name) - {"version", "header"}
+        raise SchemaError("unknown_field", m.name, ", ".join(sorted(map(str, extra))))
+    if m.check is not None:
+        problem = m.check(doc)
+        if problem:
+            raise SchemaError("wrong_length", m.name, problem)
+
+
+def _encode_reference(m: Message, t_s: float, seq: int, source: str, values: dict[str, Any]) -> dict:
+    """The map `encode` packs, built and validated the generic way (raises SchemaError)."""
+    doc = {"version": m.version, "header": {"t_s": float(t_s), "seq": int(seq), "source": source}}
+    for f in m.fields:
+        if f.name not in values:
+            raise SchemaError("missing_field", m.name, f.name)
+        doc[f.name] = _plain(values[f.name])
+    extra = set(values) - set(m._by_name)
+    if extra:
+        raise SchemaError("unknown_field", m.name, ", ".join(sorted(extra)))
+    _validate_reference(m, doc)
+    return doc
 
 
 def _check_header(message: str, header: Any) -> None:
@@ -199,10 +228,187 @@ def _check_field(message: str, f: Field, v: Any, prefix: str = "") -> None:
 
 def _plain(v: Any) -> Any:
     """numpy scalars/arrays -> plain Python values that msgpack packs."""
-    if hasattr(v, "tolist"):
-        return v.tolist()
+    t = type(v)
+    if t is float or t is int or t is str or t is bool:  # none of them has tolist/item
+        return v
+    if t is list:
+        for x in v:
+            if type(x) is not float and type(x) is not int:
+                return [x.item() if hasattr(x, "item") else x for x in v]
+        return v  # floats and ints only: nothing to convert
+    tolist = getattr(v, "tolist", None)
+    if tolist is not None:
+        return tolist()
+    if t is tuple:
+        for x in v:
+            if type(x) is not float and type(x) is not int:
+                return [_plain(x) for x in v]
+        return list(v)
     if isinstance(v, tuple):
         return [_plain(x) for x in v]
     if isinstance(v, list):
         return [x.item() if hasattr(x, "item") else x for x in v]
     return v
+
+
+# ---------------------------------------------------------------- compiled path
+class _Reject(Exception):
+    """Raised inside compiled code: a check failed; the reference path decides."""
+
+
+_tls = threading.local()  # one msgpack Packer per thread (a Packer is not thread safe)
+
+
+def _new_packer() -> msgpack.Packer:
+    _tls.packer = p = msgpack.Packer(use_bin_type=True)  # the options of the old msgpack.packb call
+    return p
+
+
+def _finite_number(b: Any) -> bool:
+    return type(b) in (int, float) and math.isfinite(b)
+
+
+def _scalar_test(f: Field, x: str, consts: dict) -> str:
+    """A Python expression that is true only if the value named `x` passes
+    `_check_scalar` for `f` (it may be false for some valid values: those take the
+    reference path). Float fields take ints, as the reference does, and float
+    subclasses (numpy.float64: msgpack packs them as the float they are)."""
+    kind = f.kind.rstrip("[]")
+    if kind in ("float", "int"):
+        if not all(b is None or _finite_number(b) for b in (f.min, f.max)):
+            return "False"  # odd bounds: always the reference path
+        if kind == "float":
+            test = f"(type({x}) is float or type({x}) is int or isinstance({x}, float))"
+            lo = "_NEG_INF < " if f.min is None else f"{f.min!r} <= "  # infinite bounds exclude NaN/Inf
+            hi = " < _INF" if f.max is None else f" <= {f.max!r}"
+            return f"{test} and {lo}{x}{hi}"
+        test = f"type({x}) is int"
+        if f.min is None and f.max is None:
+            return test
+        lo = "" if f.min is None else f"{f.min!r} <= "
+        hi = "" if f.max is None else f" <= {f.max!r}"
+        return f"{test} and {lo}{x}{hi}"
+    if kind == "bool":
+        return f"type({x}) is bool"
+    test = f"type({x}) is str"  # str
+    if f.choices is not None:
+        if not all(type(c) is str for c in f.choices):
+            return "False"
+        name = f"_C{len(consts)}"
+        consts[name] = frozenset(f.choices)
+        test += f" and {x} in {name}"
+    return test
+
+
+def _field_checks(f: Field, v: str, consts: dict, indent: str) -> list[str]:
+    """Lines that raise _Reject unless the value named `v` passes `_check_field`."""
+    if f.kind.endswith("[]"):
+        cond = f"type({v}) is not list"
+        if f.length is not None:
+            cond += f" or len({v}) != {int(f.length)!r}"
+        return [f"{indent}if {cond}:", f"{indent}    raise _Reject",
+                f"{indent}for x in {v}:",
+                f"{indent}    if not ({_scalar_test(f, 'x', consts)}):", f"{indent}        raise _Reject"]
+    if f.kind == "counts":
+        lo = 0 if f.min is None else f.min
+        if not _finite_number(lo):
+            return [f"{indent}raise _Reject"]
+        return [f"{indent}if type({v}) is not dict:", f"{indent}    raise _Reject",
+                f"{indent}for k, n in {v}.items():",
+                f"{indent}    if type(k) is not str or type(n) is not int or n < {lo!r}:",
+                f"{indent}        raise _Reject"]
+    return [f"{indent}if not ({_scalar_test(f, v, consts)}):", f"{indent}    raise _Reject"]
+
+
+# what `encode` leaves as it is (anything else goes through _plain first)
+_AS_IS = {"float": ("float", "int"), "int": ("int",), "bool": ("bool",), "str": ("str",), "counts": ("dict",)}
+
+
+def _compile(m: Message) -> dict:
+    """Specialised encode/decode/validate functions for one message definition."""
+    consts: dict[str, Any] = {}
+    n_doc = len(m.fields) + 2
+    version = repr(m.version) if type(m.version) is int else "_VERSION"
+    check = ["        if _check(doc):", "            raise _Reject"] if m.check is not None else []
+
+    def doc_checks(indent: str) -> list[str]:
+        lines = [f"{indent}if type(doc) is not dict or len(doc) != {n_doc} or doc['version'] != {version}:",
+                 f"{indent}    raise _Reject",
+                 f"{indent}h = doc['header']",
+                 f"{indent}if type(h) is not dict or len(h) != {len(HEADER_FIELDS)}:",
+                 f"{indent}    raise _Reject"]
+        for i, f in enumerate(HEADER_FIELDS):
+            lines.append(f"{indent}v = h[{f.name!r}]")
+            lines += _field_checks(f, "v", consts, indent)
+        for f in m.fields:
+            lines.append(f"{indent}v = doc[{f.name!r}]")
+            lines += _field_checks(f, "v", consts, indent)
+        return lines
+
+    src = ["def _decode(payload):",
+           "    try:",
+           "        doc = _unpackb(payload, raw=False, strict_map_key=True)",
+           "    except Exception as exc:  # msgpack raises several unrelated types",
+           "        raise _SchemaError('malformed', _NAME, f'not MessagePack ({type(exc).__name__})') from None",
+           "    try:",
+           *doc_checks("        "), *check,
+           "        return doc",
+           "    except Exception:",
+           "        pass",
+           "    _validate_reference(_M, doc)",
+           "    return doc",
+           "",
+           "def _validate(doc):",
+           "    try:",
+           *doc_checks("        "), *check,
+           "        return",
+           "    except Exception:",
+           "        pass",
+           "    _validate_reference(_M, doc)",
+           "",
+           "def _encode(t_s, seq, source, values):",
+           "    try:",
+           "        if type(values) is not dict:",
+           "            raise _Reject",
+           "        _t = float(t_s)",
+           "        _s = int(seq)"]
+    header_vars = {"t_s": "_t", "seq": "_s", "source": "source"}
+    for f in HEADER_FIELDS:
+        src += _field_checks(f, header_vars[f.name], consts, "        ")
+    names = []
+    for i, f in enumerate(m.fields):
+        v = f"v{i}"
+        names.append((f.name, v))
+        as_is = _AS_IS.get(f.kind, ("list",))
+        src += [f"        {v} = values[{f.name!r}]",
+                f"        if {' and '.join(f'type({v}) is not {t}' for t in as_is)}:",
+                f"            {v} = _plain({v})"]
+        src += _field_checks(f, v, consts, "        ")
+    src += [f"        if len(values) != {len(m.fields)}:",
+            "            raise _Reject",
+            f"        doc = {{'version': {version}, 'header': {{'t_s': _t, 'seq': _s, 'source': source}}, "
+            + "".join(f"{name!r}: {v}, " for name, v in names) + "}",
+            *check,
+            "    except Exception:",
+            "        doc = None",
+            "    if doc is None:",
+            "        doc = _encode_reference(_M, t_s, seq, source, values)",
+            "    try:",
+            "        packer = _tls.packer",
+            "    except AttributeError:",
+            "        packer = _new_packer()",
+            "    return packer.pack(doc)",
+            ""]
+    source = "\n".join(src)
+    namespace = {
+        "_M": m, "_NAME": m.name, "_VERSION": m.version, "_check": m.check, "_Reject": _Reject,
+        "_SchemaError": SchemaError, "_unpackb": msgpack.unpackb, "_validate_reference": _validate_reference,
+        "_encode_reference": _encode_reference, "_plain": _plain, "_tls": _tls, "_new_packer": _new_packer,
+        "_INF": math.inf, "_NEG_INF": -math.inf, **consts,
+    }
+    exec(compile(source, f"<schemas codec {m.name}>", "exec"), namespace)
+    return {"_encode": namespace["_encode"], "_decode": namespace["_decode"],
+            "_validate": namespace["_validate"], "_source": source}
+
+
+_COMPILED = ("_encode", "_decode", "_validate", "_source")  # what _compile adds to a Message

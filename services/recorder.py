@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import threading
 from pathlib import Path
+from typing import Callable
 
 import zenoh
 
@@ -19,6 +20,9 @@ from services.runtime import Runtime, main_guard, service_parser
 
 NAME = "recorder"
 PARAMS: dict = {}
+SKIP = object()  # a key the recorder does not log (its own health, liveliness)
+_UNSEEN = object()
+MAX_KEYS = 4096  # keys remembered by the per-key lookup; others are looked up per message
 
 
 def run(args) -> None:
@@ -28,17 +32,32 @@ def run(args) -> None:
     own_health = schemas.HEALTH.key(rt.vehicle_id, NAME)
     records: list[tuple[str, dict]] = []
     lock = threading.Lock()
+    # per key, what to do with its messages: the message's decode, SKIP, or None (no
+    # message defined); looked up once per key, not per message
+    decoders: dict[str, Callable[[bytes], dict] | object | None] = {}  # thread safe: single dict ops
+
+    def decoder_for(key: str):
+        if key == own_health or "/alive/" in key:
+            found = SKIP
+        else:
+            definition = schemas.message_for_key(key)
+            found = None if definition is None else definition.decode
+        if len(decoders) < MAX_KEYS:  # keys come from the network: bound the cache
+            decoders[key] = found
+        return found
 
     def on_sample(sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
-        if key == own_health or "/alive/" in key:
+        decode = decoders.get(key, _UNSEEN)
+        if decode is _UNSEEN:
+            decode = decoder_for(key)
+        if decode is SKIP:
             return
-        definition = schemas.message_for_key(key)
-        if definition is None:
+        if decode is None:
             rt.reject(key, schemas.SchemaError("malformed", "?", f"no message is defined for key {key}"))
             return
         try:
-            msg = definition.decode(sample.payload.to_bytes())
+            msg = decode(sample.payload.to_bytes())
         except schemas.SchemaError as exc:
             rt.reject(key, exc)
             return
