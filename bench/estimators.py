@@ -18,6 +18,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from flight.attitude_filter import AttitudeFilter  # noqa: E402
+from flight.control import STOPPING_ACCEL_FRACTION, attitude_law, stopping_accel  # noqa: E402
 from flight.gyrovertical import GyroIntegrator, GyroVertical, GyroVerticalParams  # noqa: E402
 from flight.position_ekf import PositionEKF  # noqa: E402
 from flight.vehicle import load_vehicle  # noqa: E402
@@ -48,6 +49,29 @@ def main() -> None:
                    (t, rng.normal(0, 3e-3, 3), np.array([0, 0, 9.81]) + rng.normal(0, 1e-2, 3))]
         att.update(samples, None, np.zeros(3), t)
     rows.append(("attitude filter, one 200 Hz call (2 IMU samples)", timeit(attitude_call, 400), 1 / 200))
+
+    # as the attitude service calls it: decoded lists, the samples 4 ms old (the extrapolator
+    # carries the estimate over the delay), the magnetometer every 4th call, an acceleration reference
+    svc = AttitudeFilter(np.asarray(vehicle.inertia_kg_m2))
+    imu = [(rng.normal(0, 3e-3, 3).tolist(), (np.array([0, 0, 9.81]) + rng.normal(0, 1e-2, 3)).tolist())
+           for _ in range(512)]
+    field = [0.0, 20.0, -45.0]
+    clock_svc = {"t": 0.0, "k": 0}
+
+    def service_call():
+        t = clock_svc["t"] = clock_svc["t"] + 0.005
+        k = clock_svc["k"] = (clock_svc["k"] + 2) % 512
+        ts = t - 0.004
+        svc.update([(ts - 0.0025, *imu[k]), (ts, *imu[k + 1])], (ts, field) if k % 8 == 0 else None,
+                   [1e-3, -1e-3, 0.0], t, accel_ref=(ts - 0.11, ts - 0.01, [0.05, -0.02, 0.0]))
+    rows.append(("attitude filter, as the service calls it (+ mag, ref)", timeit(service_call, 400), 1 / 200))
+
+    inertia = vehicle.inertia_kg_m2
+    gains = np.full(3, 16.0)
+    max_accel = stopping_accel(vehicle.max_angular_accel_rad_s2, STOPPING_ACCEL_FRACTION)
+    euler, rates, ref = np.array([0.1, -0.05, 0.3]), np.array([0.2, 0.1, -0.1]), np.array([0.0, 0.0, 0.25])
+    rows.append(("attitude law (8), stopping limit (200 Hz)",
+                 timeit(lambda: attitude_law(inertia, euler, rates, ref, gains, gains, max_accel), 2000), 1 / 200))
 
     ekf = PositionEKF(vehicle)
     ekf.initialize(0.0, [0.0, 0.0, 1.0])

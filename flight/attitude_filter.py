@@ -47,9 +47,9 @@ Ablations of 000 itself:
 
 Discretisation.  The model is linear and time invariant, so F, B (and Q by
 Van Loan's method from the continuous noise densities) are the exact matrix
-exponentials for a step h.  ``kf.F``/``kf.B`` hold the ones for the nominal
-``dt``; the filter itself steps at every IMU sample (400 Hz, two per 200 Hz
-call) with the exact F, B, Q of the actual interval, split wherever the
+exponentials for a step h, here in closed form (``discrete_model``).  The
+filter steps at every IMU sample (400 Hz, two per 200 Hz call) with the exact
+F, B, Q of the actual interval (rounded to 0.1 ms), split wherever the
 commanded torque changed inside it (the torque is piecewise constant between
 calls).
 
@@ -72,14 +72,14 @@ variance; the first sample sets it.
 """
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import math
+import operator
 from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
-from filterpy.kalman import KalmanFilter
-from scipy.linalg import expm
 
 from flight.quat import quat_from_euler, quat_multiply, quat_to_euler
 
@@ -94,24 +94,35 @@ def wrap(a):
     return (np.asarray(a, dtype=np.float64) + np.pi) % (2 * np.pi) - np.pi
 
 
+_PI, _TWO_PI = math.pi, 2 * math.pi
+
+
 def _wrap1(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
+    return (a + _PI) % _TWO_PI - _PI
+
+
+def _rotation_rows(roll: float, pitch: float, yaw: float):
+    cr, sr = math.cos(roll), math.sin(roll)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    return ((cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr),
+            (sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr),
+            (-sp, cp * sr, cp * cr))
 
 
 def rotation_zyx(roll: float, pitch: float, yaw: float) -> np.ndarray:
     """Body -> world rotation R = Rz(yaw) Ry(pitch) Rx(roll) (ZYX, as quat_from_euler)."""
-    cr, sr = math.cos(roll), math.sin(roll)
-    cp, sp = math.cos(pitch), math.sin(pitch)
-    cy, sy = math.cos(yaw), math.sin(yaw)
-    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-                     [-sp, cp * sr, cp * cr]])
+    return np.array(_rotation_rows(roll, pitch, yaw))
+
+
+def _roll_pitch(ax: float, ay: float, az: float) -> tuple[float, float]:
+    return math.atan2(ay, az), math.atan2(-ax, math.hypot(ay, az))
 
 
 def accel_roll_pitch(accel) -> tuple[float, float]:
     """(roll, pitch) from specific force in body FLU (exact for the ZYX convention at rest)."""
     ax, ay, az = (float(v) for v in accel)
-    return math.atan2(ay, az), math.atan2(-ax, math.hypot(ay, az))
+    return _roll_pitch(ax, ay, az)
 
 
 def mag_yaw(field_body, roll: float, pitch: float, field_world=(0.0, 20.0, -45.0)) -> float:
@@ -278,19 +289,23 @@ class AttitudeEstimate:
 _MIN_COS_PITCH = 0.2   # the ZYX rates are singular at pitch +-90 deg (the filter hands over at 45)
 
 
+def _euler_rate_excess(roll: float, pitch: float, p: float, q: float, r: float) -> tuple[float, float, float]:
+    sr, cr = math.sin(roll), math.cos(roll)
+    cp = math.cos(pitch)
+    cp = math.copysign(max(abs(cp), _MIN_COS_PITCH), cp)
+    tp = math.sin(pitch) / cp
+    return ((sr * q + cr * r) * tp,
+            (cr - 1.0) * q - sr * r,
+            (sr * q + cr * r) / cp - r)
+
+
 def euler_rate_excess(roll: float, pitch: float, rate) -> np.ndarray:
     """ZYX Euler rates less the body rates: W(roll, pitch) w - w (0 when level).
 
     roll' = p + sin(roll) tan(pitch) q + cos(roll) tan(pitch) r; pitch' = cos(roll) q - sin(roll) r;
     yaw' = (sin(roll) q + cos(roll) r) / cos(pitch).  |cos(pitch)| is floored at 0.2."""
     p, q, r = (float(v) for v in rate)
-    sr, cr = math.sin(roll), math.cos(roll)
-    cp = math.cos(pitch)
-    cp = math.copysign(max(abs(cp), _MIN_COS_PITCH), cp)
-    tp = math.sin(pitch) / cp
-    return np.array([(sr * q + cr * r) * tp,
-                     (cr - 1.0) * q - sr * r,
-                     (sr * q + cr * r) / cp - r])
+    return np.array(_euler_rate_excess(float(roll), float(pitch), p, q, r))
 
 
 def continuous_model(lpf_tau_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -309,47 +324,263 @@ def continuous_model(lpf_tau_s: float) -> tuple[np.ndarray, np.ndarray]:
     return a, b
 
 
+def _power_series(n_terms: int = 20) -> tuple[list[float], ...]:
+    """Taylor coefficients in x = k h of the integrals of _closed_form, scaled by powers of h: its
+    differences cancel for small x (at x = 1e-3 the closed form keeps 4 digits of int psi^2);
+    below x = 1 the first 20 terms are exact to rounding."""
+    f = math.factorial
+    c = [0.0] + [(-1) ** (n + 1) / f(n) for n in range(1, 2 * n_terms + 3)]   # phi_s = sum c_n (k s)^n
+    d = [0.0, 0.0] + [-c[n] for n in range(2, 2 * n_terms + 3)]              # psi_s = sum d_n k^(n-1) s^n
+    r = range(n_terms + 1)
+    return ([c[j] / (j + 1) for j in r],                                          # psi / h
+            [d[j + 1] / (j + 2) if j else 0.0 for j in r],                        # int psi / h^2
+            [sum(c[m] * c[j - m] for m in range(1, j)) / (j + 1) for j in r],     # int phi^2 / h
+            [c[j] / (j + 2) for j in r],                                          # int s phi / h^2
+            [sum(c[m] * d[j + 1 - m] for m in range(1, j)) / (j + 2) for j in r],  # int phi psi / h^2
+            [d[j + 1] / (j + 3) if j else 0.0 for j in r],                        # int s psi / h^3
+            [sum(d[m] * d[j + 2 - m] for m in range(2, j + 1)) / (j + 3) for j in r])  # int psi^2 / h^3
+
+
+_SERIES = _power_series()
+
+
+def _horner(coefs: list[float], x: float) -> float:
+    out = 0.0
+    for c in reversed(coefs):
+        out = out * x + c
+    return out
+
+
+def _closed_form(k: float, h: float):
+    """The exact discretisation of (13) over h, in closed form (below k h = 1 the integrals from
+    their power series, where the closed form's differences cancel).
+
+    With E = exp(-k h), phi = 1 - E (the low-pass's step response) and psi = h - phi / k
+    (its integral), F = exp(A h) is
+        w:  [1, 0, 0, 0, 0]        wf: [phi, E, 0, 0, 0]        a: [h, 0, 1, 0, 0]
+        af: [psi, 0, phi, E, 0]    b:  [0, 0, 0, 0, 1],
+    B = [[h, psi, h^2/2, h^2/2 - psi/k, 0], [0, 0, h, psi, 0]]^T (inputs u, e), and the unit
+    process noises on w', a', b' are the integrals over s in [0, h] of g g^T, g = F(s) e_{w, a, b}
+    (Van Loan's Q): g_w = [1, phi_s, s, psi_s, 0], g_a = [0, 0, 1, phi_s, 0], g_b = e_b.
+    Returns (coef, qw, qa) with coef = (h, E, phi, psi, h^2/2, h^2/2 - psi/k) and the non-zero
+    upper-triangle integrals qw = (ww, w wf, w a, w af, wf wf, wf a, wf af, a a, a af, af af),
+    qa = (a a, a af, af af); Qb is h on (b, b)."""
+    x = k * h
+    e = math.exp(-x)
+    phi = -math.expm1(-x)
+    h2 = 0.5 * h * h
+    h3 = h * h * h / 3.0
+    if x < 1.0:
+        s_psi, s_u_af, s_phi2, s_sphi, s_phipsi, s_spsi, s_psi2 = (_horner(c, x) for c in _SERIES)
+        psi, u_af = h * s_psi, h * h * s_u_af
+        i_phi2, i_sphi, i_phipsi = h * s_phi2, h * h * s_sphi, h * h * s_phipsi
+        i_spsi, i_psi2 = h * h * h * s_spsi, h * h * h * s_psi2
+    else:
+        psi = h - phi / k
+        u_af = h2 - psi / k                                # int psi
+        i_phi2 = psi - phi * phi / (2.0 * k)               # int phi^2
+        i_sphi = h2 - (phi - x * e) / (k * k)              # int s phi
+        i_phipsi = i_sphi - i_phi2 / k                     # int phi psi
+        i_spsi = h3 - i_sphi / k                           # int s psi
+        i_psi2 = h3 - 2.0 * i_sphi / k + i_phi2 / (k * k)  # int psi^2
+    coef = (h, e, phi, psi, h2, u_af)
+    qw = (h, psi, h2, u_af, i_phi2, i_sphi, i_phipsi, h3, i_spsi, i_psi2)
+    qa = (h, psi, i_phi2)
+    return coef, qw, qa
+
+
+def discrete_model(lpf_tau_s: float, h: float) -> tuple[np.ndarray, ...]:
+    """(F, B, Qw, Qa, Qb) of (13) for a step h: exp(A h), its input matrix and the process
+    noise of a unit density on w', a' and b' (what the filter uses, as matrices)."""
+    (h, e, phi, psi, h2, u_af), qw, qa = _closed_form(1.0 / lpf_tau_s, h)
+    f = np.eye(NX)
+    f[WF, W], f[WF, WF] = phi, e
+    f[A, W] = h
+    f[AF, W], f[AF, A], f[AF, AF] = psi, phi, e
+    bd = np.zeros((NX, 2))
+    bd[:, 0] = (h, psi, h2, u_af, 0.0)
+    bd[A, 1], bd[AF, 1] = h, psi
+    q_w, q_a, q_b = np.zeros((NX, NX)), np.zeros((NX, NX)), np.zeros((NX, NX))
+    for (i, j), v in zip(((W, W), (W, WF), (W, A), (W, AF), (WF, WF), (WF, A), (WF, AF), (A, A), (A, AF),
+                          (AF, AF)), qw):
+        q_w[i, j] = q_w[j, i] = v
+    for (i, j), v in zip(((A, A), (A, AF), (AF, AF)), qa):
+        q_a[i, j] = q_a[j, i] = v
+    q_b[B, B] = h
+    return f, bd, q_w, q_a, q_b
+
+
+# The covariance of an axis is kept as its upper triangle, row by row (15 floats):
+# (00, 01, 02, 03, 04, 11, 12, 13, 14, 22, 23, 24, 33, 34, 44).
+_TRI = [(i, j) for i in range(NX) for j in range(i, NX)]
+_P_WW, _P_AA, _P_BB = _TRI.index((W, W)), _TRI.index((A, A)), _TRI.index((B, B))
+
+
+def _tri_to_matrix(p) -> np.ndarray:
+    m = np.zeros((NX, NX))
+    for (i, j), v in zip(_TRI, p):
+        m[i, j] = m[j, i] = v
+    return m
+
+
 class _Discretiser:
-    """Exact F, B and unit process-noise matrices for a step h, cached.
+    """Per step h: the coefficients of F and B and each axis's Q (upper triangle), cached.
 
-    Steps are rounded to 0.1 ms: in real time every interval differs, and three
-    matrix exponentials per miss cost more than the 200 Hz loop can afford
-    (measured: the attitude service fell to 36 Hz); 0.1 ms is far below the
-    model's time constants (tau = 20 ms)."""
+    Steps are rounded to 0.1 ms (the key is h in units of 0.1 ms): in real time every interval
+    differs; 0.1 ms is far below the model's time constants (tau = 20 ms).  A miss costs a few
+    microseconds (the closed form; scipy's matrix exponentials took milliseconds)."""
 
-    def __init__(self, lpf_tau_s: float):
-        self.a, self.b = continuous_model(lpf_tau_s)
+    def __init__(self, lpf_tau_s: float, rate_var, angle_var, bias_var):
+        self.k = 1.0 / lpf_tau_s
+        self.noise = tuple(zip(rate_var, angle_var, bias_var))
         self.cache: dict[int, tuple] = {}
 
-    def __call__(self, h: float):
-        key = int(round(h * 1e4))
+    def __call__(self, key: int):
+        """(coef, (q_roll, q_pitch, q_yaw)) for the step key * 0.1 ms (coef as in _closed_form)."""
         hit = self.cache.get(key)
         if hit is not None:
             return hit
         if len(self.cache) > 4096:
             self.cache.clear()
-        h = key * 1e-4
-        n = NX
-        nu = self.b.shape[1]
-        m = np.zeros((n + nu, n + nu))
-        m[:n, :n] = self.a
-        m[:n, n:] = self.b
-        e = expm(m * h)
-        f, bd = e[:n, :n], e[:n, n:n + nu]
-        qs = []
-        for idx in (W, A, B):   # unit densities on w', a' and b'
-            lc = np.zeros((n, n))
-            lc[idx, idx] = 1.0
-            vl = np.zeros((2 * n, 2 * n))
-            vl[:n, :n] = -self.a
-            vl[:n, n:] = lc
-            vl[n:, n:] = self.a.T
-            ev = expm(vl * h)
-            qd = ev[n:, n:].T @ ev[:n, n:]
-            qs.append(0.5 * (qd + qd.T))
-        hit = (f, bd, qs[0], qs[1], qs[2])
-        self.cache[key] = hit
+        coef, (ww, wwf, wa, waf, wfwf, wfa, wfaf, aa, aaf, afaf), (a_a, a_af, af_af) = \
+            _closed_form(self.k, key * 1e-4)
+        h = coef[0]
+        qs = tuple((rv * ww, rv * wwf, rv * wa, rv * waf, 0.0,
+                    rv * wfwf, rv * wfa, rv * wfaf, 0.0,
+                    rv * aa + av * a_a, rv * aaf + av * a_af, 0.0,
+                    rv * afaf + av * af_af, 0.0,
+                    bv * h) for rv, av, bv in self.noise)
+        hit = self.cache[key] = (coef, qs)
         return hit
+
+
+def _step_key(h: float) -> int:
+    return int(round(h * 1e4))
+
+
+def _predict_x(x, coef, u: float, e: float):
+    """x = F x + B [u, e] for one axis."""
+    w, wf, a, af, b = x
+    h, ee, phi, psi, h2, u_af = coef
+    return (w + h * u,
+            (phi * w + ee * wf) + psi * u,
+            (h * w + a) + (h2 * u + h * e),
+            (psi * w + phi * a + ee * af) + (u_af * u + psi * e),
+            b)
+
+
+def _predict_p(p, coef, q):
+    """P = F P F^T + Q for one axis (upper triangles; F's structure written out)."""
+    p00, p01, p02, p03, p04, p11, p12, p13, p14, p22, p23, p24, p33, p34, p44 = p
+    h, ee, phi, psi = coef[0], coef[1], coef[2], coef[3]
+    # rows wf, a, af of F P
+    n10, n11, n12, n13, n14 = (phi * p00 + ee * p01, phi * p01 + ee * p11, phi * p02 + ee * p12,
+                               phi * p03 + ee * p13, phi * p04 + ee * p14)
+    n20, n22, n23, n24 = h * p00 + p02, h * p02 + p22, h * p03 + p23, h * p04 + p24
+    n30, n32, n33, n34 = (psi * p00 + phi * p02 + ee * p03, psi * p02 + phi * p22 + ee * p23,
+                          psi * p03 + phi * p23 + ee * p33, psi * p04 + phi * p24 + ee * p34)
+    return (p00 + q[0], n10 + q[1], n20 + q[2], n30 + q[3], p04,
+            phi * n10 + ee * n11 + q[5], h * n10 + n12 + q[6], psi * n10 + phi * n12 + ee * n13 + q[7], n14,
+            h * n20 + n22 + q[9], psi * n20 + phi * n22 + ee * n23 + q[10], n24,
+            psi * n30 + phi * n32 + ee * n33 + q[12], n34,
+            p44 + q[14])
+
+
+def _update(x, p, z_rate: float, z_angle, r_rate: float, r_angle: float, lag: bool):
+    """Kalman update of one axis with the low-passed gyro z_rate (and the angle z_angle, None: rate only).
+
+    H = [[0, 1, 0, 0, 1], [0, 0, 0, 1, 0]] (lag: the gyro reads wf + b, the angle af) or
+    [[1, 0, 0, 0, 1], [0, 0, 1, 0, 0]].  filterpy's Joseph form (I-KH) P (I-KH)^T + K R K^T
+    expands to P - K C^T - C K^T + K S K^T (C = P H^T, S = H C + R); with the optimal gain
+    K = C S^-1 the last term is K C^T, so P - K C^T, computed here on the upper triangle
+    (symmetric by construction, where the per-axis code symmetrised afterwards).  S is 2x2
+    and inverted in closed form; rate only is the 1x1 case (filterpy's zeroed H row)."""
+    w, wf, a, af, b = x
+    p00, p01, p02, p03, p04, p11, p12, p13, p14, p22, p23, p24, p33, p34, p44 = p
+    if lag:   # C = P H^T: c the rate column (P_1 + P_4), d the angle column (P_3)
+        c0, c1, c2, c3, c4 = p01 + p04, p11 + p14, p12 + p24, p13 + p34, p14 + p44
+        d0, d1, d2, d3, d4 = p03, p13, p23, p33, p34
+        s00, s01, s11 = c1 + c4 + r_rate, d1 + d4, d3 + r_angle
+        y0 = z_rate - (wf + b)
+    else:
+        c0, c1, c2, c3, c4 = p00 + p04, p01 + p14, p02 + p24, p03 + p34, p04 + p44
+        d0, d1, d2, d3, d4 = p02, p12, p22, p23, p24
+        s00, s01, s11 = c0 + c4 + r_rate, d0 + d4, d2 + r_angle
+        y0 = z_rate - (w + b)
+    if z_angle is None:
+        g = 1.0 / s00
+        k0, k1, k2, k3, k4 = c0 * g, c1 * g, c2 * g, c3 * g, c4 * g
+        return ((w + k0 * y0, wf + k1 * y0, a + k2 * y0, af + k3 * y0, b + k4 * y0),
+                (p00 - k0 * c0, p01 - k0 * c1, p02 - k0 * c2, p03 - k0 * c3, p04 - k0 * c4,
+                 p11 - k1 * c1, p12 - k1 * c2, p13 - k1 * c3, p14 - k1 * c4,
+                 p22 - k2 * c2, p23 - k2 * c3, p24 - k2 * c4,
+                 p33 - k3 * c3, p34 - k3 * c4, p44 - k4 * c4))
+    y1 = z_angle - (af if lag else a)
+    det = s00 * s11 - s01 * s01
+    i00, i01, i11 = s11 / det, -s01 / det, s00 / det
+    # K = C S^-1: k the rate column, l the angle column
+    k0, l0 = c0 * i00 + d0 * i01, c0 * i01 + d0 * i11
+    k1, l1 = c1 * i00 + d1 * i01, c1 * i01 + d1 * i11
+    k2, l2 = c2 * i00 + d2 * i01, c2 * i01 + d2 * i11
+    k3, l3 = c3 * i00 + d3 * i01, c3 * i01 + d3 * i11
+    k4, l4 = c4 * i00 + d4 * i01, c4 * i01 + d4 * i11
+    return ((w + (k0 * y0 + l0 * y1), wf + (k1 * y0 + l1 * y1), a + (k2 * y0 + l2 * y1),
+             af + (k3 * y0 + l3 * y1), b + (k4 * y0 + l4 * y1)),
+            (p00 - (k0 * c0 + l0 * d0), p01 - (k0 * c1 + l0 * d1), p02 - (k0 * c2 + l0 * d2),
+             p03 - (k0 * c3 + l0 * d3), p04 - (k0 * c4 + l0 * d4),
+             p11 - (k1 * c1 + l1 * d1), p12 - (k1 * c2 + l1 * d2), p13 - (k1 * c3 + l1 * d3),
+             p14 - (k1 * c4 + l1 * d4),
+             p22 - (k2 * c2 + l2 * d2), p23 - (k2 * c3 + l2 * d3), p24 - (k2 * c4 + l2 * d4),
+             p33 - (k3 * c3 + l3 * d3), p34 - (k3 * c4 + l3 * d4),
+             p44 - (k4 * c4 + l4 * d4)))
+
+
+def _rewrap(x):
+    """Wrap the angle state to [-pi, pi) and move af by the same turn (keeps af - a small)."""
+    w, wf, a, af, b = x
+    s = ((a + _PI) % _TWO_PI - _PI) - a      # _wrap1 written out: this runs for every axis and sample
+    if s != 0.0:
+        a += s
+        af += s
+    return w, wf, a, a + ((af - a + _PI) % _TWO_PI - _PI), b
+
+
+def _angle_lowpass(af: float, prev: float, cur: float, c: float) -> float:
+    """One step of the low-pass (12) on an angle: its input the mean of the previous and this
+    sample (the short way round), the output wrapped (_wrap1 written out, as in _rewrap)."""
+    mid = prev + 0.5 * ((cur - prev + _PI) % _TWO_PI - _PI)
+    af = af + c * ((mid - af + _PI) % _TWO_PI - _PI)
+    return (af + _PI) % _TWO_PI - _PI
+
+
+def _floats3(v) -> tuple[float, float, float] | None:
+    """v (a list, tuple or array of 3 numbers, any shape) as three floats; None if it is not."""
+    if isinstance(v, np.ndarray):
+        if v.shape != (3,):
+            v = v.reshape(-1)
+            if v.shape != (3,):
+                return None
+        try:
+            a, b, c = v.astype(np.float64, copy=False).tolist()
+        except (TypeError, ValueError):
+            return None
+        return a, b, c
+    try:
+        if len(v) == 3:
+            return float(v[0]), float(v[1]), float(v[2])
+    except (TypeError, ValueError, LookupError):
+        pass
+    try:
+        return _floats3(np.asarray(v, dtype=np.float64))
+    except (TypeError, ValueError):
+        return None
+
+
+_ZERO3 = (0.0, 0.0, 0.0)
+_first = operator.itemgetter(0)
+# m/s (the a_model integral's size at the oldest kept sample): beyond it the integral is moved to
+# start there; a window's mean then carries at most ~1e-16 * 10 m/s / 0.1 s of rounding
+_AMODEL_REBASE = 10.0
 
 
 # ------------------------------------------------------------------ filter
@@ -357,6 +588,10 @@ class AttitudeFilter:
     """Attitude level of 000: low-pass (12) + per-axis linear KF (13), (16)-(20) + extrapolator (15).
 
     inertia_kg_m2: diagonal (Ixx, Iyy, Izz) (a 3x3 matrix is accepted, its diagonal used).
+
+    The three axes' Kalman filters are held as plain floats (x: 5 per axis, P: its upper
+    triangle), the structure of F and H written out: at this size that is several times
+    cheaper than numpy (or filterpy) calls.  ``x`` and ``P`` give them as arrays.
     """
 
     def __init__(self, inertia_kg_m2, params: AttitudeFilterParams | None = None, dt: float = 1.0 / 200.0,
@@ -371,45 +606,36 @@ class AttitudeFilter:
         if not (isinstance(gravity_m_s2, (int, float)) and math.isfinite(gravity_m_s2) and gravity_m_s2 > 0):
             raise ValueError(f"attitude_filter: gravity_m_s2 must be positive, got {gravity_m_s2!r}")
         self.inertia = inertia
+        self._inertia = tuple(inertia.tolist())
         self.gravity = float(gravity_m_s2)
         self.params = params if params is not None else AttitudeFilterParams()
         self.dt = float(dt)
-        self._disc = _Discretiser(self.params.lpf_tau_s)
         p = self.params
-        # the gyro reads the rate plus the bias; the angle measurement the angle
-        if p.model_filter_lag:
-            self._h = np.array([[0.0, 1.0, 0.0, 0.0, 1.0], [0.0, 0.0, 0.0, 1.0, 0.0]])
-        else:
-            self._h = np.array([[1.0, 0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 1.0, 0.0, 0.0]])
-        self._h_rate_only = self._h.copy()
-        self._h_rate_only[1, :] = 0.0
+        self._disc = _Discretiser(p.lpf_tau_s, p.rate_process_var, p.angle_process_var, p.bias_process_var)
+        # the gyro reads the rate plus the bias; the angle measurement the angle (af, or a without the lag)
+        self._lag = p.model_filter_lag
         self._angle_meas_idx = AF if p.model_filter_lag else A
-        self._r = [np.diag([p.rate_meas_var[i], p.angle_meas_var[i]]) for i in range(3)]
+        self._r = tuple(zip(p.rate_meas_var, p.angle_meas_var))
+        self._max_horizon = p.max_delay_steps * self.dt
+        self._tau = p.lpf_tau_s
         self.reset()
 
     # -------------------------------------------------------------- state
     def reset(self) -> None:
-        f, bd, qw, qa, qb = self._disc(self.dt)
-        self.kfs = []
-        for i in range(3):
-            kf = KalmanFilter(dim_x=NX, dim_z=2, dim_u=2)
-            kf.F = f.copy()
-            kf.B = bd.copy()
-            kf.Q = self._q(i, qw, qa, qb)
-            kf.H = self._h.copy()
-            kf.R = self._r[i].copy()
-            kf.x = np.zeros((NX, 1))
-            kf.P = self._p0(0.0)
-            self.kfs.append(kf)
-        self.kfs[2].P[A, A] = self.kfs[2].P[AF, AF] = _BIG_ANGLE_VAR
+        p0 = self._p0(0.0)
+        self._xs = [(0.0,) * NX] * 3      # per axis (w, wf, a, af, b)
+        self._ps = [p0, p0, self._big_angle_var(p0)]   # per axis, upper triangle of P
         self._t_kf: float | None = None          # time of the KF state (newest processed IMU sample)
         self._bias_started = False    # the bias state has been initialised (kept over re-initialisations)
         self._t_prev_call: float | None = None
-        self._segs: list[tuple[float, float, np.ndarray]] = []   # (t0, t1, torque/I) applied
-        self._wf = np.zeros(3)        # low-pass states (12)
-        self._af = np.zeros(3)
-        self._g_prev = np.zeros(3)    # previous raw samples (input averaging over the step)
-        self._a_prev = np.zeros(3)
+        # torques applied, (t0, t1, torque/I) as three lists in time order (t1 sorted, for bisect)
+        self._seg_t0: list[float] = []
+        self._seg_t1: list[float] = []
+        self._seg_u: list[tuple[float, float, float]] = []
+        self._wf = [0.0, 0.0, 0.0]    # low-pass states (12)
+        self._af = [0.0, 0.0, 0.0]
+        self._g_prev = _ZERO3         # previous raw samples (input averaging over the step)
+        self._a_prev = [0.0, 0.0, 0.0]
         self._yaw_hold: float | None = None   # newest magnetometer yaw, carried by the z gyro
         self._yaw_hold_t: float = 0.0
         self._yaw_seen = False        # the KF yaw has been set from the magnetometer
@@ -417,34 +643,46 @@ class AttitudeFilter:
         self._clear_aid()
 
     def _clear_aid(self) -> None:
-        # (t, a_model = R f + g) per processed IMU sample, R the filter's attitude there
-        self._amodel: deque = deque()
+        # a_model = R f + g per processed IMU sample (R the filter's attitude there): times,
+        # values and their running trapezoid integral (window means are two look-ups, not a pass)
+        self._am_t: list[float] = []
+        self._am_v: list[tuple[float, float, float]] = []
+        self._am_c: list[tuple[float, float, float]] = []
         self._aid_ref = None          # newest accel_ref (t0, t1, a_mean) given to update()
         self._aid_done = None         # the (t0, t1) that self._aid_c was computed for
-        self._aid_c: np.ndarray | None = None   # c = a_ref - mean(a_model) over the reference's window
+        self._aid_c: tuple | None = None   # c = a_ref - mean(a_model) over the reference's window
         self._aid_t1 = -math.inf      # end of that window
 
-    def _excess(self, xs) -> np.ndarray:
-        """The Euler rate less the body rate at the states xs (zero with euler_kinematics off)."""
-        if not self.params.euler_kinematics:
-            return np.zeros(3)
-        return euler_rate_excess(float(xs[0][A, 0]), float(xs[1][A, 0]),
-                                 np.array([float(x[W, 0]) for x in xs]))
+    @property
+    def x(self) -> np.ndarray:
+        """The Kalman states (3, 5): per axis (roll, pitch, yaw) [w, wf, a, af, b] (a copy)."""
+        return np.array(self._xs)
 
-    def _q(self, i: int, qw, qa, qb) -> np.ndarray:
-        p = self.params
-        return p.rate_process_var[i] * qw + p.angle_process_var[i] * qa + p.bias_process_var[i] * qb
+    @property
+    def P(self) -> np.ndarray:
+        """The Kalman covariances (3, 5, 5) (a copy)."""
+        return np.array([_tri_to_matrix(p) for p in self._ps])
 
-    def _p0(self, bias_var: float | None) -> np.ndarray:
-        """Initial covariance; bias_var None: the configured initial bias variance."""
+    def _p0(self, bias_var: float | None) -> tuple:
+        """Initial covariance (upper triangle); bias_var None: the configured initial bias variance."""
         p = self.params
-        return np.diag([p.init_rate_var, p.init_rate_var, p.init_angle_var, p.init_angle_var,
-                        p.init_bias_var if bias_var is None else bias_var])
+        out = [0.0] * len(_TRI)
+        for i, v in ((W, p.init_rate_var), (WF, p.init_rate_var), (A, p.init_angle_var), (AF, p.init_angle_var),
+                     (B, p.init_bias_var if bias_var is None else bias_var)):
+            out[_TRI.index((i, i))] = v
+        return tuple(out)
+
+    @staticmethod
+    def _big_angle_var(p: tuple) -> tuple:
+        """p with the angle variances (a, af) set to the yaw's before any magnetometer sample."""
+        out = list(p)
+        out[_P_AA] = out[_TRI.index((AF, AF))] = _BIG_ANGLE_VAR
+        return tuple(out)
 
     @property
     def gyro_bias(self) -> np.ndarray:
         """The estimated gyro bias (roll, pitch, yaw axes), rad/s."""
-        return np.array([float(kf.x[B, 0]) for kf in self.kfs])
+        return np.array([x[B] for x in self._xs])
 
     @property
     def initialized(self) -> bool:
@@ -457,91 +695,94 @@ class AttitudeFilter:
 
     # -------------------------------------------------------------- torque history
     def _add_torque(self, torque_nm, t_now: float) -> None:
-        u = np.asarray(torque_nm, dtype=np.float64).reshape(-1)
-        if u.shape != (3,) or not np.all(np.isfinite(u)):
-            u = np.zeros(3)
-        u = u / self.inertia
+        u = _floats3(torque_nm)
+        if u is None or not math.isfinite(u[0] + u[1] + u[2]):
+            u = _ZERO3
+        i0, i1, i2 = self._inertia
+        u = (u[0] / i0, u[1] / i1, u[2] / i2)
+        ends = self._seg_t1
         t0 = self._t_prev_call if self._t_prev_call is not None else t_now - self.dt
-        if self._segs:
-            t0 = max(t0, self._segs[-1][1])
+        if ends:
+            t0 = max(t0, ends[-1])
         if t_now > t0:
-            self._segs.append((t0, t_now, u))
+            self._seg_t0.append(t0)
+            ends.append(t_now)
+            self._seg_u.append(u)
         # prune: the KF only moves forward; keep a margin for late samples
-        if self._t_kf is not None:
-            keep_from = self._t_kf - 1.0
-            while self._segs and self._segs[0][1] < keep_from:
-                self._segs.pop(0)
-        if len(self._segs) > 2000:
-            del self._segs[: len(self._segs) - 2000]
+        n = bisect.bisect_left(ends, self._t_kf - 1.0) if self._t_kf is not None else 0
+        n = max(n, len(ends) - 2000)
+        if n > 0:
+            del self._seg_t0[:n], ends[:n], self._seg_u[:n]
 
-    def _pieces(self, t0: float, t1: float) -> list[tuple[float, np.ndarray]]:
+    def _pieces(self, t0: float, t1: float) -> list[tuple[float, tuple]]:
         """[(duration, u)] covering [t0, t1): stored torques, gaps held at the previous one (0 before any)."""
+        starts, ends, us = self._seg_t0, self._seg_t1, self._seg_u
+        i = bisect.bisect_right(ends, t0)      # the first segment ending after t0
+        u_last = us[i - 1] if i else _ZERO3
         out = []
         t = t0
-        u_last = np.zeros(3)
-        for s0, s1, u in self._segs:
-            if t >= t1:
+        for j in range(i, len(ends)):
+            s0 = starts[j]
+            if t >= t1 or s0 >= t1:
                 break
-            if s1 <= t:
-                u_last = u
-                continue
-            if s0 >= t1:
-                break
+            u = us[j]
             if s0 > t:
-                out.append((s0 - t, u_last))
+                if s0 - t > 1e-9:
+                    out.append((s0 - t, u_last))
                 t = s0
-            e = min(s1, t1)
-            out.append((e - t, u))
+            e = min(ends[j], t1)
+            if e - t > 1e-9:
+                out.append((e - t, u))
             t = e
             u_last = u
-        if t < t1:
+        if t1 - t > 1e-9:
             out.append((t1 - t, u_last))
-        return [(h, u) for h, u in out if h > 1e-9]
+        return out
+
+    def _propagate(self, xs, t0: float, t1: float):
+        """The states xs carried over [t0, t1) with the applied torques; returns (xs, step key):
+        the covariance is carried once over the summed steps (F and Q of a time-invariant model
+        compose: F(h2) F(h1) = F(h1 + h2), F(h2) Q(h1) F(h2)^T + Q(h2) = Q(h1 + h2))."""
+        disc, kinematics = self._disc, self.params.euler_kinematics
+        keys = 0
+        for h, u in self._pieces(t0, t1):
+            key = _step_key(h)
+            if key == 0:     # rounded to 0.1 ms: F = I, B = 0, Q = 0
+                continue
+            coef = disc(key)[0]
+            # the Euler rate less the body rate at the piece's start (zero with euler_kinematics off)
+            e = _euler_rate_excess(xs[0][A], xs[1][A], xs[0][W], xs[1][W], xs[2][W]) if kinematics else _ZERO3
+            xs = [_predict_x(xs[0], coef, u[0], e[0]), _predict_x(xs[1], coef, u[1], e[1]),
+                  _predict_x(xs[2], coef, u[2], e[2])]
+            keys += key
+        return xs, keys
 
     # -------------------------------------------------------------- helpers
-    @staticmethod
-    def _rewrap(x: np.ndarray) -> None:
-        """Wrap the angle state to [-pi, pi) and move af by the same turn (keeps af - a small)."""
-        a = float(x[A, 0])
-        s = _wrap1(a) - a
-        if s != 0.0:
-            x[A, 0] += s
-            x[AF, 0] += s
-        x[AF, 0] = x[A, 0] + _wrap1(float(x[AF, 0] - x[A, 0]))
-
-    def _predict(self, t0: float, t1: float) -> None:
-        for h, u in self._pieces(t0, t1):
-            f, bd, qw, qa, qb = self._disc(h)
-            e = self._excess([kf.x for kf in self.kfs])
-            for i, kf in enumerate(self.kfs):
-                kf.predict(u=np.array([[u[i]], [e[i]]]), B=bd, F=f, Q=self._q(i, qw, qa, qb))
-
     def _compute_mag_yaw(self, field, roll: float, pitch: float) -> float | None:
-        field = np.asarray(field, dtype=np.float64).reshape(-1)
-        if field.shape != (3,) or not np.all(np.isfinite(field)):
+        field = _floats3(field)
+        if field is None or not math.isfinite(field[0] + field[1] + field[2]):
             return None
         yaw = mag_yaw(field, roll, pitch, self.params.mag_field_world_ut)
         return yaw if math.isfinite(yaw) else None
 
     def _set_yaw_from_mag(self, yaw: float) -> None:
-        kf = self.kfs[2]
-        kf.x[A, 0] = kf.x[AF, 0] = yaw
-        kf.P[A, :] = 0.0
-        kf.P[:, A] = 0.0
-        kf.P[AF, :] = 0.0
-        kf.P[:, AF] = 0.0
-        kf.P[A, A] = kf.P[AF, AF] = self.params.init_angle_var
+        w, wf, _, _, b = self._xs[2]
+        self._xs[2] = (w, wf, yaw, yaw, b)
+        # rows and columns a, af of P restart uncorrelated, at the initial angle variance
+        p = self._ps[2]
+        v = self.params.init_angle_var
+        self._ps[2] = (p[0], p[1], 0.0, 0.0, p[4], p[5], 0.0, 0.0, p[8], v, 0.0, 0.0, v, 0.0, p[14])
         self._af[2] = yaw
         self._a_prev[2] = yaw
         self._yaw_seen = True
 
     def _accel_angles(self, accel) -> tuple[float, float] | None:
-        n = float(np.linalg.norm(accel))
+        n = math.sqrt(accel[0] * accel[0] + accel[1] * accel[1] + accel[2] * accel[2])
         if not math.isfinite(n) or n < self.params.min_accel_g * G_REF or n == 0.0:
             return None
-        return accel_roll_pitch(accel)
+        return _roll_pitch(*accel)
 
-    def _initialise(self, t: float, gyro: np.ndarray, accel: np.ndarray) -> None:
+    def _initialise(self, t: float, gyro, accel) -> None:
         rp = self._accel_angles(accel)
         roll, pitch = rp if rp is not None else (0.0, 0.0)
         yaw = 0.0
@@ -551,23 +792,23 @@ class AttitudeFilter:
                 yaw = y
                 self._yaw_hold = y
                 self._yaw_hold_t = t
-        angles = np.array([roll, pitch, yaw])
-        self._wf = gyro.copy()
-        self._g_prev = gyro.copy()
-        self._af = angles.copy()
-        self._a_prev = angles.copy()
-        for i, kf in enumerate(self.kfs):
+        angles = (roll, pitch, yaw)
+        self._wf = list(gyro)
+        self._g_prev = tuple(gyro)
+        self._af = list(angles)
+        self._a_prev = list(angles)
+        for i in range(3):
             # the bias is the sensor's: it survives a re-initialisation (with its variance)
-            bias, bias_var = float(kf.x[B, 0]), float(kf.P[B, B])
+            bias, bias_var = self._xs[i][B], self._ps[i][_P_BB]
             if not self._bias_started:
                 bias, bias_var = 0.0, None
             rate = gyro[i] - bias
-            kf.x = np.array([[rate], [rate], [angles[i]], [angles[i]], [bias]])
-            kf.P = self._p0(bias_var)
+            self._xs[i] = (rate, rate, angles[i], angles[i], bias)
+            self._ps[i] = self._p0(bias_var)
         self._bias_started = True
         self._yaw_seen = self._yaw_hold is not None
         if not self._yaw_seen:
-            self.kfs[2].P[A, A] = self.kfs[2].P[AF, AF] = _BIG_ANGLE_VAR
+            self._ps[2] = self._big_angle_var(self._ps[2])
         self._drop_aid_history()
         self._t_kf = t
 
@@ -575,8 +816,7 @@ class AttitudeFilter:
         if self._t_kf is None:
             self._pending_mag = (t_m, field)
             return
-        roll, pitch = float(self.kfs[0].x[A, 0]), float(self.kfs[1].x[A, 0])
-        yaw = self._compute_mag_yaw(field, roll, pitch)
+        yaw = self._compute_mag_yaw(field, self._xs[0][A], self._xs[1][A])
         if yaw is None:
             return
         if not self._yaw_seen:
@@ -584,7 +824,7 @@ class AttitudeFilter:
         self._yaw_hold = yaw
         self._yaw_hold_t = t_m
 
-    def _process_imu(self, t: float, gyro: np.ndarray, accel: np.ndarray, tilt=None) -> None:
+    def _process_imu(self, t: float, gyro, accel, tilt=None) -> None:
         if self._t_kf is None:
             self._initialise(t, gyro, accel)
             return
@@ -592,7 +832,7 @@ class AttitudeFilter:
         if not h > 0:
             return    # stale or duplicate sample: the KF only moves forward
         if h > self.params.max_gap_s:
-            yaw_keep = float(self.kfs[2].x[A, 0])
+            yaw_keep = self._xs[2][A]
             seen = self._yaw_seen
             self._t_kf = None
             self._initialise(t, gyro, accel)
@@ -600,81 +840,114 @@ class AttitudeFilter:
                 self._set_yaw_from_mag(yaw_keep)
             return
         # low-pass (12), exact for an input linear over the step (mean of the two samples)
-        c = 1.0 - math.exp(-h / self.params.lpf_tau_s)
-        self._wf += c * (0.5 * (self._g_prev + gyro) - self._wf)
-        self._g_prev = gyro.copy()
-        # Kalman filter prediction over [t_kf, t) with the applied torques
-        self._predict(self._t_kf, t)
+        c = 1.0 - math.exp(-h / self._tau)
+        wf, gp = self._wf, self._g_prev
+        self._wf = wf = [wf[0] + c * (0.5 * (gp[0] + gyro[0]) - wf[0]), wf[1] + c * (0.5 * (gp[1] + gyro[1]) - wf[1]),
+                         wf[2] + c * (0.5 * (gp[2] + gyro[2]) - wf[2])]
+        self._g_prev = gyro
+        # Kalman filter prediction over [t_kf, t) with the applied torques (the states here, the
+        # covariance with the update below)
+        self._xs, key = self._propagate(self._xs, self._t_kf, t)
         aid = self._aid_correction(t) if tilt is None else None
         if aid is not None:
             rp = self._aided_angles(aid)
         else:
             rp = self._accel_angles(accel) if tilt is None else tilt
-        angle_ok = [rp is not None, rp is not None, False]
+        af, a_prev = self._af, self._a_prev
         if rp is not None:
-            for i in range(2):
-                cur = rp[i]
-                mid = self._a_prev[i] + 0.5 * _wrap1(cur - self._a_prev[i])
-                self._af[i] = _wrap1(self._af[i] + c * _wrap1(mid - self._af[i]))
-                self._a_prev[i] = cur
+            af[0], a_prev[0] = _angle_lowpass(af[0], a_prev[0], rp[0], c), rp[0]
+            af[1], a_prev[1] = _angle_lowpass(af[1], a_prev[1], rp[1], c), rp[1]
+        yaw_ok = False
         if self._yaw_hold is not None:
             # carry the held magnetometer yaw on with the z gyro up to this sample
             dt_hold = t - max(self._yaw_hold_t, t - h)
             if dt_hold > 0:
-                self._yaw_hold = _wrap1(self._yaw_hold + float(gyro[2]) * dt_hold)
+                self._yaw_hold = _wrap1(self._yaw_hold + gyro[2] * dt_hold)
                 self._yaw_hold_t = t
-            cur = self._yaw_hold
-            mid = self._a_prev[2] + 0.5 * _wrap1(cur - self._a_prev[2])
-            self._af[2] = _wrap1(self._af[2] + c * _wrap1(mid - self._af[2]))
-            self._a_prev[2] = cur
-            angle_ok[2] = self._yaw_seen
-        # Kalman filter update with [wf, af]
-        for i, kf in enumerate(self.kfs):
-            if angle_ok[i]:
-                pred = float(kf.x[self._angle_meas_idx, 0])
-                z = np.array([[self._wf[i]], [pred + _wrap1(self._af[i] - pred)]])
-                kf.update(z, R=self._r[i], H=self._h)
-            else:
-                z = np.array([[self._wf[i]], [0.0]])
-                kf.update(z, R=self._r[i], H=self._h_rate_only)
-            self._rewrap(kf.x)
-            kf.P = 0.5 * (kf.P + kf.P.T)
+            af[2], a_prev[2] = _angle_lowpass(af[2], a_prev[2], self._yaw_hold, c), self._yaw_hold
+            yaw_ok = self._yaw_seen
+        # Kalman filter: the covariance's prediction, then the update with [wf, af] (the angle
+        # innovation wrapped)
+        m, lag = self._angle_meas_idx, self._lag
+        coef, qs = self._disc(key) if key else (None, (None, None, None))
+        xs, ps = [], []
+        for x, pp, q, angle_ok, z_rate, af_i, (r_rate, r_angle) in zip(
+                self._xs, self._ps, qs, (rp is not None, rp is not None, yaw_ok), wf, af, self._r):
+            if key:
+                pp = _predict_p(pp, coef, q)
+            z_angle = None
+            if angle_ok:
+                pred = x[m]
+                z_angle = pred + _wrap1(af_i - pred)
+            x, pp = _update(x, pp, z_rate, z_angle, r_rate, r_angle, lag)
+            xs.append(_rewrap(x))
+            ps.append(pp)
+        self._xs, self._ps = xs, ps
         self._t_kf = t
         self._record_amodel(t, accel)
 
     # -------------------------------------------------------------- acceleration reference
     def _drop_aid_history(self) -> None:
         """Forget the a_model history and the correction (the attitude they were made with is gone)."""
-        self._amodel.clear()
+        self._am_t, self._am_v, self._am_c = [], [], []
         self._aid_c = None
         self._aid_done = None
         self._aid_t1 = -math.inf
 
-    def _record_amodel(self, t: float, accel: np.ndarray) -> None:
+    def _record_amodel(self, t: float, accel) -> None:
         """a_model(t) = R f + g: the acceleration that the specific force f implies at the filter's attitude."""
-        r = rotation_zyx(*(float(kf.x[A, 0]) for kf in self.kfs))
-        a = r @ accel
-        a[2] -= self.gravity
-        self._amodel.append((t, a))
-        while self._amodel and self._amodel[0][0] < t - 1.0:
-            self._amodel.popleft()
+        xs = self._xs
+        r0, r1, r2 = _rotation_rows(xs[0][A], xs[1][A], xs[2][A])
+        f0, f1, f2 = accel
+        v = (r0[0] * f0 + r0[1] * f1 + r0[2] * f2,
+             r1[0] * f0 + r1[1] * f1 + r1[2] * f2,
+             r2[0] * f0 + r2[1] * f1 + r2[2] * f2 - self.gravity)
+        ts, vs, cs = self._am_t, self._am_v, self._am_c
+        if ts:
+            dt, (v0, v1, v2), (c0, c1, c2) = t - ts[-1], vs[-1], cs[-1]
+            cs.append((c0 + 0.5 * (v0 + v[0]) * dt, c1 + 0.5 * (v1 + v[1]) * dt, c2 + 0.5 * (v2 + v[2]) * dt))
+        else:
+            cs.append(_ZERO3)
+        ts.append(t)
+        vs.append(v)
+        n = bisect.bisect_left(ts, t - 1.0)      # keep one second
+        if n:
+            del ts[:n], vs[:n], cs[:n]
+            if abs(cs[0][0]) + abs(cs[0][1]) + abs(cs[0][2]) > _AMODEL_REBASE:
+                # the integral grows over a flight and a window's mean is a difference of two of
+                # its values: move its origin up to the oldest kept sample
+                b0, b1, b2 = cs[0]
+                self._am_c = [(c0 - b0, c1 - b1, c2 - b2) for c0, c1, c2 in cs]
 
-    def _amodel_mean(self, t0: float, t1: float) -> np.ndarray | None:
+    def _amodel_integral(self, t: float) -> tuple[float, float, float]:
+        """Integral of a_model (linear between samples, held beyond the ends) up to t, from the origin of _am_c."""
+        ts, vs, cs = self._am_t, self._am_v, self._am_c
+        j = bisect.bisect_right(ts, t)
+        if j == 0 or j == len(ts):        # before the first / after the last sample: held
+            k = 0 if j == 0 else j - 1
+            (v0, v1, v2), (c0, c1, c2), dt = vs[k], cs[k], t - ts[k]
+            return c0 + v0 * dt, c1 + v1 * dt, c2 + v2 * dt
+        ta, tb = ts[j - 1], ts[j]
+        (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = vs[j - 1], vs[j], cs[j - 1]
+        f = (t - ta) / (tb - ta)
+        dt = 0.5 * (t - ta)
+        return (c0 + (a0 + (a0 + f * (b0 - a0))) * dt, c1 + (a1 + (a1 + f * (b1 - a1))) * dt,
+                c2 + (a2 + (a2 + f * (b2 - a2))) * dt)
+
+    def _amodel_mean(self, t0: float, t1: float) -> tuple[float, float, float] | None:
         """Mean of a_model over [t0, t1] (trapezoid, ends interpolated); None unless the history covers it."""
-        if not self._amodel or not t1 > t0:
+        ts = self._am_t
+        if not ts or not t1 > t0:
             return None
         eps = 1e-6
-        if self._amodel[0][0] > t0 + eps or self._amodel[-1][0] < t1 - eps:
+        if ts[0] > t0 + eps or ts[-1] < t1 - eps:
             return None
-        ts = np.array([e[0] for e in self._amodel])
-        vals = np.array([e[1] for e in self._amodel])
-        inner = ts[(ts > t0) & (ts < t1)]
-        grid = np.concatenate(([t0], inner, [t1]))
-        on_grid = np.stack([np.interp(grid, ts, vals[:, i]) for i in range(3)], axis=1)
-        mean = np.sum(0.5 * (on_grid[1:] + on_grid[:-1]) * np.diff(grid)[:, None], axis=0) / (t1 - t0)
-        return mean if np.all(np.isfinite(mean)) else None
+        i0, i1 = self._amodel_integral(t0), self._amodel_integral(t1)
+        d = t1 - t0
+        mean = ((i1[0] - i0[0]) / d, (i1[1] - i0[1]) / d, (i1[2] - i0[2]) / d)
+        return mean if math.isfinite(mean[0] + mean[1] + mean[2]) else None
 
-    def _aid_correction(self, t: float) -> np.ndarray | None:
+    def _aid_correction(self, t: float) -> tuple[float, float, float] | None:
         """c = a_ref - mean(a_model) over the reference's window (bounded), or None (no usable reference)."""
         ref = self._aid_ref
         if ref is None:
@@ -683,25 +956,34 @@ class AttitudeFilter:
         if self._aid_done != (t0, t1):
             mean = self._amodel_mean(t0, t1)
             if mean is not None:
-                corr = a_ref - mean
-                n = float(np.linalg.norm(corr))
+                corr = (a_ref[0] - mean[0], a_ref[1] - mean[1], a_ref[2] - mean[2])
+                n = math.sqrt(corr[0] * corr[0] + corr[1] * corr[1] + corr[2] * corr[2])
                 cap = self.params.aid_max_correction_m_s2
-                self._aid_c = corr * (cap / n) if n > cap else corr
+                if n > cap:
+                    s = cap / n
+                    corr = (corr[0] * s, corr[1] * s, corr[2] * s)
+                self._aid_c = corr
                 self._aid_done = (t0, t1)
                 self._aid_t1 = t1
         if self._aid_c is None or t - self._aid_t1 > self.params.aid_max_age_s:
             return None
         return self._aid_c
 
-    def _aided_angles(self, corr: np.ndarray) -> tuple[float, float]:
+    def _aided_angles(self, corr) -> tuple[float, float]:
         """(roll, pitch) of the accelerometer compensated with a = R f + g + c at the predicted attitude R:
         f - R^T a = R^T ([0, 0, g] - c), i.e. the predicted attitude moved by the correction c."""
-        r = rotation_zyx(*(float(kf.x[A, 0]) for kf in self.kfs))
-        return accel_roll_pitch(r.T @ (np.array([0.0, 0.0, self.gravity]) - corr))
+        xs = self._xs
+        r0, r1, r2 = _rotation_rows(xs[0][A], xs[1][A], xs[2][A])
+        v0, v1, v2 = 0.0 - corr[0], 0.0 - corr[1], self.gravity - corr[2]
+        return _roll_pitch(r0[0] * v0 + r1[0] * v1 + r2[0] * v2,
+                           r0[1] * v0 + r1[1] * v1 + r2[1] * v2,
+                           r0[2] * v0 + r1[2] * v1 + r2[2] * v2)
 
     def sample_state(self) -> tuple[np.ndarray, np.ndarray]:
         """(euler, rate) of the KF at its newest IMU sample (not extrapolated)."""
-        return (wrap(np.array([kf.x[A, 0] for kf in self.kfs])), np.array([kf.x[W, 0] for kf in self.kfs]))
+        xs = self._xs
+        return (np.array([_wrap1(xs[0][A]), _wrap1(xs[1][A]), _wrap1(xs[2][A])]),
+                np.array([xs[0][W], xs[1][W], xs[2][W]]))
 
     def reinitialise(self, euler, rate) -> None:
         """Restart the angle and rate states (and the low-passes) at a known attitude, keeping P
@@ -712,22 +994,20 @@ class AttitudeFilter:
         accelerometer and magnetometer low-passes restart there too, so they pull from it."""
         if self._t_kf is None:
             return
-        euler = wrap(np.asarray(euler, dtype=np.float64))
-        rate = np.asarray(rate, dtype=np.float64)
-        for i, kf in enumerate(self.kfs):
-            kf.x[W, 0] = kf.x[WF, 0] = rate[i] - kf.x[B, 0]
-            kf.x[A, 0] = kf.x[AF, 0] = euler[i]
-        self._wf, self._g_prev = rate.copy(), rate.copy()
-        self._af, self._a_prev = euler.copy(), euler.copy()
+        euler = tuple(_wrap1(v) for v in _floats3(euler))
+        rate = _floats3(rate)
+        for i, x in enumerate(self._xs):
+            w = rate[i] - x[B]
+            self._xs[i] = (w, w, euler[i], euler[i], x[B])
+        self._wf, self._g_prev = list(rate), rate
+        self._af, self._a_prev = list(euler), list(euler)
         if self._yaw_hold is not None:
-            self._yaw_hold = float(euler[2])
+            self._yaw_hold = euler[2]
         self._drop_aid_history()
 
     def _healthy(self) -> bool:
-        for kf in self.kfs:
-            if not (np.all(np.isfinite(kf.x)) and np.all(np.isfinite(kf.P))):
-                return False
-        return True
+        # one finiteness test: a NaN or inf anywhere makes the sum non-finite
+        return math.isfinite(sum(map(sum, self._xs)) + sum(map(sum, self._ps)))
 
     # -------------------------------------------------------------- main entry
     def update(self, imu_samples, mag, torque_nm, t_now: float, accel_ref=None) -> AttitudeEstimate:
@@ -742,34 +1022,34 @@ class AttitudeFilter:
         over [t0, t1] from another source (the position level's velocity slope): the roll/pitch
         measurement then comes from the acceleration reference (class docstring), not the raw
         accelerometer angles.
+        Vectors may be lists, tuples or arrays.
         Returns the estimate at t_now (extrapolated over the delay when ``extrapolate``).
         """
         t_now = float(t_now)
         self._aid_ref = None
         if accel_ref is not None:
             try:
-                t0, t1, a_ref = float(accel_ref[0]), float(accel_ref[1]), np.asarray(accel_ref[2], dtype=np.float64)
+                t0, t1, a_ref = float(accel_ref[0]), float(accel_ref[1]), _floats3(accel_ref[2])
             except (TypeError, ValueError, IndexError):
                 t0 = t1 = math.nan
-                a_ref = np.zeros(0)
-            if math.isfinite(t0) and math.isfinite(t1) and t1 > t0 and a_ref.shape == (3,) \
-                    and np.all(np.isfinite(a_ref)):
+                a_ref = None
+            if math.isfinite(t0) and math.isfinite(t1) and t1 > t0 and a_ref is not None \
+                    and math.isfinite(a_ref[0] + a_ref[1] + a_ref[2]):
                 self._aid_ref = (t0, t1, a_ref)
         self._add_torque(torque_nm, t_now)
         self._t_prev_call = t_now
         samples = []
         for s in imu_samples or ():
-            t, g, a = s[:3]
+            t, g, a = s[0], _floats3(s[1]), _floats3(s[2])
             tilt = s[3] if len(s) > 3 else None
-            g = np.asarray(g, dtype=np.float64).reshape(-1)
-            a = np.asarray(a, dtype=np.float64).reshape(-1)
             t = float(t)
-            if tilt is not None and not all(math.isfinite(v) for v in tilt):
-                tilt = None
-            if g.shape == (3,) and a.shape == (3,) and math.isfinite(t) and np.all(np.isfinite(g)) \
-                    and np.all(np.isfinite(a)):
+            if tilt is not None:
+                tilt = (float(tilt[0]), float(tilt[1]))
+                if not math.isfinite(tilt[0] + tilt[1]):
+                    tilt = None
+            if g is not None and a is not None and math.isfinite(t + g[0] + g[1] + g[2] + a[0] + a[1] + a[2]):
                 samples.append((t, g, a, tilt))
-        samples.sort(key=lambda s: s[0])
+        samples.sort(key=_first)
         mag_item = None
         if mag is not None:
             t_m, field = mag
@@ -789,30 +1069,30 @@ class AttitudeFilter:
 
     def _estimate(self, t_now: float) -> AttitudeEstimate:
         p = self.params
+        ps = self._ps
+        var_a = [ps[0][_P_AA], ps[1][_P_AA], ps[2][_P_AA]]
+        var_w = [ps[0][_P_WW], ps[1][_P_WW], ps[2][_P_WW]]
         if self._t_kf is None:
-            var_a = np.array([kf.P[A, A] for kf in self.kfs])
-            var_w = np.array([kf.P[W, W] for kf in self.kfs])
             return AttitudeEstimate(np.zeros(3), np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]),
-                                    var_a, var_w, 0.0)
+                                    np.array(var_a), np.array(var_w), 0.0)
         delay = max(0.0, t_now - self._t_kf)
-        xs = [kf.x.copy() for kf in self.kfs]
-        ps = [kf.P.copy() for kf in self.kfs]
+        xs = self._xs
         if p.extrapolate and delay > 0.0:
-            horizon = min(delay, p.max_delay_steps * self.dt)
-            for h, u in self._pieces(self._t_kf, self._t_kf + horizon):
-                f, bd, qw, qa, qb = self._disc(h)
-                e = self._excess(xs)
-                for i in range(3):
-                    xs[i] = f @ xs[i] + bd @ np.array([[u[i]], [e[i]]])
-                    ps[i] = f @ ps[i] @ f.T + self._q(i, qw, qa, qb)
-        euler = wrap(np.array([x[A, 0] for x in xs]))
-        rate = np.array([x[W, 0] for x in xs])
-        euler_var = np.array([pp[A, A] for pp in ps])
-        rate_var = np.array([pp[W, W] for pp in ps])
-        if not (np.all(np.isfinite(euler)) and np.all(np.isfinite(rate))):
-            euler, rate = np.zeros(3), np.zeros(3)
+            horizon = min(delay, self._max_horizon)
+            xs, key = self._propagate(xs, self._t_kf, self._t_kf + horizon)
+            if key:
+                # only the angle and rate variances are published: rows w and a of F P F^T + Q
+                (h, _, _, _, _, _), qs = self._disc(key)
+                for i, (pp, q) in enumerate(zip(ps, qs)):
+                    p00, p02, p22 = pp[0], pp[2], pp[9]
+                    var_w[i] = p00 + q[0]
+                    var_a[i] = h * (h * p00 + p02) + (h * p02 + p22) + q[9]
+        euler = [_wrap1(xs[0][A]), _wrap1(xs[1][A]), _wrap1(xs[2][A])]
+        rate = [xs[0][W], xs[1][W], xs[2][W]]
+        if not math.isfinite(sum(euler) + sum(rate)):
+            euler, rate = [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
         q = quat_from_euler(*euler)
-        return AttitudeEstimate(euler, rate, q, euler_var, rate_var, float(delay))
+        return AttitudeEstimate(np.array(euler), np.array(rate), q, np.array(var_a), np.array(var_w), float(delay))
 
 
 # ------------------------------------------------------------------ camera level
@@ -852,8 +1132,8 @@ class CameraLevel:
         """The estimate (before the offset is removed) at t_s, in time order."""
         if self._history and t_s <= self._history[-1][0]:
             return
-        self._history.append((float(t_s), float(euler_rad[0]), float(euler_rad[1]),
-                              float(np.linalg.norm(rate_rad_s))))
+        p, q, r = _floats3(rate_rad_s)
+        self._history.append((float(t_s), float(euler_rad[0]), float(euler_rad[1]), math.sqrt(p * p + q * q + r * r)))
         while self._history and self._history[0][0] < t_s - self.history_s:
             self._history.popleft()
 
@@ -870,7 +1150,7 @@ class CameraLevel:
         h = self._history
         if len(h) < 2 or not (h[0][0] <= t_exposure_s <= h[-1][0]):
             return self._reject("camera_level_outside_history")
-        i = next(k for k in range(1, len(h)) if h[k][0] >= t_exposure_s)
+        i = bisect.bisect_left(h, t_exposure_s, lo=1, key=_first)   # the first sample at or after it
         (t0, r0, p0, w0), (t1, r1, p1, w1) = h[i - 1], h[i]
         f = (t_exposure_s - t0) / (t1 - t0) if t1 > t0 else 1.0
         est = np.array([r0 + f * (r1 - r0), p0 + f * (p1 - p0)])
@@ -891,9 +1171,9 @@ class CameraLevel:
 
     def apply(self, euler_rad) -> np.ndarray:
         """The estimate's (roll, pitch, yaw) with the offset removed."""
-        out = np.array(euler_rad, dtype=np.float64)
-        out[:2] -= self.offset_rad
-        return out
+        roll, pitch, yaw = _floats3(euler_rad)
+        d_roll, d_pitch = self.offset_rad.tolist()
+        return np.array([roll - d_roll, pitch - d_pitch, yaw])
 
 
 # ------------------------------------------------------------------ inversion carrier
@@ -912,7 +1192,7 @@ def quat_integrate(q, rate_rad_s, h: float) -> np.ndarray:
 
 def quat_tilt(q) -> float:
     """Angle between the body z axis and the world z axis, rad (0 level, pi inverted)."""
-    w, x, y, z = (float(v) for v in q)
+    w, x, y, z = q.tolist() if isinstance(q, np.ndarray) else (float(v) for v in q)
     r22 = (w * w - x * x - y * y + z * z) / (w * w + x * x + y * y + z * z)
     return math.acos(min(1.0, max(-1.0, r22)))
 
@@ -949,14 +1229,16 @@ class GyroCarrier:
 
     def follow(self, t_s: float, q, gyro) -> None:
         """Inactive: take the 000 filter's attitude at its newest sample time and that sample's gyro."""
-        self.q = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+        w, x, y, z = q.tolist() if isinstance(q, np.ndarray) else q
+        n = math.sqrt(w * w + x * x + y * y + z * z)
+        self.q = np.array([w / n, x / n, y / n, z / n])
         self.t = float(t_s)
-        self.gyro = np.asarray(gyro, dtype=np.float64).copy()
+        self.gyro = np.array(gyro, dtype=np.float64)
 
     def check_enter(self, q, rate) -> bool:
         """Become active when the attitude (q, rate) is beyond what the 000 filter represents."""
         if not self.active and self.t is not None and (
-                quat_tilt(q) > self.enter_tilt or float(np.linalg.norm(rate)) > self.enter_rate):
+                quat_tilt(q) > self.enter_tilt or math.hypot(*_floats3(rate)) > self.enter_rate):
             self.active = True
             self.activations += 1
         return self.active

@@ -5,6 +5,8 @@ for position. Each law places the closed-loop poles at -k and -alpha.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -40,6 +42,28 @@ def stopping_rate(error, gain, max_accel):
     return np.where(np.abs(error) > limit, root, linear)
 
 
+def _stopping_rate1(error: float, gain: float, max_accel: float) -> float:
+    """stopping_rate of one axis, in floats (the same operations)."""
+    linear = gain * error
+    gg = gain * gain
+    if gg == 0.0:
+        return linear     # the limit is infinite (or undefined): linear
+    limit = max_accel / gg
+    if not abs(error) > limit:
+        return linear
+    return math.copysign(math.sqrt(2.0 * max_accel * max(abs(error) - 0.5 * limit, 0.0)), error)
+
+
+def _three(v) -> tuple[float, float, float]:
+    """A per-axis value (a number or 3 of them) as three floats."""
+    if isinstance(v, np.ndarray):
+        v = v.tolist()
+    if isinstance(v, (int, float)):
+        return float(v), float(v), float(v)
+    a, b, c = v
+    return float(a), float(b), float(c)
+
+
 def attitude_law(inertia, angles, rates, angles_ref, k, alpha, max_accel=None) -> np.ndarray:
     """Law (8): u = I [-(alpha+k) rate - alpha k (angle - ref)] per axis.
 
@@ -53,18 +77,22 @@ def attitude_law(inertia, angles, rates, angles_ref, k, alpha, max_accel=None) -
     airframe cannot stop in time (saturated, the linear law overshoots and can limit-cycle);
     errors below max_accel / (alpha k / (alpha+k))^2 see law (8) exactly. None: law (8).
     """
+    # per axis in floats: this runs every 200 Hz step, where numpy's per-call cost dominates
     inertia = np.asarray(inertia, dtype=np.float64)
     if inertia.shape == (3, 3):
         inertia = np.diag(inertia)
-    k = np.asarray(k, dtype=np.float64)
-    alpha = np.asarray(alpha, dtype=np.float64)
-    err = np.asarray(angles, dtype=np.float64) - np.asarray(angles_ref, dtype=np.float64)
-    err[2] = wrap_angle(err[2])  # yaw: take the short way round
-    rates = np.asarray(rates, dtype=np.float64)
+    inertia, k, alpha = _three(inertia), _three(k), _three(alpha)
+    angles, angles_ref, rates = _three(angles), _three(angles_ref), _three(rates)
+    err = [angles[0] - angles_ref[0], angles[1] - angles_ref[1], angles[2] - angles_ref[2]]
+    err[2] = (err[2] + math.pi) % (2 * math.pi) - math.pi  # yaw: take the short way round (wrap_angle)
     if max_accel is None:
-        return inertia * (-(alpha + k) * rates - alpha * k * err)
-    rate_ref = -stopping_rate(err, alpha * k / (alpha + k), max_accel)
-    return inertia * (alpha + k) * (rate_ref - rates)
+        return np.array([inertia[i] * (-(alpha[i] + k[i]) * rates[i] - alpha[i] * k[i] * err[i]) for i in range(3)])
+    max_accel = _three(max_accel)
+    out = []
+    for i in range(3):
+        rate_ref = -_stopping_rate1(err[i], alpha[i] * k[i] / (alpha[i] + k[i]), max_accel[i])
+        out.append(inertia[i] * (alpha[i] + k[i]) * (rate_ref - rates[i]))
+    return np.array(out)
 
 
 def attitude_from_thrust_vector(h_world, yaw: float) -> tuple[float, float]:

@@ -4,6 +4,8 @@ Euler angles are ZYX: R = Rz(yaw) @ Ry(pitch) @ Rx(roll).
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -51,6 +53,13 @@ def quat_to_rotation(q) -> np.ndarray:
 
 def quat_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
     """q = qz(yaw) (x) qy(pitch) (x) qx(roll), i.e. R = Rz Ry Rx."""
+    if isinstance(roll, float) and isinstance(pitch, float) and isinstance(yaw, float):
+        # scalars (the control loops' case): math's functions, several times cheaper than numpy's
+        cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+        cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+        cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+        return np.array([cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
+                         cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy])
     cr, sr = np.cos(roll / 2), np.sin(roll / 2)
     cp, sp = np.cos(pitch / 2), np.sin(pitch / 2)
     cy, sy = np.cos(yaw / 2), np.sin(yaw / 2)
@@ -64,12 +73,12 @@ def quat_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
 
 def quat_to_euler(q) -> tuple[float, float, float]:
     """(roll, pitch, yaw) of the ZYX convention; pitch in [-pi/2, pi/2]."""
-    w, x, y, z = quat_normalize(q)
-    roll = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    w, x, y, z = quat_normalize(q).tolist()
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
     # clip: rounding can push the sine just past +-1 at gimbal lock
-    pitch = np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0))
-    yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-    return float(roll), float(pitch), float(yaw)
+    pitch = math.asin(min(1.0, max(-1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return roll, pitch, yaw
 
 
 def rotate_vector(q, v) -> np.ndarray:

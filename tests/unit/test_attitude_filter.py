@@ -10,16 +10,28 @@ uT + 0.5 uT noise.  The filter is called at 200 Hz with the samples that are
 `delay_s` old or older, the torque applied since the last call, and t_now.
 """
 import math
+from collections import deque
 
 import numpy as np
 import pytest
 
 from flight.attitude_filter import (
+    AF,
+    FILTER_000,
+    G_REF,
+    NX,
+    WF,
+    A,
     AttitudeEstimate,
     AttitudeFilter,
     AttitudeFilterParams,
+    B,
+    W,
     accel_roll_pitch,
+    continuous_model,
+    discrete_model,
     mag_yaw,
+    rotation_zyx,
     wrap,
 )
 from flight.control import attitude_law
@@ -550,3 +562,418 @@ def test_acceleration_reference_is_bounded_and_expires():
         if plain is not None:
             e_plain = plain.update(imu, mag, np.zeros(3), t_now)
     assert e.euler_rad == pytest.approx(e_plain.euler_rad, abs=1e-12)
+
+
+# ------------------------------------------------------------------ against the per-axis filterpy filter
+def _van_loan(lpf_tau_s, h):
+    """F, B and the unit process noises on w', a', b' of (13) from matrix exponentials (scipy)."""
+    from scipy.linalg import expm
+    a, b = continuous_model(lpf_tau_s)
+    n, nu = NX, b.shape[1]
+    m = np.zeros((n + nu, n + nu))
+    m[:n, :n], m[:n, n:] = a, b
+    e = expm(m * h)
+    qs = []
+    for idx in (W, A, B):
+        vl = np.zeros((2 * n, 2 * n))
+        vl[:n, :n], vl[n:, n:] = -a, a.T
+        vl[idx, n + idx] = 1.0
+        ev = expm(vl * h)
+        qd = ev[n:, n:].T @ ev[:n, n:]
+        qs.append(0.5 * (qd + qd.T))
+    return (e[:n, :n], e[:n, n:], *qs)
+
+
+@pytest.mark.parametrize("tau", [0.005, 0.02, 0.1])
+def test_closed_form_discretisation_is_the_matrix_exponential(tau):
+    """F, B, Q in closed form (power series where the closed form's differences cancel) against
+    scipy's expm: to the exponential's own accuracy (~1e-11 of the largest entry at k h = 100),
+    and entry by entry, the smallest ones too, where that is ~1e-10 (short steps)."""
+    for h in (0.0, 1e-4, 3e-4, 2.5e-3, 5e-3, 0.0123, 0.05, 0.1, 0.5):
+        for got, ref in zip(discrete_model(tau, h), _van_loan(tau, h)):
+            np.testing.assert_allclose(got, ref, rtol=1e-8 if h <= 0.01 else 1e-11,
+                                       atol=1e-11 * np.abs(ref).max(), err_msg=f"tau {tau}, h {h}")
+
+
+class _PerAxisReference:
+    """The attitude filter as it was written before the stacked floats: three filterpy
+    KalmanFilters (one per axis, dim_x 5, dim_z 2), F, B, Q from scipy's matrix exponentials
+    (Van Loan) for each piece of each step, the a_model mean by np.interp over the history,
+    the extrapolator per axis and piece.  The numerics of that code, compacted; only the
+    reference for test_stacked_filter_equals_the_per_axis_filterpy_filter."""
+
+    def __init__(self, inertia, params, gravity_m_s2):
+        from filterpy.kalman import KalmanFilter
+        self._kalman = KalmanFilter
+        self.inertia, self.gravity, self.params, self.dt = np.asarray(inertia, float), gravity_m_s2, params, DT
+        self._cache = {}
+        p = params
+        if p.model_filter_lag:
+            self._h = np.array([[0.0, 1.0, 0.0, 0.0, 1.0], [0.0, 0.0, 0.0, 1.0, 0.0]])
+        else:
+            self._h = np.array([[1.0, 0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 1.0, 0.0, 0.0]])
+        self._h_rate_only = self._h.copy()
+        self._h_rate_only[1, :] = 0.0
+        self._angle_meas_idx = AF if p.model_filter_lag else A
+        self._r = [np.diag([p.rate_meas_var[i], p.angle_meas_var[i]]) for i in range(3)]
+        self.kfs = []
+        for i in range(3):
+            kf = self._kalman(dim_x=NX, dim_z=2, dim_u=2)
+            kf.x, kf.P = np.zeros((NX, 1)), self._p0(0.0)
+            self.kfs.append(kf)
+        self.kfs[2].P[A, A] = self.kfs[2].P[AF, AF] = math.pi ** 2
+        self._t_kf = self._t_prev_call = None
+        self._bias_started = self._yaw_seen = False
+        self._segs = []
+        self._wf, self._af, self._g_prev, self._a_prev = np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3)
+        self._yaw_hold, self._yaw_hold_t, self._pending_mag = None, 0.0, None
+        self._amodel, self._aid_ref = deque(), None
+        self._drop_aid_history()
+
+    def _disc(self, h):
+        key = int(round(h * 1e4))
+        if key not in self._cache:
+            self._cache[key] = _van_loan(self.params.lpf_tau_s, key * 1e-4)
+        return self._cache[key]
+
+    def _q(self, i, qw, qa, qb):
+        p = self.params
+        return p.rate_process_var[i] * qw + p.angle_process_var[i] * qa + p.bias_process_var[i] * qb
+
+    def _p0(self, bias_var):
+        p = self.params
+        return np.diag([p.init_rate_var, p.init_rate_var, p.init_angle_var, p.init_angle_var,
+                        p.init_bias_var if bias_var is None else bias_var])
+
+    def _excess(self, xs):
+        if not self.params.euler_kinematics:
+            return np.zeros(3)
+        roll, pitch = float(xs[0][A, 0]), float(xs[1][A, 0])
+        p, q, r = (float(x[W, 0]) for x in xs)
+        sr, cr, cp = math.sin(roll), math.cos(roll), math.cos(pitch)
+        cp = math.copysign(max(abs(cp), 0.2), cp)
+        return np.array([(sr * q + cr * r) * (math.sin(pitch) / cp), (cr - 1.0) * q - sr * r,
+                         (sr * q + cr * r) / cp - r])
+
+    def _add_torque(self, torque_nm, t_now):
+        u = np.asarray(torque_nm, dtype=np.float64).reshape(-1)
+        if u.shape != (3,) or not np.all(np.isfinite(u)):
+            u = np.zeros(3)
+        u = u / self.inertia
+        t0 = self._t_prev_call if self._t_prev_call is not None else t_now - self.dt
+        if self._segs:
+            t0 = max(t0, self._segs[-1][1])
+        if t_now > t0:
+            self._segs.append((t0, t_now, u))
+        if self._t_kf is not None:
+            while self._segs and self._segs[0][1] < self._t_kf - 1.0:
+                self._segs.pop(0)
+
+    def _pieces(self, t0, t1):
+        out, t, u_last = [], t0, np.zeros(3)
+        for s0, s1, u in self._segs:
+            if t >= t1:
+                break
+            if s1 <= t:
+                u_last = u
+                continue
+            if s0 >= t1:
+                break
+            if s0 > t:
+                out.append((s0 - t, u_last))
+                t = s0
+            e = min(s1, t1)
+            out.append((e - t, u))
+            t, u_last = e, u
+        if t < t1:
+            out.append((t1 - t, u_last))
+        return [(h, u) for h, u in out if h > 1e-9]
+
+    @staticmethod
+    def _rewrap(x):
+        a = float(x[A, 0])
+        s = float(wrap(a)) - a
+        if s != 0.0:
+            x[A, 0] += s
+            x[AF, 0] += s
+        x[AF, 0] = x[A, 0] + float(wrap(float(x[AF, 0] - x[A, 0])))
+
+    def _predict(self, t0, t1):
+        for h, u in self._pieces(t0, t1):
+            f, bd, qw, qa, qb = self._disc(h)
+            e = self._excess([kf.x for kf in self.kfs])
+            for i, kf in enumerate(self.kfs):
+                kf.predict(u=np.array([[u[i]], [e[i]]]), B=bd, F=f, Q=self._q(i, qw, qa, qb))
+
+    def _mag_yaw(self, field, roll, pitch):
+        field = np.asarray(field, dtype=np.float64).reshape(-1)
+        if field.shape != (3,) or not np.all(np.isfinite(field)):
+            return None
+        yaw = mag_yaw(field, roll, pitch, self.params.mag_field_world_ut)
+        return yaw if math.isfinite(yaw) else None
+
+    def _set_yaw_from_mag(self, yaw):
+        kf = self.kfs[2]
+        kf.x[A, 0] = kf.x[AF, 0] = yaw
+        kf.P[[A, AF], :] = 0.0
+        kf.P[:, [A, AF]] = 0.0
+        kf.P[A, A] = kf.P[AF, AF] = self.params.init_angle_var
+        self._af[2] = self._a_prev[2] = yaw
+        self._yaw_seen = True
+
+    def _accel_angles(self, accel):
+        n = float(np.linalg.norm(accel))
+        if not math.isfinite(n) or n < self.params.min_accel_g * G_REF or n == 0.0:
+            return None
+        return accel_roll_pitch(accel)
+
+    def _initialise(self, t, gyro, accel):
+        rp = self._accel_angles(accel)
+        roll, pitch = rp if rp is not None else (0.0, 0.0)
+        yaw = 0.0
+        if self._pending_mag is not None:
+            y = self._mag_yaw(self._pending_mag[1], roll, pitch)
+            if y is not None:
+                yaw = self._yaw_hold = y
+                self._yaw_hold_t = t
+        angles = np.array([roll, pitch, yaw])
+        self._wf, self._g_prev, self._af, self._a_prev = gyro.copy(), gyro.copy(), angles.copy(), angles.copy()
+        for i, kf in enumerate(self.kfs):
+            bias, bias_var = float(kf.x[B, 0]), float(kf.P[B, B])
+            if not self._bias_started:
+                bias, bias_var = 0.0, None
+            rate = gyro[i] - bias
+            kf.x = np.array([[rate], [rate], [angles[i]], [angles[i]], [bias]])
+            kf.P = self._p0(bias_var)
+        self._bias_started = True
+        self._yaw_seen = self._yaw_hold is not None
+        if not self._yaw_seen:
+            self.kfs[2].P[A, A] = self.kfs[2].P[AF, AF] = math.pi ** 2
+        self._drop_aid_history()
+        self._t_kf = t
+
+    def _process_mag(self, t_m, field):
+        if self._t_kf is None:
+            self._pending_mag = (t_m, field)
+            return
+        yaw = self._mag_yaw(field, float(self.kfs[0].x[A, 0]), float(self.kfs[1].x[A, 0]))
+        if yaw is None:
+            return
+        if not self._yaw_seen:
+            self._set_yaw_from_mag(yaw)
+        self._yaw_hold, self._yaw_hold_t = yaw, t_m
+
+    def _process_imu(self, t, gyro, accel, tilt=None):
+        if self._t_kf is None:
+            self._initialise(t, gyro, accel)
+            return
+        h = t - self._t_kf
+        if not h > 0:
+            return
+        if h > self.params.max_gap_s:
+            yaw_keep, seen = float(self.kfs[2].x[A, 0]), self._yaw_seen
+            self._t_kf = None
+            self._initialise(t, gyro, accel)
+            if seen and self._yaw_hold is None:
+                self._set_yaw_from_mag(yaw_keep)
+            return
+        c = 1.0 - math.exp(-h / self.params.lpf_tau_s)
+        self._wf += c * (0.5 * (self._g_prev + gyro) - self._wf)
+        self._g_prev = gyro.copy()
+        self._predict(self._t_kf, t)
+        aid = self._aid_correction(t) if tilt is None else None
+        if aid is not None:
+            r = rotation_zyx(*(float(kf.x[A, 0]) for kf in self.kfs))
+            rp = accel_roll_pitch(r.T @ (np.array([0.0, 0.0, self.gravity]) - aid))
+        else:
+            rp = self._accel_angles(accel) if tilt is None else tilt
+        angle_ok = [rp is not None, rp is not None, False]
+        if rp is not None:
+            for i in range(2):
+                mid = self._a_prev[i] + 0.5 * float(wrap(rp[i] - self._a_prev[i]))
+                self._af[i] = float(wrap(self._af[i] + c * float(wrap(mid - self._af[i]))))
+                self._a_prev[i] = rp[i]
+        if self._yaw_hold is not None:
+            dt_hold = t - max(self._yaw_hold_t, t - h)
+            if dt_hold > 0:
+                self._yaw_hold = float(wrap(self._yaw_hold + float(gyro[2]) * dt_hold))
+                self._yaw_hold_t = t
+            mid = self._a_prev[2] + 0.5 * float(wrap(self._yaw_hold - self._a_prev[2]))
+            self._af[2] = float(wrap(self._af[2] + c * float(wrap(mid - self._af[2]))))
+            self._a_prev[2] = self._yaw_hold
+            angle_ok[2] = self._yaw_seen
+        for i, kf in enumerate(self.kfs):
+            if angle_ok[i]:
+                pred = float(kf.x[self._angle_meas_idx, 0])
+                kf.update(np.array([[self._wf[i]], [pred + float(wrap(self._af[i] - pred))]]), R=self._r[i], H=self._h)
+            else:
+                kf.update(np.array([[self._wf[i]], [0.0]]), R=self._r[i], H=self._h_rate_only)
+            self._rewrap(kf.x)
+            kf.P = 0.5 * (kf.P + kf.P.T)
+        self._t_kf = t
+        a = rotation_zyx(*(float(kf.x[A, 0]) for kf in self.kfs)) @ accel
+        a[2] -= self.gravity
+        self._amodel.append((t, a))
+        while self._amodel and self._amodel[0][0] < t - 1.0:
+            self._amodel.popleft()
+
+    def _drop_aid_history(self):
+        self._amodel.clear()
+        self._aid_c = self._aid_done = None
+        self._aid_t1 = -math.inf
+
+    def _amodel_mean(self, t0, t1):
+        if not self._amodel or not t1 > t0:
+            return None
+        if self._amodel[0][0] > t0 + 1e-6 or self._amodel[-1][0] < t1 - 1e-6:
+            return None
+        ts = np.array([e[0] for e in self._amodel])
+        vals = np.array([e[1] for e in self._amodel])
+        grid = np.concatenate(([t0], ts[(ts > t0) & (ts < t1)], [t1]))
+        on_grid = np.stack([np.interp(grid, ts, vals[:, i]) for i in range(3)], axis=1)
+        mean = np.sum(0.5 * (on_grid[1:] + on_grid[:-1]) * np.diff(grid)[:, None], axis=0) / (t1 - t0)
+        return mean if np.all(np.isfinite(mean)) else None
+
+    def _aid_correction(self, t):
+        if self._aid_ref is None:
+            return None
+        t0, t1, a_ref = self._aid_ref
+        if self._aid_done != (t0, t1):
+            mean = self._amodel_mean(t0, t1)
+            if mean is not None:
+                corr = a_ref - mean
+                n, cap = float(np.linalg.norm(corr)), self.params.aid_max_correction_m_s2
+                self._aid_c = corr * (cap / n) if n > cap else corr
+                self._aid_done, self._aid_t1 = (t0, t1), t1
+        if self._aid_c is None or t - self._aid_t1 > self.params.aid_max_age_s:
+            return None
+        return self._aid_c
+
+    def reinitialise(self, euler, rate):
+        if self._t_kf is None:
+            return
+        euler, rate = wrap(np.asarray(euler, dtype=np.float64)), np.asarray(rate, dtype=np.float64)
+        for i, kf in enumerate(self.kfs):
+            kf.x[W, 0] = kf.x[WF, 0] = rate[i] - kf.x[B, 0]
+            kf.x[A, 0] = kf.x[AF, 0] = euler[i]
+        self._wf, self._g_prev, self._af, self._a_prev = rate.copy(), rate.copy(), euler.copy(), euler.copy()
+        if self._yaw_hold is not None:
+            self._yaw_hold = float(euler[2])
+        self._drop_aid_history()
+
+    def update(self, imu_samples, mag, torque_nm, t_now, accel_ref=None):
+        self._aid_ref = None
+        if accel_ref is not None:
+            self._aid_ref = (float(accel_ref[0]), float(accel_ref[1]), np.asarray(accel_ref[2], dtype=np.float64))
+        self._add_torque(torque_nm, t_now)
+        self._t_prev_call = t_now
+        samples = []
+        for s in imu_samples:
+            g, a = np.asarray(s[1], dtype=np.float64), np.asarray(s[2], dtype=np.float64)
+            samples.append((float(s[0]), g, a, s[3] if len(s) > 3 else None))
+        samples.sort(key=lambda s: s[0])
+        mag_item = (float(mag[0]), mag[1]) if mag is not None else None
+        for t, g, a, tilt in samples:
+            if mag_item is not None and mag_item[0] <= t:
+                self._process_mag(*mag_item)
+                mag_item = None
+            self._process_imu(t, g, a, tilt)
+        if mag_item is not None:
+            self._process_mag(*mag_item)
+        return self._estimate(t_now)
+
+    def _estimate(self, t_now):
+        if self._t_kf is None:
+            return AttitudeEstimate(np.zeros(3), np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]),
+                                    np.array([kf.P[A, A] for kf in self.kfs]),
+                                    np.array([kf.P[W, W] for kf in self.kfs]), 0.0)
+        delay = max(0.0, t_now - self._t_kf)
+        xs, ps = [kf.x.copy() for kf in self.kfs], [kf.P.copy() for kf in self.kfs]
+        if self.params.extrapolate and delay > 0.0:
+            for h, u in self._pieces(self._t_kf, self._t_kf + min(delay, self.params.max_delay_steps * self.dt)):
+                f, bd, qw, qa, qb = self._disc(h)
+                e = self._excess(xs)
+                for i in range(3):
+                    xs[i] = f @ xs[i] + bd @ np.array([[u[i]], [e[i]]])
+                    ps[i] = f @ ps[i] @ f.T + self._q(i, qw, qa, qb)
+        euler = wrap(np.array([x[A, 0] for x in xs]))
+        return AttitudeEstimate(euler, np.array([x[W, 0] for x in xs]), quat_from_euler(*euler),
+                                np.array([pp[A, A] for pp in ps]), np.array([pp[W, W] for pp in ps]), float(delay))
+
+
+def _manoeuvring_calls(seed, n=400, mag_first=True):
+    """Calls of the attitude service over a random manoeuvre: IMU samples with a jittered period
+    and a transport delay, in any order within a call (the first call with 50 ms of them, older
+    than any torque; now and then one sent again; a tilt measurement with some), the magnetometer
+    (mag_first: one sample before the first IMU sample), an acceleration reference (some wild
+    enough to be capped), the commanded torque, a 0.7 s IMU gap and a re-initialisation."""
+    rng = np.random.default_rng(seed)
+    angle, w = np.array([0.1, -0.2, 3.0]), np.zeros(3)
+    t_imu, t_off, calls, last = 0.0, 0.05, [], None
+    for c in range(n):
+        if c == n // 2:       # the IMU falls silent for 0.7 s (the filter re-initialises)
+            t_imu += 0.7
+            t_off += 0.7
+        t_now = DT * c + t_off + rng.uniform(0.0, 4e-4)
+        imu = [last] if (c % 50 == 49 and last is not None) else []
+        while t_imu < t_now - 0.003:
+            t_imu += IMU_DT + rng.uniform(-2e-4, 2e-4)
+            w = w + rng.normal(0.0, 0.3, 3)
+            angle = angle + w * IMU_DT
+            r = quat_to_rotation(quat_from_euler(*angle))
+            s = (t_imu, w + 3e-3 + rng.normal(0.0, 3e-3, 3),
+                 r.T @ [0.3 * math.sin(t_imu), 0.2, G] + rng.normal(0.0, 0.05, 3))
+            imu.append(s + (tuple(angle[:2] + rng.normal(0.0, 0.01, 2)),) if 100 <= c < 130 else s)
+        last = imu[-1] if imu else last
+        rng.shuffle(imu)
+        field = quat_to_rotation(quat_from_euler(*angle)).T @ FIELD + rng.normal(0.0, 0.5, 3)
+        mag = (0.0, field) if (c == 0 and mag_first) else ((imu[0][0], field) if imu and c % 4 == 1 else None)
+        ref = None
+        if c > 40 and c % 3:
+            ref = (t_now - 0.12, t_now - 0.02, rng.normal(0.0, 8.0 if c % 7 == 0 else 0.5, 3))
+        reinit = ([0.1, 0.2, -1.0], [0.3, 0.0, 0.1]) if c == 3 * n // 4 else None
+        calls.append((imu, mag, rng.normal(0.0, 0.02, 3), t_now, ref, reinit))
+    return calls
+
+
+@pytest.mark.parametrize("overrides, mag_first", [({}, True), ({}, False), ({"model_filter_lag": False}, False),
+                                                  ({"euler_kinematics": False}, True), ({"extrapolate": False}, True),
+                                                  (FILTER_000, False)])
+def test_stacked_filter_equals_the_per_axis_filterpy_filter(overrides, mag_first, monkeypatch):
+    """The filter (floats, closed-form discretisation) against the per-axis filterpy code it
+    replaced: the same estimate, states and covariances to rounding on a manoeuvring flight.
+    Half the cases move the a_model integral's origin at every sample (a long flight's case)."""
+    import flight.attitude_filter
+    if mag_first:
+        monkeypatch.setattr(flight.attitude_filter, "_AMODEL_REBASE", 0.0)
+    params = AttitudeFilterParams.from_dict(overrides)
+    new, ref = AttitudeFilter(INERTIA, params, gravity_m_s2=9.8), _PerAxisReference(INERTIA, params, 9.8)
+    aided = capped = 0
+    for imu, mag, torque, t_now, accel_ref, reinit in _manoeuvring_calls(seed=7, mag_first=mag_first):
+        if reinit is not None:
+            new.reinitialise(*reinit)
+            ref.reinitialise(*reinit)
+        e_new = new.update(imu, mag, torque, t_now, accel_ref=accel_ref)
+        e_ref = ref.update(imu, mag, torque, t_now, accel_ref=accel_ref)
+        for name in ("euler_rad", "rate_rad_s", "quaternion_wxyz", "euler_var", "rate_var"):
+            np.testing.assert_allclose(getattr(e_new, name), getattr(e_ref, name), rtol=1e-9, atol=1e-12,
+                                       err_msg=f"{name} at t = {t_now}")
+        assert e_new.delay_s == pytest.approx(e_ref.delay_s, abs=1e-12)
+        np.testing.assert_allclose(new.x, np.array([kf.x[:, 0] for kf in ref.kfs]), rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(new.P, np.array([kf.P for kf in ref.kfs]), rtol=1e-9, atol=1e-15)
+        if ref._aid_c is not None:
+            aided += 1
+            capped += bool(np.linalg.norm(ref._aid_c) >= params.aid_max_correction_m_s2 - 1e-12)
+            np.testing.assert_allclose(new._aid_c, ref._aid_c, rtol=1e-9, atol=1e-12)
+    assert aided > 100 and capped > 0      # the acceleration reference was used, and capped
+    np.testing.assert_allclose(new.gyro_bias, [kf.x[B, 0] for kf in ref.kfs], rtol=1e-9, atol=1e-15)
+
+
+def test_no_filterpy_or_scipy_on_import():
+    """The flight code imports neither (filterpy pulls scipy.stats: half a second at start-up)."""
+    import subprocess
+    import sys
+    code = ("import sys, flight.attitude_filter, services.attitude; "
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('filterpy', 'scipy')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"

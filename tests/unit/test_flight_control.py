@@ -106,3 +106,27 @@ def test_vehicle_max_angular_accel():
     # plus frame: roll from the two motors on the y axis, arm 0.15 m (the flip baseline's 21.8 rad/s^2)
     assert v.max_angular_accel_rad_s2[0] == pytest.approx(21.756, rel=1e-3)
     assert np.all(v.max_angular_accel_rad_s2 > 0)
+
+
+def test_attitude_law_is_the_vectorised_formula():
+    """attitude_law works per axis in floats; it is the array formula of its docstring (with
+    stopping_rate) to the last bit, for gains and limits given as numbers or per axis."""
+    from flight.control import stopping_rate
+    rng = np.random.default_rng(7)
+    inertia = np.array([7.5e-3, 7.5e-3, 14.2e-3])
+    for n in range(500):
+        angles, ref = rng.uniform(-3.5, 3.5, 3), rng.uniform(-3.5, 3.5, 3)
+        rates = rng.normal(0.0, 3.0, 3)
+        k, a = (rng.uniform(1.0, 20.0, 3), rng.uniform(1.0, 20.0, 3)) if n % 2 else (16.0, 8.0)
+        max_accel = [None, np.array([20.0, 20.0, 5.0]), 10.0, np.inf][n % 4]
+        err = angles - ref
+        err[2] = wrap_angle(err[2])
+        k_, a_ = np.broadcast_to(k, 3), np.broadcast_to(a, 3)
+        if max_accel is None:
+            expected = inertia * (-(a_ + k_) * rates - a_ * k_ * err)
+        else:
+            expected = inertia * (a_ + k_) * (-stopping_rate(err, a_ * k_ / (a_ + k_), max_accel) - rates)
+        got = attitude_law(np.diag(inertia) if n % 3 == 0 else list(inertia), list(angles), rates, tuple(ref),
+                           k, a, max_accel)
+        assert isinstance(got, np.ndarray) and got.shape == (3,)
+        np.testing.assert_array_equal(got, expected)
