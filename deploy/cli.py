@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import signal
 import sys
 import threading
@@ -56,6 +57,7 @@ def cmd_fly(args) -> int:
     print(f"zenpilot: flying {mission.name} ({mission.vehicle}, "
           f"{'lockstep' if args.lockstep else 'real time'}, seed {args.seed}) -> {out}", flush=True)
     wall0 = time.monotonic()
+    started = time.time()
     completed_run = False
     try:
         launcher.start_router()
@@ -82,6 +84,7 @@ def cmd_fly(args) -> int:
         launcher.stop(["recorder"], grace_s=60.0)
         launcher.stop(["router"])
     wall = time.monotonic() - wall0
+    report_startup(out, started)
     if not completed_run:
         print(f"zenpilot: the simulator stopped with an error (see {out / 'logs' / 'sim.log'})", file=sys.stderr)
     metrics = analyse(out, {"mission": mission.name, "mode": "lockstep" if args.lockstep else "realtime",
@@ -91,6 +94,25 @@ def cmd_fly(args) -> int:
     if metrics.get("crashed"):
         print("zenpilot: the vehicle crashed (truth on the ground mid-mission, or tilted past 60 deg)", file=sys.stderr)
     return 0 if metrics.get("completed") and not metrics.get("crashed") else 1
+
+
+def report_startup(out: Path, started: float) -> None:
+    """How long `zenpilot fly` took to the simulator's first tick (the planner's JAX compile apart)."""
+    logs = out / "logs"
+    first = re.search(r"first tick at ([0-9.]+)", _read(logs / "sim.log"))
+    if not first:
+        return
+    built = sum(float(x) for x in re.findall(r"built \(JAX compile and warm-up\) in ([0-9.]+) s",
+                                             _read(logs / "planner.log")))
+    print(f"zenpilot: start-up {float(first.group(1)) - started:.1f} s to the first tick"
+          + (f" (the planner's JAX compile and warm-up {built:.1f} s of it)" if built else ""), flush=True)
+
+
+def _read(path: Path) -> str:
+    try:
+        return path.read_text(errors="replace")
+    except OSError:
+        return ""
 
 
 def analyse(out: Path, info: dict) -> dict:
@@ -186,9 +208,12 @@ def cmd_up(args) -> int:
     router = args.router or stack.machines[machine].router
     run_dir = Path(args.out or STATE_DIR / f"run-{machine}")
     params = _param_overrides(args.set)
-    params.setdefault("sim", []).append("stop_after_mission=false")  # `up` runs until `down`
+    # `up` runs until `down`, unless `--set sim.stop_after_mission=true` (given later, it wins)
+    params["sim"] = ["stop_after_mission=false", *params.get("sim", [])]
+    # the airframe the mission names, as `fly` flies it (without a mission: the stack's)
+    vehicle = load_mission(args.mission).vehicle if args.mission not in (None, "", "none") else None
     launcher = Launcher(stack, run_dir, router, lockstep=args.lockstep, seed=args.seed,
-                        mission=args.mission, params=params)
+                        vehicle=vehicle, mission=args.mission, params=params)
     if runs_router:
         launcher.start_router()
     launcher.start_services(names)
@@ -233,7 +258,8 @@ def cmd_down(args) -> int:
             os.kill(pids[name], signal.SIGINT)
         except ProcessLookupError:
             continue
-        for _ in range(100):
+        grace_s = 60.0 if name == "recorder" else 5.0  # the recorder writes the flight log on exit, as in `fly`
+        for _ in range(int(grace_s / 0.05)):
             try:
                 os.kill(pids[name], 0)
                 time.sleep(0.05)

@@ -288,11 +288,22 @@ def compute_metrics(log: dict[str, list[dict]], info: dict, vehicle_id: int = 0)
     m["rejected_messages"] = rejected
     m["rejected_total"] = int(sum(sum(r.values()) for r in rejected.values()))
 
-    # IMU sample -> PWM output latency
-    lat = np.array([(x["header"]["t_s"] - x["imu_t_s"]) * 1000.0 for x in log.get(p + "motors/pwm", [])
-                    if x["armed"] and x["imu_t_s"] >= 0], dtype=np.float64)
+    # IMU sample -> PWM output latency: from each IMU sample the attitude level ran on to the
+    # first motor output computed from it. The outputs between two attitude commands (the
+    # motors run at twice the attitude rate) re-mix an older command: their age is reported apart.
+    ages, first, seen = [], [], set()
+    for x in _sorted(log.get(p + "motors/pwm", [])):
+        if not x["armed"] or x["imu_t_s"] < 0:
+            continue
+        age = (x["header"]["t_s"] - x["imu_t_s"]) * 1000.0
+        ages.append(age)
+        if x["imu_t_s"] not in seen:
+            seen.add(x["imu_t_s"])
+            first.append(age)
+    lat, ages = np.array(first, dtype=np.float64), np.array(ages, dtype=np.float64)
     m["latency_ms"] = {"imu_to_pwm_p50": _pct(lat, 50), "imu_to_pwm_p99": _pct(lat, 99),
-                       "imu_to_pwm_max": _f(lat.max()) if lat.size else None, "samples": int(lat.size)}
+                       "imu_to_pwm_max": _f(lat.max()) if lat.size else None, "samples": int(lat.size),
+                       "output_age_p50": _pct(ages, 50), "output_age_p99": _pct(ages, 99)}
 
     # step responses
     att_state = _sorted(log.get(p + "att/state", []))

@@ -15,6 +15,8 @@ A stack file is TOML:
     machine = "vehicle"
     rate_hz = 200
     nice = 0                  # OS scheduling niceness (0..19): above 0 yields the CPU to the loops
+    priority = 80             # real-time (SCHED_FIFO) priority 1..99 for a rate loop; 0: normal scheduling
+    cpu = [1]                 # CPUs the process may run on (affinity); [] or absent: any
     [services.attitude.params]
     state_source = "truth"
 
@@ -67,6 +69,8 @@ class ServiceSpec:
     rate_hz: float  # 0: event driven
     params: dict[str, Any] = field(default_factory=dict)
     nice: int = 0  # OS niceness the launcher gives the process: >0 for work the flight must not wait for
+    priority: int = 0  # SCHED_FIFO priority the service asks for (1..99), 0: normal scheduling
+    cpu: tuple[int, ...] = ()  # CPU affinity the service asks for; (): any CPU
 
 
 @dataclass(frozen=True)
@@ -139,7 +143,7 @@ def load_stack(path: str | Path | None = None) -> Stack:
         where = f"{path}: [services.{name}]"
         if name not in SERVICE_MODULES:
             raise StackError(f"{where}: unknown service (known: {', '.join(SERVICE_MODULES)})")
-        unknown = set(s) - {"machine", "rate_hz", "params", "nice"}
+        unknown = set(s) - {"machine", "rate_hz", "params", "nice", "priority", "cpu"}
         if unknown:
             raise StackError(f"{where}: unknown key(s) {sorted(unknown)}")
         machine = _expect(s.get("machine", next(iter(machines))), str, f"{where} machine")
@@ -151,8 +155,14 @@ def load_stack(path: str | Path | None = None) -> Stack:
         nice = _expect(s.get("nice", 0), int, f"{where} nice")
         if not 0 <= nice <= 19:  # raising a process's priority needs privileges; lowering it does not
             raise StackError(f"{where}: nice {nice} must be within 0..19")
+        priority = _expect(s.get("priority", 0), int, f"{where} priority")
+        if not 0 <= priority <= 99:
+            raise StackError(f"{where}: priority {priority} must be within 0..99 (0: normal scheduling)")
+        cpu = _expect(s.get("cpu", []), list, f"{where} cpu")
+        if not all(isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in cpu):
+            raise StackError(f"{where}: cpu {cpu!r} must be a list of CPU numbers (0, 1, ...)")
         services[name] = ServiceSpec(name, machine, rate, dict(_expect(s.get("params", {}), dict, f"{where} params")),
-                                     nice)
+                                     nice, priority, tuple(cpu))
     for needed in ("sim", "motors", "attitude", "position", "planner"):
         if needed not in services:
             raise StackError(f"{path}: the stack needs a [services.{needed}] section")

@@ -256,11 +256,17 @@ class _Reject(Exception):
     """Raised inside compiled code: a check failed; the reference path decides."""
 
 
-_tls = threading.local()  # one msgpack Packer per thread (a Packer is not thread safe)
+# One msgpack Packer per thread (a Packer is not thread safe), keyed by thread id: a
+# threading.local does not survive between two Zenoh callbacks (each runs on a fresh Python
+# thread state of the same OS thread), so it would build a Packer on every callback's encode.
+_packers: dict[int, msgpack.Packer] = {}
+_get_ident = threading.get_ident
 
 
 def _new_packer() -> msgpack.Packer:
-    _tls.packer = p = msgpack.Packer(use_bin_type=True)  # the options of the old msgpack.packb call
+    if len(_packers) > 256:   # threads come and go: keep the table small
+        _packers.clear()
+    _packers[_get_ident()] = p = msgpack.Packer(use_bin_type=True)  # the options of the old msgpack.packb call
     return p
 
 
@@ -393,9 +399,8 @@ def _compile(m: Message) -> dict:
             "        doc = None",
             "    if doc is None:",
             "        doc = _encode_reference(_M, t_s, seq, source, values)",
-            "    try:",
-            "        packer = _tls.packer",
-            "    except AttributeError:",
+            "    packer = _packers.get(_get_ident())",
+            "    if packer is None:",
             "        packer = _new_packer()",
             "    return packer.pack(doc)",
             ""]
@@ -403,7 +408,8 @@ def _compile(m: Message) -> dict:
     namespace = {
         "_M": m, "_NAME": m.name, "_VERSION": m.version, "_check": m.check, "_Reject": _Reject,
         "_SchemaError": SchemaError, "_unpackb": msgpack.unpackb, "_validate_reference": _validate_reference,
-        "_encode_reference": _encode_reference, "_plain": _plain, "_tls": _tls, "_new_packer": _new_packer,
+        "_encode_reference": _encode_reference, "_plain": _plain, "_packers": _packers, "_get_ident": _get_ident,
+        "_new_packer": _new_packer,
         "_INF": math.inf, "_NEG_INF": -math.inf, **consts,
     }
     exec(compile(source, f"<schemas codec {m.name}>", "exec"), namespace)

@@ -203,15 +203,27 @@ MOTOR_PWM = Message(
 )
 
 HEALTH = Message(
-    "health", "{service}/health", 1,
-    "Every service, at 1 Hz (in its clock): how it is doing.",
+    "health", "{service}/health", 2,
+    "Every service, at 1 Hz (in its clock): how it is doing. Lateness is how long after "
+    "its absolute deadline the main loop woke (real time, rate loops; 0 otherwise).",
     (
         F("state", "str", "service state", choices=("starting", "running", "degraded", "stopping", "failed")),
         F("rate_hz", "float", "achieved rate of the main task over the last second", "Hz", min=0.0),
         F("target_rate_hz", "float", "configured rate (0: event driven)", "Hz", min=0.0),
-        F("overruns", "int", "main-task deadlines missed since start", min=0),
+        F("overruns", "int", "main-task deadlines skipped since start (a step ran past the next one)", min=0),
         F("jitter_p99_ms", "float", "p99 of |period - nominal| over the last second", "ms", min=0.0),
+        F("lateness_p50_ms", "float", "median wake-up lateness over the last second", "ms", min=0.0),
+        F("lateness_p99_ms", "float", "p99 wake-up lateness over the last second", "ms", min=0.0),
+        F("lateness_max_ms", "float", "largest wake-up lateness over the last second", "ms", min=0.0),
+        F("late", "int", "deadlines woken more than 5 ms late, since start", min=0),
+        F("cycles", "int", "main-task runs since start", min=0),
+        F("step_s", "float", "wall time spent in the main task since start", "s", min=0.0),
+        F("wait_s", "float", "lockstep: wall time spent waiting for upstream services since start", "s", min=0.0),
         F("rejected", "counts", "messages dropped since start, by reason"),
+        F("dropped", "counts", "messages lost before this service read them, by key (sequence gaps, "
+          "queue overflow), since start"),
+        F("scheduling", "str", "how the OS schedules the process, e.g. 'fifo 80, cpu 1' or 'normal' "
+          "(with the reason when a requested priority or affinity was refused)"),
         F("detail", "str", "last problem, human readable ('' if none)"),
     ),
 )

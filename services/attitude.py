@@ -16,7 +16,9 @@ level's reference; the collective thrust is passed on to the motor driver.
 
 from __future__ import annotations
 
+import bisect
 from collections import deque
+from operator import itemgetter
 
 import numpy as np
 
@@ -80,6 +82,7 @@ STATE_SOURCES = ("truth", "estimate")
 COMPENSATIONS = ("window", "slope")
 VELOCITY_KEEP_S = 0.2  # pos/state history kept beyond the window: covers an IMU transport delay
 ESTIMATORS = ("kalman-000", "gyro-vertical")
+_sample_time = itemgetter(0)
 
 
 def load_gyrovertical(rt: Runtime):
@@ -163,20 +166,23 @@ def run(args) -> None:
         own samples, which arrive later than pos/state when the IMU has a transport delay), or None."""
         t_p = moving["header"]["t_s"]
         if not velocities or t_p > velocities[-1][0]:
-            velocities.append((t_p, np.asarray(moving["velocity_m_s"], dtype=np.float64)))
+            velocities.append((t_p, moving["velocity_m_s"]))
         elif t_p < velocities[-1][0]:      # time went back (a restart): start over
             velocities.clear()
-            velocities.append((t_p, np.asarray(moving["velocity_m_s"], dtype=np.float64)))
+            velocities.append((t_p, moving["velocity_m_s"]))
         while len(velocities) > 1 and velocities[0][0] < velocities[-1][0] - accel_window_s - VELOCITY_KEEP_S:
             velocities.popleft()
-        usable = [e for e in velocities if e[0] <= until + 1e-9]
-        if len(usable) < 2:
+        # the usable ones (at or before `until`) are a prefix of the time-ordered history
+        n_usable = bisect.bisect_right(velocities, until + 1e-9, key=_sample_time)
+        if n_usable < 2:
             return None
-        t1, v1 = usable[-1]
-        t0, v0 = next(e for e in usable if e[0] >= t1 - accel_window_s - 1e-9)
+        t1, v1 = velocities[n_usable - 1]
+        t0, v0 = velocities[bisect.bisect_left(velocities, t1 - accel_window_s - 1e-9, hi=n_usable,
+                                               key=_sample_time)]
         if t1 - t0 < 0.5 * accel_window_s:
             return None
-        return t0, t1, (v1 - v0) / (t1 - t0)
+        d = t1 - t0
+        return t0, t1, ((v1[0] - v0[0]) / d, (v1[1] - v0[1]) / d, (v1[2] - v0[2]) / d)
 
     def read_state(t: float):
         """(quaternion, euler, rates, euler_var, rate_var, sample time) or None."""
@@ -186,23 +192,25 @@ def run(args) -> None:
                 return None
             q = s["quaternion_wxyz"]
             return q, np.array(quat_to_euler(q)), np.asarray(s["rate_rad_s"]), np.zeros(3), np.zeros(3), s["header"]["t_s"]
-        samples = [(m["header"]["t_s"], np.asarray(m["gyro_rad_s"]), np.asarray(m["accel_m_s2"])) for m in imu.take()]
+        # the decoded lists go to the filter as they are (it reads floats); in time order, once
+        samples = [(m["header"]["t_s"], m["gyro_rad_s"], m["accel_m_s2"]) for m in imu.take()]
+        samples.sort(key=_sample_time)
         if make_gyrovertical is not None:
-            samples.sort(key=lambda s: s[0])
-            samples = [(ts, gyro, acc, gyrovertical_update(ts, gyro, acc)) for ts, gyro, acc in samples]
+            samples = [(ts, gyro, acc, gyrovertical_update(ts, np.asarray(gyro), np.asarray(acc)))
+                       for ts, gyro, acc in samples]
         moving = motion.latest() if motion is not None else None
         accel_ref = None
         if moving is not None and moving["state_source"] == "estimate" and filt.initialized:
             if windowed:
-                newest_imu_t = max((smp[0] for smp in samples), default=filt.last_sample_t)
+                newest_imu_t = samples[-1][0] if samples else filt.last_sample_t
                 accel_ref = velocity_window(moving, newest_imu_t)
             else:
                 # specific force f = R^T (a - g): remove R^T a so that what is left is gravity alone
                 r_t = quat_to_rotation(filt_state["q"]).T
                 a_body = r_t @ np.asarray(moving["acceleration_m_s2"])
-                samples = [(ts, gyro, acc - a_body) for ts, gyro, acc in samples]
+                samples = [(ts, gyro, np.asarray(acc) - a_body) for ts, gyro, acc in samples]
         mags = mag.take()
-        mag_sample = (mags[-1]["header"]["t_s"], np.asarray(mags[-1]["field_ut"])) if mags else None
+        mag_sample = (mags[-1]["header"]["t_s"], mags[-1]["field_ut"]) if mags else None
         if not samples and filt.initialized is False:
             return None
         out = motors.latest()  # the torque the motors were really asked for (after saturation)
@@ -210,7 +218,6 @@ def run(args) -> None:
         est = filt.update(samples, mag_sample, applied, t, accel_ref=accel_ref)
         sample_t = samples[-1][0] if samples else filt.last_sample_t
         q, euler, rates = est.quaternion_wxyz, est.euler_rad, est.rate_rad_s
-        samples.sort(key=lambda s: s[0])
         if not carrier.active:
             if filt.initialized:   # near level: the carrier only follows the 000 filter
                 sample_euler, sample_rate = filt.sample_state()
@@ -258,7 +265,8 @@ def run(args) -> None:
                        "euler_ref_rad": ref, "euler_var_rad2": euler_var, "rate_var_rad2_s2": rate_var,
                        "state_source": p["state_source"]}, t_s=t)
 
-    rt.run(step)
+    # run as the IMU sample (or the truth) arrives, every second one at 400 Hz: no period of waiting added
+    rt.run(step, wake_on=imu if estimate else truth, min_gap=0.6)
 
 
 def main(argv=None) -> None:

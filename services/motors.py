@@ -125,7 +125,8 @@ def run(args) -> None:
         out.put({"pwm_us": pwm, "thrust_n": np.asarray(forces),
                  "armed": True, "saturated": bool(saturated), "imu_t_s": cmd["imu_t_s"]}, t_s=t)
 
-    rt.run(step)
+    # a new attitude command is mixed and sent at once; between commands the 400 Hz timer runs
+    rt.run(step, wake_on=command, min_gap=0.0)
 
 
 def actuator_link(rt: Runtime, vehicle):

@@ -17,6 +17,7 @@ goes out on planner/plan for the motor driver.
 
 from __future__ import annotations
 
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -55,7 +56,9 @@ def flip_controllers(rt: Runtime, mission) -> dict:
     controllers = {}
     for m in methods:
         print(f"zenpilot-planner: building the {m} flip controller", flush=True)
+        t0 = time.monotonic()
         controllers[m] = FlipController(vehicle, m, rate)
+        print(f"zenpilot-planner: {m}: built (JAX compile and warm-up) in {time.monotonic() - t0:.2f} s", flush=True)
         if controllers[m].planner is not None:  # XLA's small-loop option took (flight/ilqr.py), or not
             whole = controllers[m].planner.loops_compiled_whole()
             print(f"zenpilot-planner: {m}: {whole} of the solver's loops compiled whole", flush=True)

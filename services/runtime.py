@@ -26,6 +26,7 @@ Lockstep protocol (deterministic; like PX4 SITL lockstep):
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import math
 import os
@@ -43,6 +44,11 @@ from deploy.stack import LOCKSTEP_PARTICIPANTS, Stack, StackError, load_stack, p
 
 HEALTH_PERIOD_S = 1.0
 READY_RESEND_S = 0.2
+LATE_S = 0.005        # a wake-up later than this past its deadline counts as late
+RAW_QUEUE_MAX = 256   # payloads per key waiting to be read; beyond, the oldest is lost (counted)
+# A loop woken by its input (run(..., wake_on=inbox)) runs at the input's arrival, at most
+# once per `min_gap` periods; without input it runs on its own timer this much past a period.
+WAKE_TIMER_MARGIN = 0.25
 
 
 # ---------------------------------------------------------------- CLI and Zenoh
@@ -98,7 +104,11 @@ def fail(name: str, message: str) -> None:
 
 # ---------------------------------------------------------------- inputs
 class Inbox:
-    """Messages of one key, decoded strictly, tagged for lockstep visibility."""
+    """Messages of one key, decoded strictly on the service's thread, tagged for lockstep visibility.
+
+    The Zenoh callback only queues the payload with its lockstep tag; the reader decodes
+    what arrived when it asks (`latest`, `take`), so every message is still validated and
+    counted, and no decoding holds up Zenoh's receiving thread."""
 
     def __init__(self, runtime: "Runtime", message: schemas.Message, key: str, upstream: str, keep: int):
         self.runtime = runtime
@@ -109,40 +119,77 @@ class Inbox:
         # next tick after arrival, like a simulator message
         self.clocked = upstream == "sim" or upstream not in LOCKSTEP_PARTICIPANTS
         self.keep = keep
-        self._items: deque[tuple[int, dict]] = deque(maxlen=keep)
-        self._taken_seq = -1
+        self._raw: deque[tuple[int, bytes]] = deque()   # appended on Zenoh's thread, drained by the reader
+        self._items: deque[tuple[int, int, dict]] = deque(maxlen=keep)  # (tag, arrival number, message)
+        self._taken = -1
         self._lock = threading.Lock()
         self.limit = math.inf  # visibility: tag < limit (set per run in lockstep)
         self.arrived = 0
+        self._next_seq: dict[str, int] = {}   # per sender: the sequence number expected next
+        self.wakes = False   # set by Runtime.run(wake_on=...)
+        self._takes = False  # the reader takes every message (take), not only the newest
+        self._superseded = False  # unread messages went to make room: no loss for a reader of the newest
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        tag = self.runtime._sync_tick(self.upstream)
-        self.arrived += 1
-        try:
-            msg = self.message.decode(sample.payload.to_bytes())
-        except schemas.SchemaError as exc:
-            self.runtime.reject(self.key, exc)
-            return
-        msg["_tag"] = tag
-        msg["_n"] = self.arrived
-        with self._lock:
-            self._items.append((tag, msg))
-        self.runtime._arrival.set()  # wakes event-driven services in real time
+        raw = self._raw
+        rt = self.runtime
+        raw.append((rt._sync_tick(self.upstream) if rt.lockstep else 0, sample.payload.to_bytes()))
+        if len(raw) > RAW_QUEUE_MAX:   # not read for a while: the oldest goes
+            raw.popleft()
+            if self._takes:   # a reader of every message lost one; a reader of the newest did not
+                rt.count_dropped(self.key)
+            else:
+                self._superseded = True
+        if self.wakes:   # the service's loop runs on this input's arrival (real time)
+            rt._wake_t = time.time()
+            rt._wake.set()
+        elif rt.event_driven:
+            rt._arrival.set()  # wakes an event-driven service in real time
+
+    def _drain(self) -> None:
+        raw, items, decode = self._raw, self._items, self.message.decode
+        if self._superseded:
+            self._superseded = False
+            self._next_seq.clear()
+        while raw:
+            tag, payload = raw.popleft()
+            self.arrived += 1
+            try:
+                msg = decode(payload)
+            except schemas.SchemaError as exc:
+                self.runtime.reject(self.key, exc)
+                continue
+            header = msg["header"]
+            seq, source = header["seq"], header["source"]
+            expected = self._next_seq.get(source)
+            if expected is not None and seq > expected:
+                self.runtime.count_dropped(self.key, seq - expected)
+            if expected is None or seq >= expected - 1 or seq < expected - 1000:  # a repeat keeps its seq; a restart starts over
+                self._next_seq[source] = seq + 1
+            msg["_n"] = self.arrived   # arrival number: which messages a reader has seen
+            items.append((tag, self.arrived, msg))
 
     def latest(self) -> dict | None:
         """The newest visible message, or None."""
         with self._lock:
-            for tag, msg in reversed(self._items):
-                if tag < self.limit:
+            if self._raw:
+                self._drain()
+            limit = self.limit
+            for tag, _, msg in reversed(self._items):
+                if tag < limit:
                     return msg
         return None
 
     def take(self) -> list[dict]:
         """Visible messages not taken before, oldest first."""
+        self._takes = True
         with self._lock:
-            out = [m for tag, m in self._items if tag < self.limit and m["_n"] > self._taken_seq]
-        if out:
-            self._taken_seq = out[-1]["_n"]
+            if self._raw:
+                self._drain()
+            limit, taken = self.limit, self._taken
+            out = [m for tag, n, m in self._items if tag < limit and n > taken]
+            if out:
+                self._taken = max(n for tag, n, _ in self._items if tag < limit and n > taken)
         return out
 
 
@@ -152,21 +199,25 @@ class Publisher:
         self.message = message
         self.key = key
         self.seq = 0
-        # express: no batching delay. Lockstep must not lose a message (the handshake
-        # would stall), so it blocks under congestion; real time drops stale data instead.
+        # Express: sent at once, not held for batching (a control hop must not wait for
+        # the next batch). Lockstep must not lose a message (the handshake would stall),
+        # so it blocks under congestion; real time drops stale data instead.
         congestion = zenoh.CongestionControl.BLOCK if runtime.lockstep else zenoh.CongestionControl.DROP
-        self._pub = runtime.session.declare_publisher(key, express=False, congestion_control=congestion)
+        self._pub = runtime.session.declare_publisher(key, express=True, congestion_control=congestion)
+        self._put = self._pub.put
+        self._encode = message.encode
+        self._source = runtime.name
 
     def put(self, values: dict[str, Any], t_s: float | None = None, repeat: bool = False) -> None:
         """Publish; invalid values (NaN, out of range) are reported, never sent.
         `repeat`: send the same message again (same seq) until the next one."""
         t = self.runtime.now() if t_s is None else t_s
         try:
-            payload = self.message.encode(t, self.seq, self.runtime.name, values)
+            payload = self._encode(t, self.seq, self._source, values)
         except schemas.SchemaError as exc:
             self.runtime.problem(f"not publishing {self.key}: {exc}")
             return
-        self._pub.put(payload)
+        self._put(payload)
         if not repeat:
             self.seq += 1
 
@@ -194,6 +245,7 @@ class Runtime:
             self.conf = zenoh_config(args)
         except (StackError, zenoh.ZError, ValueError) as exc:
             fail(name, str(exc))
+        self.spec = spec
         self.vehicle_id = self.stack.vehicle_id
         self.vehicle_name = args.vehicle or self.stack.vehicle
         self.lockstep = bool(args.lockstep)
@@ -204,6 +256,13 @@ class Runtime:
         self._reported: set[tuple[str, str]] = set()
         self.detail = ""
         self.overruns = 0
+        self.late = 0
+        self.cycles = 0
+        self.step_s = 0.0
+        self.wait_s = 0.0
+        self.dropped: dict[str, int] = {}
+        self._lateness: list[float] = []   # wake-up lateness (s) since the last health message
+        self.scheduling = "normal"
         self.state = "starting"
         self._run_times: deque[float] = deque()
         self._periods: deque[float] = deque(maxlen=2000)
@@ -214,8 +273,18 @@ class Runtime:
         self._clock_event = threading.Event()
         self._sync_event = threading.Event()
         self._arrival = threading.Event()
+        self._wake = threading.Event()
+        self._wake_t = 0.0
+        self.event_driven = False   # real time, no rate: the loop runs on any input's arrival
         self.inboxes: list[Inbox] = []
         self._param_callbacks: dict[str, list[Callable[[Any], None]]] = {}
+        if not self.lockstep and spec is not None:
+            # before the session opens: Zenoh's threads inherit the policy and the affinity
+            self.scheduling = apply_scheduling(spec.priority, spec.cpu)
+            if "refused" in self.scheduling:
+                self.problem(f"scheduling: {self.scheduling}")
+            elif self.scheduling != "normal":
+                print(f"zenpilot-{name}: scheduling {self.scheduling}", flush=True)
         try:
             self.session = zenoh.open(self.conf)
         except zenoh.ZError as exc:
@@ -254,6 +323,9 @@ class Runtime:
         if text != self.detail:
             print(f"zenpilot-{self.name}: {text}", file=sys.stderr, flush=True)
         self.detail = text
+
+    def count_dropped(self, key: str, n: int = 1) -> None:
+        self.dropped[key] = self.dropped.get(key, 0) + n
 
     def reject(self, key: str, exc: schemas.SchemaError) -> None:
         self.rejected[exc.reason] = self.rejected.get(exc.reason, 0) + 1
@@ -371,26 +443,84 @@ class Runtime:
             dev = sorted(abs(p - nominal) for p in self._periods)
             jitter = dev[min(len(dev) - 1, int(0.99 * len(dev)))] * 1e3
             self._periods.clear()
+        late = sorted(self._lateness)
+        self._lateness.clear()
+        p50, p99, worst = (1e3 * late[len(late) // 2], 1e3 * late[min(len(late) - 1, int(0.99 * len(late)))],
+                           1e3 * late[-1]) if late else (0.0, 0.0, 0.0)
         self._health.put({
             "state": self.state, "rate_hz": float(len(self._run_times)) / HEALTH_PERIOD_S,
             "target_rate_hz": float(self.rate_hz), "overruns": self.overruns,
-            "jitter_p99_ms": jitter, "rejected": dict(self.rejected), "detail": self.detail,
+            "jitter_p99_ms": jitter, "lateness_p50_ms": p50, "lateness_p99_ms": p99, "lateness_max_ms": worst,
+            # wall-clock figures stay out of a lockstep log (same seed, same bytes): the log line at exit has them
+            "late": self.late, "cycles": self.cycles, "step_s": 0.0 if self.lockstep else self.step_s,
+            "wait_s": 0.0 if self.lockstep else self.wait_s,
+            "rejected": dict(self.rejected), "dropped": dict(self.dropped), "scheduling": self.scheduling,
+            "detail": self.detail,
         })
 
     # -- main loops ----------------------------------------------------------
-    def run(self, step: Callable[[float], None], triggers: tuple[str, ...] = ()) -> None:
-        """Call `step(t)` at the service's rate (or on `triggers`) until stopped."""
+    def run(self, step: Callable[[float], None], triggers: tuple[str, ...] = (),
+            wake_on: Inbox | None = None, min_gap: float = 0.0) -> None:
+        """Call `step(t)` at the service's rate (or on `triggers`) until stopped.
+
+        wake_on (real time): run when a message arrives on that inbox, at most once per
+        `min_gap` periods, and on a timer WAKE_TIMER_MARGIN past a period when nothing comes:
+        the loop then keeps the phase of its input (an attitude loop runs as its IMU sample
+        arrives, the motor driver as its command does) instead of adding up to a period of
+        waiting per hop. Lockstep runs on the ticks as always."""
         try:
             if self.lockstep:
                 self._run_lockstep(step, triggers)
+            elif wake_on is not None and self.rate_hz > 0:
+                wake_on.wakes = True
+                self._run_woken(step, min_gap)
             else:
                 self._run_realtime(step, triggers)
         finally:
             self.close()
 
+    def _run_woken(self, step: Callable[[float], None], min_gap: float) -> None:
+        self.state = "running"
+        self.enter_loop()
+        period = 1.0 / self.rate_hz
+        clock, wake, lateness = time.time, self._wake, self._lateness
+        gap, timer_after = min_gap * period, (1.0 + WAKE_TIMER_MARGIN) * period
+        t_last = clock() - period
+        while not self.stop_event.is_set():
+            deadline = t_last + timer_after
+            while True:
+                wait = deadline - clock()
+                if wait <= 0.0:   # nothing came in time: the timer's run
+                    break
+                if wake.wait(wait):
+                    wake.clear()
+                    arrived = self._wake_t
+                    if arrived - t_last >= gap:
+                        deadline = arrived   # lateness from the input's arrival
+                        break
+            now = clock()
+            self._t = now
+            late = now - deadline
+            lateness.append(late if late > 0.0 else 0.0)
+            if late > LATE_S:
+                self.late += 1
+            if now - t_last > 2.0 * period + LATE_S:   # no input and the timer late: a missed cycle
+                self.overruns += int((now - t_last) / period) - 1
+            t_last = now
+            self.count_run(now)
+            self._safe_step(step, now)
+            self.publish_health()
+
+    def enter_loop(self) -> None:
+        """Set-up is over: move everything allocated so far out of the garbage collector's way."""
+        gc.collect()
+        gc.freeze()  # start-up objects (modules, JAX, tables) are never scanned again
+
     def _run_realtime(self, step: Callable[[float], None], triggers: tuple[str, ...]) -> None:
         self.state = "running"
+        self.enter_loop()
         if self.rate_hz <= 0:  # event driven: run when a message arrives, not on a timer
+            self.event_driven = True
             while not self.stop_event.is_set():
                 if self._arrival.wait(HEALTH_PERIOD_S / 2):
                     self._arrival.clear()
@@ -400,29 +530,36 @@ class Runtime:
                 self.publish_health()
             return
         period = 1.0 / self.rate_hz
-        t_next = time.time()
+        clock, sleep, lateness = time.time, time.sleep, self._lateness
+        t_next = clock()
         while not self.stop_event.is_set():
-            delay = t_next - time.time()
+            delay = t_next - clock()
             if delay > 0:
-                time.sleep(delay)
-            now = time.time()
+                sleep(delay)
+            now = clock()
             self._t = now
-            if self.rate_hz > 0:  # event-driven steps count their own runs
-                self.count_run(now)
+            late = now - t_next   # against the absolute deadline, never the previous wake-up
+            lateness.append(late if late > 0.0 else 0.0)
+            if late > LATE_S:
+                self.late += 1
+            self.count_run(now)
             self._safe_step(step, now)
             self.publish_health()
             t_next += period
-            if time.time() > t_next:  # missed the next deadline: count it, do not catch up in a burst
-                missed = int((time.time() - t_next) / period) + 1
+            if clock() > t_next:  # missed the next deadline: count it, do not catch up in a burst
+                missed = int((clock() - t_next) / period) + 1
                 self.overruns += missed
                 t_next += missed * period
 
     def _safe_step(self, step: Callable[[float], None], t: float) -> None:
+        t0 = time.perf_counter()
         try:
             step(t)
         except Exception as exc:  # a failing step is reported and the loop goes on
             self.state = "degraded"
             self.problem(f"step failed at t={t:.3f}: {type(exc).__name__}: {exc}")
+        self.step_s += time.perf_counter() - t0
+        self.cycles += 1
 
     def _run_lockstep(self, step: Callable[[float], None], triggers: tuple[str, ...]) -> None:
         period = round(self.tick_rate / self.rate_hz) if self.rate_hz > 0 else 0
@@ -435,6 +572,7 @@ class Runtime:
             self._clock_event.wait(READY_RESEND_S)
         sync.seq += 1
         self.state = "running"
+        self.enter_loop()
         while not self.stop_event.is_set():
             self._clock_event.clear()
             if not self._clock_queue:
@@ -459,22 +597,26 @@ class Runtime:
         """Wait until every upstream's sync for its last run before k has arrived
         (and with it, over the same link, that run's outputs)."""
         warned = False
-        start = time.monotonic()
-        while not self.stop_event.is_set():
-            self._sync_event.clear()  # clear before checking, so a sync arriving now is not lost
-            waiting = [n for n, u in self._upstreams.items() if u.last_done < done_before.get(n, -2)]
-            if not waiting:
-                return True
-            self._sync_event.wait(0.5)
-            if not warned and time.monotonic() - start > 5.0:
-                self.problem(f"lockstep: tick {k} still waiting for {', '.join(waiting)}")
-                warned = True
-        return False
+        start = time.perf_counter()
+        try:
+            while not self.stop_event.is_set():
+                self._sync_event.clear()  # clear before checking, so a sync arriving now is not lost
+                waiting = [n for n, u in self._upstreams.items() if u.last_done < done_before.get(n, -2)]
+                if not waiting:
+                    return True
+                self._sync_event.wait(0.5)
+                if not warned and time.perf_counter() - start > 5.0:
+                    self.problem(f"lockstep: tick {k} still waiting for {', '.join(waiting)}")
+                    warned = True
+            return False
+        finally:
+            self.wait_s += time.perf_counter() - start
 
     def close(self) -> None:
         if self.state != "stopping":
             cpu = os.times()
-            print(f"zenpilot-{self.name}: stopping; cpu {cpu.user + cpu.system:.2f} s", flush=True)
+            print(f"zenpilot-{self.name}: stopping; cpu {cpu.user + cpu.system:.2f} s; {self.cycles} runs, "
+                  f"step {self.step_s:.3f} s, waited {self.wait_s:.3f} s", flush=True)
         self.state = "stopping"
         try:
             self.publish_health(force=True)
@@ -482,6 +624,25 @@ class Runtime:
             self.session.close()
         except Exception:  # already closing; nothing left to report to
             pass
+
+
+def apply_scheduling(priority: int, cpus: tuple[int, ...]) -> str:
+    """Ask the OS for SCHED_FIFO at `priority` (0: leave the normal scheduler) and for the
+    CPUs `cpus` (empty: any). Returns what holds, with the reason for what was refused."""
+    parts, refused = [], []
+    if cpus:
+        try:
+            os.sched_setaffinity(0, set(cpus))
+            parts.append("cpu " + ",".join(map(str, sorted(cpus))))
+        except (OSError, ValueError, AttributeError) as exc:
+            refused.append(f"cpu {list(cpus)} refused: {exc}")
+    if priority:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+            parts.insert(0, f"fifo {priority}")
+        except (OSError, AttributeError) as exc:
+            refused.append(f"priority {priority} refused ({exc}); normal scheduling")
+    return ", ".join((parts or ["normal"]) + refused)
 
 
 def main_guard(name: str, fn: Callable[[], None]) -> None:

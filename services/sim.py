@@ -27,6 +27,7 @@ EXTRA_PARAMS = {
     "mass_scale": 1.0,  # the plant's mass = this x the airframe file's (robustness: the services keep the file's)
 }
 START_GRACE_S = 0.5  # lockstep: let subscriptions propagate before tick 0
+BEHIND_WARN_TICKS = 4  # real time: this many ticks behind the wall clock is reported
 
 
 def param_defaults() -> dict:
@@ -56,6 +57,8 @@ class SimService:
         self.mission = rt.inbox(schemas.PLANNER_SETPOINT, "planner", keep=2)
         self.participants = [p for p in LOCKSTEP_PARTICIPANTS if p in rt.stack.services]
         self.end_t: float | None = None
+        self.behind_ticks = 0  # real time: ticks simulated late, catching up
+        self.behind_reported = -1e9
         self.t0 = 0.0  # wall time of tick 0 in real time: headers carry the stack's clock
 
     def publish_outputs(self) -> list[str]:
@@ -84,6 +87,13 @@ class SimService:
 
     # -- lockstep: this service drives the clock ------------------------------
     def run_lockstep(self) -> None:
+        """Pipelined lockstep. Every participant's runs are fixed by the schedule (its period
+        from the stack file, or the simulator topics that trigger it), so the clock can say,
+        before anything has run, which run of each upstream a service must wait for (the last
+        one due before its tick). The simulator itself waits only for the services whose
+        outputs it applies (the motors' PWM, the planner's mission state) before stepping the
+        physics; the others run beside it, each waiting for its own upstreams. Every service
+        sees exactly what the unpipelined handshake showed it, so a seed gives the same log."""
         rt = self.rt
         clocks = {p: rt.publisher(schemas.CLOCK, schemas.CLOCK.key(rt.vehicle_id, p)) for p in self.participants}
         for p in self.participants:
@@ -97,43 +107,56 @@ class SimService:
             rt._sync_event.clear()
         time.sleep(START_GRACE_S)
         rt.state = "running"
+        period = {p: rt.stack.period_ticks(p) if rt.stack.service(p).rate_hz > 0 else 0 for p in self.participants}
+        next_due = {p: rt._upstreams[p].next_tick for p in self.participants}
+        triggers = {p: set(rt._upstreams[p].triggers) for p in self.participants}
+        last_due = {p: -1 for p in self.participants}   # the last tick each was due at (-1: none yet)
+        applied = {self.pwm.upstream, self.mission.upstream}
+        rt.enter_loop()
+        print(f"zenpilot-sim: first tick at {time.time():.3f}", flush=True)
+        clock = time.perf_counter
         while not rt.stop_event.is_set():
+            t0 = clock()
             k = self.sim.tick
             rt._t = self.sim.t
             published = self.publish_outputs()
-            due = self.due_at(k, published)
-            done = {p: rt._upstreams[p].last_done for p in self.participants}
+            due = [p for p in self.participants
+                   if next_due[p] == k or (next_due[p] < 0 and triggers[p].intersection(published))]
+            done = dict(last_due)
             for p in due:
                 clocks[p].put({"tick": k, "tick_rate_hz": rt.tick_rate, "published": published,
                                "done": done}, t_s=rt._t)
-            if not self.wait_done(k, due):
+                last_due[p] = k
+                if period[p]:
+                    next_due[p] = k + period[p]
+            t1 = clock()
+            if not self.wait_for({p: k for p in due if p in applied}):
                 break
+            t2 = clock()
             rt.count_run(rt._t)
             rt.publish_health()
-            if not self.advance():
+            more = self.advance()
+            rt.step_s += (t1 - t0) + (clock() - t2)   # physics and publishing; wait_s: the services
+            rt.wait_s += t2 - t1
+            rt.cycles += 1
+            if not more:
+                # the runs still going finish before the simulator says it is done: the log holds them all
+                self.wait_for({p: t for p, t in last_due.items() if t >= 0})
                 break
 
-    def due_at(self, k: int, published: list[str]) -> list[str]:
-        """Participants that run at tick k: by their announced next tick, or triggered."""
-        due = []
-        for p in self.participants:
-            u = self.rt._upstreams[p]
-            if u.next_tick == k or (u.next_tick < 0 and set(published) & set(u.triggers)):
-                due.append(p)
-        return due
-
-    def wait_done(self, k: int, due: list[str]) -> bool:
+    def wait_for(self, ticks: dict[str, int]) -> bool:
+        """Wait until each participant named has finished its run at the tick given."""
         rt = self.rt
         start = time.monotonic()
         warned = False
         while not rt.stop_event.is_set():
             rt._sync_event.clear()
-            waiting = [p for p in due if rt._upstreams[p].last_done < k]
+            waiting = [p for p, k in ticks.items() if rt._upstreams[p].last_done < k]
             if not waiting:
                 return True
             rt._sync_event.wait(0.5)
             if not warned and time.monotonic() - start > 5.0:
-                rt.problem(f"lockstep: tick {k} waiting for {', '.join(waiting)}")
+                rt.problem(f"lockstep: tick {self.sim.tick} waiting for {', '.join(waiting)}")
                 warned = True
         return False
 
@@ -144,7 +167,17 @@ class SimService:
         def step(now: float) -> None:
             # physics keeps up with the wall clock: after a late wake-up, catch up
             # tick by tick (each with its sensor samples) instead of slowing down
-            target = int((now - self.t0) * rate)
+            if self.t0 is None:   # tick 0 is the loop's first deadline: samples go out on their ticks
+                self.t0 = now
+                print(f"zenpilot-sim: first tick at {now:.3f}", flush=True)
+            target = int((now - self.t0) * rate + 0.5)
+            behind = target - self.sim.tick
+            if behind >= BEHIND_WARN_TICKS:   # never silently: the sensors came late (reported once a second)
+                self.behind_ticks += behind
+                if now - self.behind_reported >= 1.0:
+                    self.behind_reported = now
+                    self.rt.problem(f"real time: {1e3 * behind / rate:.1f} ms behind the wall clock at "
+                                    f"t={self.sim.t:.2f} s (caught up; {self.behind_ticks} ticks late so far)")
             while self.sim.tick <= target:
                 self.publish_outputs()
                 if not self.advance():
@@ -152,7 +185,7 @@ class SimService:
                     return
 
         self.rt.rate_hz = rate
-        self.t0 = time.time()
+        self.t0 = None
         self.rt._run_realtime(step, ())
 
     def run(self) -> None:
@@ -167,7 +200,8 @@ class SimService:
             self.rt.close()
             wall = time.monotonic() - wall0
             print(f"zenpilot-sim: {self.sim.t:.2f} s simulated in {wall:.2f} s of wall time "
-                  f"({(self.sim.tick - tick0) / self.rt.tick_rate / max(wall, 1e-9):.2f}x real time)", flush=True)
+                  f"({(self.sim.tick - tick0) / self.rt.tick_rate / max(wall, 1e-9):.2f}x real time"
+                  f"{f'; {self.behind_ticks} ticks simulated late' if not self.rt.lockstep else ''})", flush=True)
 
 
 def main(argv=None) -> None:

@@ -36,7 +36,7 @@ class Battery:
 
     def step(self, dt_s: float, motor_thrust_n) -> None:
         """Draw the current of this thrust for dt_s."""
-        self.current_a = self.idle_a + self.a_per_n * float(np.sum(motor_thrust_n))
+        self.current_a = self.idle_a + self.a_per_n * float(sum(motor_thrust_n))  # 4 floats: no numpy call
         self.consumed_mah += self.current_a * dt_s / 3.6  # A s -> mAh
 
     def fields(self) -> dict:

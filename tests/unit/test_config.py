@@ -18,6 +18,10 @@ def test_default_stack_loads():
     assert stack.period_ticks("attitude") == 2 and stack.period_ticks("position") == 4
     # the bridge yields the CPU to the flight loops; the loops run at the default priority
     assert stack.service("mavlink").nice == 10 and stack.service("attitude").nice == 0
+    # the control path's loops ask for real-time priority, the plant highest; tools stay normal
+    prio = {name: stack.service(name).priority for name in stack.services}
+    assert prio["sim"] > prio["motors"] > prio["attitude"] > prio["position"] > 0
+    assert prio["recorder"] == prio["mavlink"] == prio["planner"] == 0
 
 
 @pytest.mark.parametrize("text, needle", [
@@ -28,6 +32,10 @@ def test_default_stack_loads():
     ("[stack]\ntick_rate_hz = 400\n[machines.a]\n[services.sim]\nrate_hz = 300\n", "must divide"),
     ("[stack]\n[machines.a]\n[services.sim]\nnice = -5\n", "[services.sim]: nice -5 must be within 0..19"),
     ("[stack]\n[machines.a]\n[services.sim]\nnice = 'low'\n", "[services.sim] nice: expected int"),
+    ("[stack]\n[machines.a]\n[services.sim]\npriority = 120\n", "[services.sim]: priority 120 must be within 0..99"),
+    ("[stack]\n[machines.a]\n[services.sim]\npriority = 'high'\n", "[services.sim] priority: expected int"),
+    ("[stack]\n[machines.a]\n[services.sim]\ncpu = 1\n", "[services.sim] cpu: expected list"),
+    ("[stack]\n[machines.a]\n[services.sim]\ncpu = [-1]\n", "[services.sim]: cpu [-1] must be a list of CPU numbers"),
 ])
 def test_bad_stack_is_refused_with_location(tmp_path, text, needle):
     f = tmp_path / "s.toml"

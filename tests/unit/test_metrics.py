@@ -283,6 +283,20 @@ def test_latency_percentiles():
     assert m["duration_s"] is None and m["position_rms_m"] is None
 
 
+def test_latency_from_the_first_output_of_each_sample():
+    # 400 Hz outputs from 200 Hz commands: every command is mixed at once (1 ms after its IMU
+    # sample), then again 2.5 ms later; the latency is the first, the second is an output's age
+    msgs = []
+    for i in range(100):
+        imu_t = 1.0 + 0.005 * i
+        msgs += [pwm(imu_t + 0.001, 2 * i, imu_t), pwm(imu_t + 0.0035, 2 * i + 1, imu_t)]
+    m = compute_metrics({P + "motors/pwm": msgs}, INFO)
+    assert m["latency_ms"]["samples"] == 100
+    assert m["latency_ms"]["imu_to_pwm_p99"] == pytest.approx(1.0, abs=1e-6)
+    assert m["latency_ms"]["imu_to_pwm_max"] == pytest.approx(1.0, abs=1e-6)
+    assert m["latency_ms"]["output_age_p99"] == pytest.approx(3.5, abs=1e-6)
+
+
 def test_rates_and_rejected_from_health():
     att = [health(0, 0, "attitude", "starting", 0.0),
            health(1, 1, "attitude", rate=199.0),

@@ -1,0 +1,95 @@
+"""How fast lockstep runs, and where a tick's time goes.
+
+    python bench/lockstep.py [--missions steps flip-short] [--seed 0]
+
+For each mission: simulated seconds per wall second (the simulator's own count, from its
+first tick to its last), and the per-tick cost split from the services' health totals:
+the simulator's own work (physics and publishing), the time it waits for the services
+due, each service's step time, and what is left of the wait: transport, wake-ups and the
+handshake. CPU seconds per simulated second per process come from each service's log.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+TARGETS = {"steps": 5.0, "hover": 5.0, "flip-short": 3.0, "flip": 3.0}
+
+
+def fly(mission: str, seed: int, out: Path, extra: list[str]) -> float:
+    argv = [sys.executable, "-m", "deploy.cli", "fly", "--lockstep", "--mission", mission, "--seed", str(seed),
+            "--out", str(out), *extra]
+    t0 = time.monotonic()
+    proc = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True)
+    if proc.returncode:
+        print(f"bench: {mission}: the flight ended with status {proc.returncode}: "
+              f"{proc.stderr.strip().splitlines()[-1:]}")
+    return time.monotonic() - t0
+
+
+def run_totals(out: Path) -> dict[str, dict]:
+    """Per service, from the line it logs when it stops: runs, step and waiting seconds."""
+    totals = {}
+    for log in (out / "logs").glob("*.log"):
+        m = re.search(r"(\d+) runs, step ([0-9.]+) s, waited ([0-9.]+) s", log.read_text())
+        if m:
+            totals[log.stem] = {"runs": int(m.group(1)), "step": float(m.group(2)), "waited": float(m.group(3))}
+    return totals
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--missions", nargs="+", default=["steps", "flip-short"])
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", default="runs/bench-lockstep")
+    ap.add_argument("--set", action="append", default=[], metavar="SERVICE.KEY=VALUE")
+    args = ap.parse_args()
+    print("$ python bench/lockstep.py " + " ".join(sys.argv[1:]))
+    extra = [a for item in args.set for a in ("--set", item)]
+    for mission in args.missions:
+        out = Path(args.out) / mission
+        total_wall = fly(mission, args.seed, out, extra)
+        sim_log = (out / "logs" / "sim.log").read_text()
+        m = re.search(r"([0-9.]+) s simulated in ([0-9.]+) s of wall time", sim_log)
+        sim_s, wall_s = float(m.group(1)), float(m.group(2))
+        totals = run_totals(out)
+        sim = totals["sim"]
+        ticks = max(sim["runs"], 1)
+        target = TARGETS.get(mission)
+        ratio = sim_s / wall_s
+        print(f"\n{mission}: {sim_s:.1f} simulated s in {wall_s:.1f} wall s = {ratio:.2f}x real time"
+              + (f" (target >= {target:g}x: {'met' if ratio >= target else 'NOT met'})" if target else "")
+              + f"; the whole command {total_wall:.1f} s (start-up and plots included)")
+        print(f"per tick ({ticks} ticks): {1e6 * wall_s / ticks:.0f} us of wall time")
+        print(f"  {'simulator: physics and publishing':<44} {1e6 * sim['step'] / ticks:>7.0f} us")
+        waited = 1e6 * sim["waited"] / ticks
+        print(f"  {'simulator: waiting for the services due':<44} {waited:>7.0f} us")
+        steps = 0.0
+        for name, h in sorted(totals.items()):
+            if name in ("sim", "recorder") or not h["runs"]:
+                continue
+            per = 1e6 * h["step"] / ticks
+            steps += per
+            print(f"    {name + ': step':<42} {per:>7.0f} us per tick ({1e6 * h['step'] / h['runs']:.0f} us "
+                  f"per run, {h['runs']} runs; waiting for upstreams {1e6 * h['waited'] / ticks:.0f} us per tick)")
+        print(f"  {'transport, wake-ups, handshake (wait - steps)':<44} {waited - steps:>7.0f} us "
+              f"(steps overlap on {os.cpu_count()} CPUs, so this is a lower bound)")
+        cpu = {}
+        for log in (out / "logs").glob("*.log"):
+            c = re.search(r"cpu ([0-9.]+) s", log.read_text())
+            if c:
+                cpu[log.stem] = float(c.group(1))
+        print(f"CPU s per simulated s: {sum(cpu.values()) / sim_s:.2f} "
+              f"({', '.join(f'{k} {v / sim_s:.2f}' for k, v in sorted(cpu.items(), key=lambda kv: -kv[1]))})")
+
+
+if __name__ == "__main__":
+    main()

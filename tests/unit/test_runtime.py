@@ -1,0 +1,109 @@
+"""The runtime's pieces that need no Zenoh session: inboxes (decode on the reader's thread,
+rejects and losses counted), scheduling requests."""
+
+import os
+import threading
+from types import SimpleNamespace
+
+import pytest
+
+import schemas
+from services.runtime import RAW_QUEUE_MAX, Inbox, apply_scheduling
+
+
+class FakeRuntime:
+    """What an Inbox asks of its runtime."""
+
+    def __init__(self):
+        self.rejected, self.dropped = {}, {}
+        self._arrival, self._wake = threading.Event(), threading.Event()
+        self._wake_t = 0.0
+        self.tick = -1
+        self.lockstep = True      # tags matter only in lockstep
+        self.event_driven = True
+
+    def _sync_tick(self, upstream):
+        return self.tick
+
+    def reject(self, key, exc):
+        self.rejected[exc.reason] = self.rejected.get(exc.reason, 0) + 1
+
+    def count_dropped(self, key, n=1):
+        self.dropped[key] = self.dropped.get(key, 0) + n
+
+
+def imu_payload(seq, t=1.0, source="sim"):
+    return schemas.IMU.encode(t, seq, source, {"gyro_rad_s": [0.0, 0.0, 0.1], "accel_m_s2": [0.0, 0.0, 9.8]})
+
+
+def deliver(box, payload):
+    box._on_sample(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: payload)))
+
+
+def test_inbox_decodes_when_read_and_counts_rejects_and_gaps():
+    rt = FakeRuntime()
+    box = Inbox(rt, schemas.IMU, "zp/0/sim/imu", "sim", keep=8)
+    for seq in (0, 1, 3):                      # seq 2 never arrived
+        deliver(box, imu_payload(seq, t=1.0 + seq))
+    deliver(box, b"\xc1not msgpack")           # malformed
+    assert rt.rejected == {} and box._raw      # the callback only queued
+    taken = box.take()
+    assert [m["header"]["seq"] for m in taken] == [0, 1, 3]
+    assert rt.rejected == {"malformed": 1}
+    assert rt.dropped == {"zp/0/sim/imu": 1}
+    assert box.take() == []                    # taken once
+    deliver(box, imu_payload(4, t=5.0))
+    deliver(box, imu_payload(4, t=5.0))        # a repeat keeps its seq: not a loss
+    assert box.latest()["header"]["seq"] == 4 and rt.dropped == {"zp/0/sim/imu": 1}
+    deliver(box, imu_payload(0, t=6.0))        # the sender restarted: no loss either
+    assert box.latest()["header"]["t_s"] == 6.0 and rt.dropped == {"zp/0/sim/imu": 1}
+
+
+def test_inbox_visibility_limit_and_wake():
+    rt = FakeRuntime()
+    box = Inbox(rt, schemas.IMU, "zp/0/sim/imu", "sim", keep=4)
+    box.wakes = True
+    rt.tick = 5
+    deliver(box, imu_payload(0))
+    assert rt._wake.is_set()                   # a woken loop's input wakes it
+    other = Inbox(rt, schemas.IMU, "zp/0/sim/imu", "sim", keep=4)
+    rt._arrival.clear()
+    deliver(other, imu_payload(1))
+    assert rt._arrival.is_set()                # an event-driven service runs on any input
+    box.limit = 5                              # tagged 5: not visible at tick 5
+    assert box.latest() is None and box.take() == []
+    box.limit = 6
+    assert box.latest()["header"]["seq"] == 0
+
+
+def test_unread_overflow_is_a_loss_only_for_a_reader_of_every_message():
+    rt = FakeRuntime()
+    newest = Inbox(rt, schemas.IMU, "newest", "sim", keep=2)
+    every = Inbox(rt, schemas.IMU, "every", "sim", keep=2)
+    every.take()
+    deliver(newest, imu_payload(0))
+    assert newest.latest() is not None       # read once: the overflow after it is not a loss either
+    for seq in range(1, RAW_QUEUE_MAX + 10):
+        deliver(newest, imu_payload(seq))
+    for seq in range(RAW_QUEUE_MAX + 10):
+        deliver(every, imu_payload(seq))
+    assert newest.latest()["header"]["seq"] == RAW_QUEUE_MAX + 9
+    assert "newest" not in rt.dropped          # superseded, never needed
+    assert rt.dropped["every"] >= 10
+    assert every.take()[-1]["header"]["seq"] == RAW_QUEUE_MAX + 9
+
+
+def test_scheduling_reports_what_holds():
+    assert apply_scheduling(0, ()) == "normal"
+    allowed = sorted(os.sched_getaffinity(0))
+    try:
+        assert apply_scheduling(0, (allowed[0],)) == f"cpu {allowed[0]}"
+        refused = apply_scheduling(0, (4096,))
+        assert "cpu [4096] refused" in refused
+    finally:
+        os.sched_setaffinity(0, set(allowed))
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root may take SCHED_FIFO")
+def test_refused_priority_is_reported_not_fatal():
+    assert "priority 50 refused" in apply_scheduling(50, ())
