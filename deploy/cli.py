@@ -246,6 +246,20 @@ def cmd_up(args) -> int:
     return 0
 
 
+def _running(pid: int) -> bool:
+    """The process exists and has not exited (a zombie waiting for its parent has: `up -d`'s
+    services are reaped by init, on some systems a second later)."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return False
+        return True
+
+
 def cmd_down(args) -> int:
     state = _state()
     if not state:
@@ -260,11 +274,9 @@ def cmd_down(args) -> int:
             continue
         grace_s = 60.0 if name == "recorder" else 5.0  # the recorder writes the flight log on exit, as in `fly`
         for _ in range(int(grace_s / 0.05)):
-            try:
-                os.kill(pids[name], 0)
-                time.sleep(0.05)
-            except ProcessLookupError:
+            if not _running(pids[name]):
                 break
+            time.sleep(0.05)
         else:
             os.kill(pids[name], signal.SIGKILL)
     for f in STATE_DIR.glob("up-*.json"):

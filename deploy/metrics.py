@@ -212,9 +212,22 @@ def _find_steps(sp: list[dict], sp_t: np.ndarray, truth_t: np.ndarray, truth_val
 # --------------------------------------------------------------------------- metrics
 
 
+def _until_the_simulator_stops(log: dict[str, list[dict]], p: str) -> dict[str, list[dict]]:
+    """The flight is over when the simulator stops: what the services published while the
+    stack wound down after it (the estimators coasting on no sensors) is not the flight's.
+    Health keeps every message: its last one holds the final counts."""
+    imu = log.get(p + "sim/imu", [])
+    if not imu:
+        return log
+    end = max(x["header"]["t_s"] for x in imu) + 0.05   # a service's last step on the last samples
+    return {k: (v if k.endswith("/health") else [x for x in v if x["header"]["t_s"] <= end])
+            for k, v in log.items()}
+
+
 def compute_metrics(log: dict[str, list[dict]], info: dict, vehicle_id: int = 0) -> dict:
     """Metrics of one flight; info = {"mission", "mode", "seed", "vehicle"}."""
     p = f"zp/{vehicle_id}/"
+    log = _until_the_simulator_stops(log, p)
     truth = _sorted(log.get(p + "sim/truth", []))
     sp = _sorted(log.get(p + "planner/setpoint", []))
 

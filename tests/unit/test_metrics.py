@@ -375,3 +375,15 @@ def test_crash_is_seen_from_the_truth_not_the_planner():
     log[P + "sim/truth"][10] = truth(0.1, 10, (1.0, 2.0, 3.0), roll=math.radians(70))
     m = compute_metrics(log, INFO)
     assert m["crashed"] and m["max_tilt_deg"] == pytest.approx(70.0)
+
+
+def test_the_flight_ends_when_the_simulator_stops():
+    # in real time the services go on publishing while the stack winds down after the
+    # simulator stopped: those outputs are not the flight's
+    imu = [{"version": 1, "header": hdr(1.0 + 0.0025 * i, i, "sim"), "gyro_rad_s": [0.0] * 3,
+            "accel_m_s2": [0.0, 0.0, 9.8]} for i in range(400)]   # up to t = 2.0
+    msgs = [pwm(1.0 + 0.005 * i + 0.001, i, 1.0 + 0.005 * i) for i in range(200)]
+    msgs += [pwm(4.0 + 0.005 * i, 200 + i, 2.0) for i in range(50)]   # 2 s later, on the last sample
+    m = compute_metrics({P + "sim/imu": imu, P + "motors/pwm": msgs}, INFO)
+    assert m["latency_ms"]["samples"] == 200
+    assert m["latency_ms"]["output_age_p99"] == pytest.approx(1.0, abs=1e-6)
