@@ -81,7 +81,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flight.quat import quat_from_euler, quat_multiply, quat_to_euler
+from flight.quat import quat_from_euler, quat_multiply, quat_tilt, quat_to_euler
 
 W, WF, A, AF, B = 0, 1, 2, 3, 4    # state indices per axis (B: the gyro bias)
 NX = 5
@@ -1188,13 +1188,6 @@ def quat_integrate(q, rate_rad_s, h: float) -> np.ndarray:
     dq = np.array([math.cos(0.5 * angle), *(s * axis)])
     qn = quat_multiply(q, dq)
     return qn / np.linalg.norm(qn)
-
-
-def quat_tilt(q) -> float:
-    """Angle between the body z axis and the world z axis, rad (0 level, pi inverted)."""
-    w, x, y, z = q.tolist() if isinstance(q, np.ndarray) else (float(v) for v in q)
-    r22 = (w * w - x * x - y * y + z * z) / (w * w + x * x + y * y + z * z)
-    return math.acos(min(1.0, max(-1.0, r22)))
 
 
 class GyroCarrier:

@@ -29,6 +29,7 @@ import numpy as np
 from flight.control import STOPPING_ACCEL_FRACTION, attitude_law, position_law, stopping_accel, wrap_angle
 from flight.mixer import mix
 from flight.quat import quat_multiply, quat_to_euler
+from flight.quat import quat_tilt as tilt_rad  # the name its users here know it by
 from flight.vehicle import Vehicle
 
 TWO_PI = 2.0 * math.pi
@@ -71,13 +72,6 @@ def stopping_point(start_m, velocity_m_s, decel_m_s2: float) -> np.ndarray:
 def quat_from_yaw(yaw_rad: float) -> np.ndarray:
     """Rotation about the world z axis, [w, x, y, z]."""
     return np.array([math.cos(yaw_rad / 2), 0.0, 0.0, math.sin(yaw_rad / 2)])
-
-
-def tilt_rad(q) -> float:
-    """Angle between the body z axis and the world z axis (0 level, pi inverted)."""
-    w, x, y, z = q
-    r22 = (w * w - x * x - y * y + z * z) / (w * w + x * x + y * y + z * z)
-    return math.acos(min(1.0, max(-1.0, r22)))
 
 
 class RollAccumulator:

@@ -89,17 +89,26 @@ offset ``d = t_meas - t_node`` (< dt) is taken into the measurement model
 ``h = p + d v``.  Accepted measurements are stored in their node, so a later,
 older measurement re-applies them when it replays; rejected ones leave no
 trace but a counter.  Measurements older than the history (``max_delay_s``) or
-ahead of the filter's time are refused and counted.
+ahead of the filter's time are refused and counted.  Each node also keeps its
+posterior (after its measurements), which is what re-applying them to its prior
+gives: a delayed measurement starts from it.
+
+Cost: at this size numpy's per-call overhead, not the flops, is the price, so the
+mean, f and the Jacobian run in plain floats (:func:`_step`, term for term the
+expressions of :func:`f`, :func:`rk4_step` and :func:`jacobian_f`), products with an
+H that only selects states are taken as P's blocks and columns (exactly what the
+products with the 0/1 matrix give), and the chi-square gate comes from a closed form
+rather than scipy.stats (~0.3 s of import).  The unit tests hold the filter to its
+former all-numpy form (tests/unit/test_position_ekf.py, ``_RefEKF``).
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, fields
 
 import numpy as np
-from scipy.stats import chi2
 
-from flight.plan import motor_forces_update
 from flight.vehicle import Vehicle
 
 __all__ = [
@@ -311,11 +320,11 @@ def rk4_step(x, u, vehicle: Vehicle, dt: float) -> np.ndarray:
     """One RK4 step of f with u held (the prediction (23) of the mean)."""
     x = np.asarray(x, dtype=np.float64)
     u = np.asarray(u, dtype=np.float64)
-    k1 = f(x, u, vehicle)
-    k2 = f(x + 0.5 * dt * k1, u, vehicle)
-    k3 = f(x + 0.5 * dt * k2, u, vehicle)
-    k4 = f(x + dt * k3, u, vehicle)
-    return x + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+    if x.shape != (N_MODEL,) or u.shape != (4,):
+        raise PositionEKFError(f"rk4_step: x must have {N_MODEL} elements and u 4 "
+                               f"(got {x.shape}, {u.shape})")
+    x_next, _ = _step(x.tolist(), *u.tolist(), float(dt), _constants(vehicle), jacobian=False)
+    return np.array(x_next)
 
 
 def discretize(x, u, vehicle: Vehicle, dt: float, q_density=None):
@@ -326,41 +335,183 @@ def discretize(x, u, vehicle: Vehicle, dt: float, q_density=None):
     d v' / d s = (u1 / m) R e3 (s itself is a random walk)."""
     x = np.asarray(x, dtype=np.float64)
     u = np.asarray(u, dtype=np.float64)
-    if x.shape[0] == N_MODEL:
-        x_next = rk4_step(x, u, vehicle, dt)
-        A = jacobian_f(x, u, vehicle) * dt
+    n = x.shape[0]
+    if x.shape not in ((N_MODEL,), (N_STATE,)) or u.shape != (4,):
+        raise PositionEKFError(f"discretize: x must have {N_MODEL} or {N_STATE} elements and u 4 "
+                               f"(got {x.shape}, {u.shape})")
+    xs = x.tolist()
+    u1, u2, u3, u4 = u.tolist()
+    dt = float(dt)
+    if n == N_MODEL:
+        x_next, vals = _step(xs, u1, u2, u3, u4, dt, _constants(vehicle))
     else:
-        s = x[THRUST_SCALE]
-        u_real = u.copy()
-        u_real[0] *= s
-        x_next = x.copy()
-        x_next[:N_MODEL] = rk4_step(x[:N_MODEL], u_real, vehicle, dt)
-        J = np.zeros((N_STATE, N_STATE))
-        J[:N_MODEL, :N_MODEL] = jacobian_f(x[:N_MODEL], u_real, vehicle)
-        r, p, y = x[EULER]
-        sr, cr, sp, cp, sy, cy = math.sin(r), math.cos(r), math.sin(p), math.cos(p), math.sin(y), math.cos(y)
-        J[VELOCITY, THRUST_SCALE] = (u[0] / vehicle.mass_kg) * np.array(
-            [sy * sr + cy * cr * sp, -cy * sr + sy * cr * sp, cr * cp])
-        A = J * dt
-    F = np.eye(x.shape[0]) + A + 0.5 * (A @ A)
+        x_next, vals = _step(xs, u1 * xs[THRUST_SCALE], u2, u3, u4, dt, _constants(vehicle), u_col=u1)
+        x_next.append(xs[THRUST_SCALE])
+    F = _transition(vals, n)
     Q = None if q_density is None else np.diag(np.asarray(q_density, dtype=np.float64) * dt)
-    return x_next, F, Q
+    return np.array(x_next), F, Q
+
+
+# The step's arithmetic in plain floats: at the filter's size numpy's per-call overhead,
+# not the flops, is the cost.  _step is f, rk4_step and jacobian_f above term for term (the
+# same expressions in the same order, so the same roundings); the unit tests hold it to them.
+def _constants(vehicle: Vehicle) -> tuple:
+    m = vehicle.mass_kg
+    ixx, iyy, izz = vehicle.inertia_kg_m2
+    return (m, vehicle.drag_n_per_m_s / m, vehicle.gravity_m_s2, ixx, iyy, izz,
+            izz - iyy, ixx - izz, iyy - ixx)
+
+
+# where the non-zero entries of J (13x13, row-major) go; the last three only with the thrust scale
+_J_ROWS = (0, 1, 2, 3, 4, 5, 3, 3, 3, 4, 4, 4, 5, 5, 6, 6, 6, 6, 6, 7, 7, 7, 8, 8, 8, 8,
+           9, 9, 10, 10, 11, 11, 3, 4, 5)
+_J_COLS = (3, 4, 5, 3, 4, 5, 6, 7, 8, 6, 7, 8, 6, 7, 6, 7, 9, 10, 11, 6, 10, 11, 6, 7, 10, 11,
+           10, 11, 9, 11, 9, 10, 12, 12, 12)
+_J_FLAT = {n: np.array([r * n + c for r, c in zip(_J_ROWS, _J_COLS) if c < n]) for n in (N_MODEL, N_STATE)}
+_EYE = {n: np.eye(n) for n in (N_MODEL, N_STATE)}
+_J_FLAT13, _EYE13 = _J_FLAT[N_STATE], _EYE[N_STATE]
+
+
+def _step(xs, u1, u2, u3, u4, dt, C, u_col=None, jacobian=True):
+    """RK4 step of (1)-(2) from the floats xs[:12] with u held: (x_next as 12 floats,
+    the entries of A = J dt at _J_ROWS/_J_COLS, or None).  u1 is the thrust the model
+    runs with (s u1 for the filter); u_col, when given, the commanded u1 of the thrust
+    scale's column d v' / d s = (u_col / m) R e3.  Written out stage by stage: each stage
+    is f (a .. i its rows 3..11; rows 0..2 are the stage's velocity)."""
+    m, k, g, ixx, iyy, izz, dzy, dxz, dyx = C
+    sin, cos = math.sin, math.cos
+    a = u1 / m
+    px, py, pz, vx, vy, vz, r, p, y, wx, wy, wz = xs[:12]
+    hh = 0.5 * dt
+    # stage 1, at the start (its sines and cosines serve the Jacobian too)
+    sr0, cr0, sp0, cp0, sy0, cy0 = sin(r), cos(r), sin(p), cos(p), sin(y), cos(y)
+    tp0 = sp0 / cp0
+    q0 = sr0 * wy + cr0 * wz
+    a1 = a * (sy0 * sr0 + cy0 * cr0 * sp0) - k * vx
+    b1 = a * (-cy0 * sr0 + sy0 * cr0 * sp0) - k * vy
+    c1 = a * (cr0 * cp0) - k * vz - g
+    d1 = wx + tp0 * q0
+    e1 = cr0 * wy - sr0 * wz
+    f1 = q0 / cp0
+    g1 = (u2 - dzy * wy * wz) / ixx
+    h1 = (u3 - dxz * wz * wx) / iyy
+    i1 = (u4 - dyx * wx * wy) / izz
+    # stage 2 at x + dt/2 k1
+    vx2, vy2, vz2 = vx + hh * a1, vy + hh * b1, vz + hh * c1
+    r2, p2, y2 = r + hh * d1, p + hh * e1, y + hh * f1
+    wx2, wy2, wz2 = wx + hh * g1, wy + hh * h1, wz + hh * i1
+    sr, cr, sp, cp, sy, cy = sin(r2), cos(r2), sin(p2), cos(p2), sin(y2), cos(y2)
+    tp = sp / cp
+    q = sr * wy2 + cr * wz2
+    a2 = a * (sy * sr + cy * cr * sp) - k * vx2
+    b2 = a * (-cy * sr + sy * cr * sp) - k * vy2
+    c2 = a * (cr * cp) - k * vz2 - g
+    d2 = wx2 + tp * q
+    e2 = cr * wy2 - sr * wz2
+    f2 = q / cp
+    g2 = (u2 - dzy * wy2 * wz2) / ixx
+    h2 = (u3 - dxz * wz2 * wx2) / iyy
+    i2 = (u4 - dyx * wx2 * wy2) / izz
+    # stage 3 at x + dt/2 k2
+    vx3, vy3, vz3 = vx + hh * a2, vy + hh * b2, vz + hh * c2
+    r3, p3, y3 = r + hh * d2, p + hh * e2, y + hh * f2
+    wx3, wy3, wz3 = wx + hh * g2, wy + hh * h2, wz + hh * i2
+    sr, cr, sp, cp, sy, cy = sin(r3), cos(r3), sin(p3), cos(p3), sin(y3), cos(y3)
+    tp = sp / cp
+    q = sr * wy3 + cr * wz3
+    a3 = a * (sy * sr + cy * cr * sp) - k * vx3
+    b3 = a * (-cy * sr + sy * cr * sp) - k * vy3
+    c3 = a * (cr * cp) - k * vz3 - g
+    d3 = wx3 + tp * q
+    e3 = cr * wy3 - sr * wz3
+    f3 = q / cp
+    g3 = (u2 - dzy * wy3 * wz3) / ixx
+    h3 = (u3 - dxz * wz3 * wx3) / iyy
+    i3 = (u4 - dyx * wx3 * wy3) / izz
+    # stage 4 at x + dt k3
+    vx4, vy4, vz4 = vx + dt * a3, vy + dt * b3, vz + dt * c3
+    r4, p4, y4 = r + dt * d3, p + dt * e3, y + dt * f3
+    wx4, wy4, wz4 = wx + dt * g3, wy + dt * h3, wz + dt * i3
+    sr, cr, sp, cp, sy, cy = sin(r4), cos(r4), sin(p4), cos(p4), sin(y4), cos(y4)
+    tp = sp / cp
+    q = sr * wy4 + cr * wz4
+    a4 = a * (sy * sr + cy * cr * sp) - k * vx4
+    b4 = a * (-cy * sr + sy * cr * sp) - k * vy4
+    c4 = a * (cr * cp) - k * vz4 - g
+    d4 = wx4 + tp * q
+    e4 = cr * wy4 - sr * wz4
+    f4 = q / cp
+    g4 = (u2 - dzy * wy4 * wz4) / ixx
+    h4 = (u3 - dxz * wz4 * wx4) / iyy
+    i4 = (u4 - dyx * wx4 * wy4) / izz
+    d6 = dt / 6.0
+    x_next = [px + d6 * (vx + 2.0 * vx2 + 2.0 * vx3 + vx4),
+              py + d6 * (vy + 2.0 * vy2 + 2.0 * vy3 + vy4),
+              pz + d6 * (vz + 2.0 * vz2 + 2.0 * vz3 + vz4),
+              vx + d6 * (a1 + 2.0 * a2 + 2.0 * a3 + a4),
+              vy + d6 * (b1 + 2.0 * b2 + 2.0 * b3 + b4),
+              vz + d6 * (c1 + 2.0 * c2 + 2.0 * c3 + c4),
+              r + d6 * (d1 + 2.0 * d2 + 2.0 * d3 + d4),
+              p + d6 * (e1 + 2.0 * e2 + 2.0 * e3 + e4),
+              y + d6 * (f1 + 2.0 * f2 + 2.0 * f3 + f4),
+              wx + d6 * (g1 + 2.0 * g2 + 2.0 * g3 + g4),
+              wy + d6 * (h1 + 2.0 * h2 + 2.0 * h3 + h4),
+              wz + d6 * (i1 + 2.0 * i2 + 2.0 * i3 + i4)]
+    if not jacobian:
+        return x_next, None
+    # J (22) at the step's start, times dt (jacobian_f's entries, in _J_ROWS/_J_COLS order)
+    sr, cr, sp, cp, sy, cy, tp, q = sr0, cr0, sp0, cp0, sy0, cy0, tp0, q0
+    qd = cr * wy - sr * wz
+    cp2 = cp * cp
+    kdt = -k * dt
+    vals = [dt, dt, dt, kdt, kdt, kdt,
+            a * (sy * cr - cy * sr * sp) * dt, a * (cy * cr * cp) * dt, a * (cy * sr - sy * cr * sp) * dt,
+            a * (-cy * cr - sy * sr * sp) * dt, a * (sy * cr * cp) * dt, a * (sy * sr + cy * cr * sp) * dt,
+            -a * sr * cp * dt, -a * cr * sp * dt,
+            tp * qd * dt, q / cp2 * dt, dt, sr * tp * dt, cr * tp * dt,
+            -q * dt, cr * dt, -sr * dt,
+            qd / cp * dt, q * sp / cp2 * dt, sr / cp * dt, cr / cp * dt,
+            -dzy * wz / ixx * dt, -dzy * wy / ixx * dt,
+            -dxz * wz / iyy * dt, -dxz * wx / iyy * dt,
+            -dyx * wy / izz * dt, -dyx * wx / izz * dt]
+    if u_col is not None:
+        b = u_col / m
+        vals += (b * (sy * sr + cy * cr * sp) * dt, b * (-cy * sr + sy * cr * sp) * dt, b * (cr * cp) * dt)
+    return x_next, vals
+
+
+def _transition(vals, n: int) -> np.ndarray:
+    """F_d = I + A + A^2 / 2 from the entries of A (see _step)."""
+    A = np.zeros((n, n))
+    A.put(_J_FLAT[n], vals)
+    AA = A.dot(A)   # ndarray.dot: the product @ makes, with less overhead per call
+    AA *= 0.5
+    F = _EYE[n] + A
+    F += AA
+    return F
 
 
 # --------------------------------------------------------------------------- #
 # The filter
 # --------------------------------------------------------------------------- #
 class _Node:
-    """One history entry: time, input that led here, prior (x, P) here, accepted measurements."""
+    """One history entry: time, input that led here, prior (x, P) here, accepted measurements,
+    and the posterior (x, P) after them.
 
-    __slots__ = ("t", "u", "x", "P", "meas")
+    The posterior is what re-applying the measurements to the prior gives (the same
+    arithmetic on the same numbers), kept so that a delayed measurement fused here starts
+    from it.  x and P are shared with the filter, never written in place (every step
+    makes new ones)."""
+
+    __slots__ = ("t", "u", "x", "P", "meas", "post")
 
     def __init__(self, t, u, x, P):
         self.t = t
-        self.u = u
-        self.x = x
+        self.u = u   # [u1, u2, u3, u4] as floats (None for the first node)
+        self.x = x   # the 13 states as floats
         self.P = P
         self.meas: list[tuple] = []  # (kind, z, R, offset_s), in the order applied
+        self.post = (x, P)
 
 
 class PositionEKF:
@@ -374,6 +525,8 @@ class PositionEKF:
     collective by it (PX4 estimates its hover thrust for the same reason). Without
     it the laws of 000, which have no integral action, hold a heavier vehicle low,
     and the EKF's velocity is biased by the wrong acceleration.
+
+    One filter is for one thread: its steps share a scratch array.
     """
 
     def __init__(self, vehicle: Vehicle, params: PositionEKFParams | None = None, dt: float = 0.01):
@@ -383,15 +536,28 @@ class PositionEKF:
         self.params = params if params is not None else PositionEKFParams()
         self.dt = float(dt)
         self._qc = self.params.process_noise_density
+        self._Qc = np.diag(self._qc)   # Q_d = _Qc dt
+        self._Qd: dict[float, np.ndarray] = {}
+        self._A = np.zeros((N_STATE, N_STATE))  # A = J dt (_propagate's scratch)
         p = self.params.gate_probability
-        self._gate = {n: (math.inf if p >= 1.0 else float(chi2.ppf(p, n))) for n in (3, 6)}
+        self._gate = {n: (math.inf if p >= 1.0 else _chi2_ppf(p, n)) for n in (3, 6)}
         self._eps = 1e-6 * self.dt
-        self._x: np.ndarray | None = None
+        self._x: list | None = None  # the 13 states as floats: the step's arithmetic is in floats
         self._P: np.ndarray | None = None
         self._t: float | None = None
         self._hist: list[_Node] = []
         self._counts = {k: {"accepted": 0, **{r: 0 for r in _REASONS}} for k in _KINDS}
         self.last_nis = {k: math.nan for k in _KINDS}
+
+    @property
+    def vehicle(self) -> Vehicle:
+        return self._vehicle
+
+    @vehicle.setter
+    def vehicle(self, vehicle: Vehicle) -> None:
+        self._vehicle = vehicle
+        self._C = _constants(vehicle)
+        self._weight = vehicle.mass_kg * vehicle.gravity_m_s2
 
     # ---------------------------------------------------------------- state
     @property
@@ -406,7 +572,7 @@ class PositionEKF:
     @property
     def x(self) -> np.ndarray:
         self._need_init()
-        return self._x.copy()
+        return np.array(self._x)
 
     @property
     def P(self) -> np.ndarray:
@@ -415,23 +581,28 @@ class PositionEKF:
 
     @property
     def position(self) -> np.ndarray:
-        return self.x[POSITION]
+        self._need_init()
+        return np.array(self._x[POSITION])
 
     @property
     def velocity(self) -> np.ndarray:
-        return self.x[VELOCITY]
+        self._need_init()
+        return np.array(self._x[VELOCITY])
 
     @property
     def euler(self) -> np.ndarray:
-        return self.x[EULER]
+        self._need_init()
+        return np.array(self._x[EULER])
 
     @property
     def rates(self) -> np.ndarray:
-        return self.x[RATES]
+        self._need_init()
+        return np.array(self._x[RATES])
 
     @property
     def thrust_scale(self) -> float:
-        return float(self.x[THRUST_SCALE])
+        self._need_init()
+        return self._x[THRUST_SCALE]
 
     @property
     def position_cov(self) -> np.ndarray:
@@ -466,42 +637,44 @@ class PositionEKF:
         if P.shape != (N_STATE, N_STATE) or not np.all(np.isfinite(P)):
             raise PositionEKFError(f"P0 must be a finite {N_STATE}x{N_STATE} matrix")
         self._t = float(t_s)
-        self._x, self._P = x, 0.5 * (P + P.T)
-        self._hist = [_Node(self._t, None, x.copy(), self._P.copy())]
+        self._x, self._P = x.tolist(), 0.5 * (P + P.T)
+        self._hist = [_Node(self._t, None, self._x, self._P)]
 
     def reset_position(self, position, cov, velocity_std_m_s: float = 1.0) -> None:
         """Restart the translational states at a camera fix, keeping the attitude:
         the way out when the gate has refused every fix for a while (the filter
         has lost the vehicle and would otherwise never take a fix again)."""
         self._need_init()
-        x, P = self._x.copy(), self._P.copy()
+        x, P = np.array(self._x), self._P.copy()
         x[POSITION] = _vec(position, 3, "position")
         P[:6, :] = 0.0
         P[:, :6] = 0.0
         P[:3, :3] = np.array(cov, dtype=np.float64).reshape(3, 3)
         P[3:6, 3:6] = np.eye(3) * velocity_std_m_s**2
-        self._x, self._P = x, P
-        self._hist = [_Node(self._t, None, x.copy(), P.copy())]
+        self._x, self._P = x.tolist(), P
+        self._hist = [_Node(self._t, None, self._x, P)]
 
     def predict(self, t_s: float, u) -> None:
         """Advance to t_s with u = [u1 (N), u2, u3, u4 (N m)] held; record the step."""
         self._need_init()
-        u = _vec(u, 4, "u")
-        if not np.all(np.isfinite(u)):
-            raise PositionEKFError(f"u must be finite (got {u})")
-        h = float(t_s) - self._t
+        u = _floats(u, 4, "u")
+        if not all(map(math.isfinite, u)):
+            raise PositionEKFError(f"u must be finite (got {np.array(u)})")
+        t = float(t_s)
+        h = t - self._t
         if not h > self._eps:
             raise PositionEKFError(f"predict: time must advance (t={self._t}, t_s={t_s})")
         self._x, self._P = self._propagate(self._x, self._P, u, h)
-        self._t = float(t_s)
-        self._hist.append(_Node(self._t, u, self._x.copy(), self._P.copy()))
+        self._t = t
+        hist = self._hist
+        hist.append(_Node(t, u, self._x, self._P))
         # keep the newest node at or before (now - max_delay) and everything after it
-        horizon = self._t - self.params.max_delay_s + self._eps
+        horizon = t - self.params.max_delay_s + self._eps
         drop = 0
-        while drop + 1 < len(self._hist) and self._hist[drop + 1].t <= horizon:
+        while drop + 1 < len(hist) and hist[drop + 1].t <= horizon:
             drop += 1
         if drop:
-            del self._hist[:drop]
+            del hist[:drop]
 
     def update_attitude(self, t_s: float, euler, rates, euler_var, rate_var) -> bool:
         """Rows 4..9 of (24): angles and body rates from the attitude level; gated, yaw wrapped.
@@ -510,11 +683,11 @@ class PositionEKF:
         delay with (15)); an older t_s within the history is fused there like the
         camera.  Returns whether it was accepted.
         """
-        z = np.concatenate([_vec(euler, 3, "euler"), _vec(rates, 3, "rates")])
-        var = np.concatenate([_vec(euler_var, 3, "euler_var"), _vec(rate_var, 3, "rate_var")])
-        if np.any(var < 0):
-            raise PositionEKFError(f"attitude variances must be >= 0 (got {var})")
-        accepted, _ = self._fuse("attitude", float(t_s), z, np.diag(var))
+        z = _floats(euler, 3, "euler") + _floats(rates, 3, "rates")
+        var = _floats(euler_var, 3, "euler_var") + _floats(rate_var, 3, "rate_var")
+        if any(v < 0 for v in var):
+            raise PositionEKFError(f"attitude variances must be >= 0 (got {np.array(var)})")
+        accepted, _ = self._fuse("attitude", float(t_s), z, None, var)
         return accepted
 
     def pin_attitude(self, t_s: float, euler, rates) -> bool:
@@ -525,7 +698,7 @@ class PositionEKF:
         predicting with the model, thrust along the body z of these angles, and the
         attitude follows the gyro-carried estimate rather than the open-loop torque model.
         Stored in the history like a measurement, so a delayed camera replay re-applies it."""
-        z = np.concatenate([_vec(euler, 3, "euler"), _vec(rates, 3, "rates")])
+        z = _floats(euler, 3, "euler") + _floats(rates, 3, "rates")
         accepted, _ = self._fuse("pin", float(t_s), z, None)
         return accepted
 
@@ -543,101 +716,134 @@ class PositionEKF:
             raise RuntimeError("PositionEKF: call initialize() first")
 
     def _propagate(self, x, P, u, h):
-        n = max(1, math.ceil(h / self.dt - 1e-6))
+        """(x, P) after h with u (4 floats) held: n RK4 steps of at most dt, F P F' + Q each."""
+        v = h / self.dt - 1e-6
+        n = 1 if v <= 1.0 else math.ceil(v)
         sub = h / n
+        Qd = self._Qd.get(sub)  # Q_d = diag(q_c) dt; a replay meets its steps' dt again
+        if Qd is None:
+            if len(self._Qd) > 64:
+                self._Qd.clear()
+            Qd = self._Qd[sub] = self._Qc * sub
+        xs = x
+        u1, u2, u3, u4 = u
+        s = xs[THRUST_SCALE]
+        u1s = u1 * s   # the model runs with s u1 (discretize)
+        C = self._C
         for _ in range(n):
-            x, F, Q = discretize(x, u, self.vehicle, sub, self._qc)
-            P = F @ P @ F.T + Q
-        P = 0.5 * (P + P.T)
-        x[6] = (x[6] + math.pi) % _TWO_PI - math.pi
-        x[8] = (x[8] + math.pi) % _TWO_PI - math.pi
-        if x[2] <= 0.0:  # the floor: (1) alone would let a vehicle at idle thrust fall through it
-            x[2], x[5] = 0.0, max(x[5], 0.0)
-            if u[0] * x[THRUST_SCALE] < self.vehicle.mass_kg * self.vehicle.gravity_m_s2:
-                x[3:6] = 0.0  # resting on it: no sliding either
-        return x, P
+            xs, vals = _step(xs, u1s, u2, u3, u4, sub, C, u_col=u1)
+            xs.append(s)
+            A = self._A   # _transition, inline; the same entries are written every time
+            A.put(_J_FLAT13, vals)
+            AA = A.dot(A)
+            AA *= 0.5
+            F = _EYE13 + A
+            F += AA
+            P = F.dot(P).dot(F.T)
+            P += Qd
+        P = P + P.T
+        P *= 0.5
+        xs[6] = (xs[6] + math.pi) % _TWO_PI - math.pi
+        xs[8] = (xs[8] + math.pi) % _TWO_PI - math.pi
+        if xs[2] <= 0.0:  # the floor: (1) alone would let a vehicle at idle thrust fall through it
+            xs[2], xs[5] = 0.0, max(xs[5], 0.0)
+            if u1 * s < self._weight:
+                xs[3] = xs[4] = xs[5] = 0.0  # resting on it: no sliding either
+        return xs, P
 
     @staticmethod
-    def _model(kind, x, offset):
-        """(predicted measurement, H, angle-wrap mask) of one measurement kind."""
-        if kind == "position":
-            H = np.zeros((3, N_STATE))
-            H[:, 0:3] = np.eye(3)
-            if offset:
-                H[:, 3:6] = offset * np.eye(3)
-            return x[POSITION] + offset * x[VELOCITY], H, False
-        H = np.zeros((6, N_STATE))
-        H[:, 6:12] = np.eye(6)
-        return x[6:12].copy(), H, True
-
-    def _innovate(self, kind, x, P, z, R, offset):
-        zhat, H, angles = self._model(kind, x, offset)
-        y = z - zhat
-        if angles:
-            y[0:3] = (y[0:3] + math.pi) % _TWO_PI - math.pi
-        S = H @ P @ H.T + R
-        return y, H, S
+    def _innovate(kind, x, P, z, R, offset):
+        """(y, H, S) of a measurement at a node (x: floats).  Where H only selects states
+        (the attitude: rows 6..11; the camera at the node's time: rows 0..2) it is given
+        as the first state selected, 6 or 0: then H P H' is P's block and P H' its columns,
+        exactly what the products with the 0/1 matrix give (every other term of those
+        sums is an exact zero)."""
+        if kind == "attitude":  # h = [angles, rates], the angle innovations wrapped
+            _, _, _, _, _, _, r, p, yaw, wx, wy, wz, _ = x
+            z0, z1, z2, z3, z4, z5 = z
+            y = np.array(((z0 - r + math.pi) % _TWO_PI - math.pi, (z1 - p + math.pi) % _TWO_PI - math.pi,
+                          (z2 - yaw + math.pi) % _TWO_PI - math.pi, z3 - wx, z4 - wy, z5 - wz))
+            return y, 6, P[6:12, 6:12] + R
+        if not offset:  # the camera, h = p
+            return z - np.array(x[0:3]), 0, P[0:3, 0:3] + R
+        # the camera offset from the node: h = p + d v
+        H = _H_POSITION.copy()
+        H[:, 3:6] = offset * np.eye(3)
+        y = z - (np.array(x[POSITION]) + offset * np.array(x[VELOCITY]))
+        return y, H, H.dot(P).dot(H.T) + R
 
     @staticmethod
     def _correct(x, P, y, H, S_inv, R):
-        """Joseph-form correction (18)-(20)."""
-        K = P @ H.T @ S_inv
-        x = x + K @ y
-        IKH = np.eye(N_STATE) - K @ H
-        P = IKH @ P @ IKH.T + K @ R @ K.T
-        x[6] = (x[6] + math.pi) % _TWO_PI - math.pi
-        x[8] = (x[8] + math.pi) % _TWO_PI - math.pi
-        x[THRUST_SCALE] = min(max(x[THRUST_SCALE], THRUST_SCALE_LIMITS[0]), THRUST_SCALE_LIMITS[1])
-        return x, 0.5 * (P + P.T)
+        """Joseph-form correction (18)-(20); H as _innovate gives it."""
+        if H.__class__ is int:
+            K = P[:, H:H + len(y)].dot(S_inv)
+            IKH = _EYE13.copy()
+            cols = IKH[:, H:H + len(y)]
+            cols -= K
+        else:
+            K = P.dot(H.T).dot(S_inv)
+            IKH = _EYE13 - K.dot(H)
+        xs = [a + b for a, b in zip(x, K.dot(y).tolist())]
+        xs[6] = (xs[6] + math.pi) % _TWO_PI - math.pi
+        xs[8] = (xs[8] + math.pi) % _TWO_PI - math.pi
+        xs[THRUST_SCALE] = min(max(xs[THRUST_SCALE], THRUST_SCALE_LIMITS[0]), THRUST_SCALE_LIMITS[1])
+        P = IKH.dot(P).dot(IKH.T)
+        P += K.dot(R).dot(K.T)
+        P = P + P.T
+        P *= 0.5
+        return xs, P
 
     def _apply(self, x, P, meas):
         kind, z, R, offset = meas
         if kind == "pin":
-            x = x.copy()
+            x = list(x)
             x[6:12] = z
             x[6] = (x[6] + math.pi) % _TWO_PI - math.pi
             x[8] = (x[8] + math.pi) % _TWO_PI - math.pi
             return x, P
         y, H, S = self._innovate(kind, x, P, z, R, offset)
-        return self._correct(x, P, y, H, np.linalg.inv(S), R)
+        return self._correct(x, P, y, H, _inv(S), R)
 
     def _reject(self, kind, reason, nis=math.nan):
         self._counts[kind][reason] += 1
         self.last_nis[kind] = nis
         return False, nis
 
-    def _fuse(self, kind, t_meas, z, R):
+    def _fuse(self, kind, t_meas, z, R, var=None):
+        """z (and var, the attitude's diagonal R) as floats; z and R as arrays for the camera."""
         self._need_init()
-        if not (math.isfinite(t_meas) and np.all(np.isfinite(z)) and (R is None or np.all(np.isfinite(R)))):
+        if kind == "position":
+            finite = all(map(math.isfinite, z.tolist())) and all(map(math.isfinite, R.ravel().tolist()))
+        else:
+            finite = all(map(math.isfinite, z)) and (var is None or all(map(math.isfinite, var)))
+        if not (math.isfinite(t_meas) and finite):
             return self._reject(kind, "invalid")
         if t_meas > self._t + self._eps:
             return self._reject(kind, "future")
-        if t_meas < self._t - self.params.max_delay_s - self._eps or t_meas < self._hist[0].t - self._eps:
+        hist = self._hist
+        if t_meas < self._t - self.params.max_delay_s - self._eps or t_meas < hist[0].t - self._eps:
             return self._reject(kind, "too_old")
         # node nearest not after t_meas
-        j = len(self._hist) - 1
-        while self._hist[j].t > t_meas + self._eps:
+        j = len(hist) - 1
+        while hist[j].t > t_meas + self._eps:
             j -= 1
-        node = self._hist[j]
+        node = hist[j]
         offset = t_meas - node.t
         if offset <= self._eps:
             offset = 0.0
-        last = j == len(self._hist) - 1
-        if last:
-            x, P = self._x, self._P
-        else:
-            x, P = node.x.copy(), node.P.copy()
-            for meas in node.meas:
-                x, P = self._apply(x, P, meas)
+        x, P = node.post   # (self._x, self._P) at the newest node
         if kind == "pin":
             nis = math.nan
-            x, P = self._apply(x, P, (kind, z, None, offset))
-            node.meas.append((kind, z.copy(), None, offset))
+            meas = (kind, z, None, offset)
+            x, P = self._apply(x, P, meas)
         else:
+            if var is not None:  # R = diag(var)
+                R = np.zeros((6, 6))
+                R.ravel()[::7] = var
             y, H, S = self._innovate(kind, x, P, z, R, offset)
             try:
-                S_inv = np.linalg.inv(S)
-                nis = float(y @ S_inv @ y)
+                S_inv = _inv(S)
+                nis = float(y.dot(S_inv).dot(y))
             except np.linalg.LinAlgError:
                 return self._reject(kind, "invalid")
             if not math.isfinite(nis) or nis < 0:
@@ -645,18 +851,37 @@ class PositionEKF:
             if nis > self._gate[len(z)]:
                 return self._reject(kind, "gate", nis)
             x, P = self._correct(x, P, y, H, S_inv, R)
-            node.meas.append((kind, z.copy(), R.copy(), offset))
+            meas = (kind, z, R, offset)
+        node.meas.append(meas)
+        node.post = (x, P)
         # re-run the predictions to now with the stored inputs and measurements
-        for k in range(j + 1, len(self._hist)):
-            nk = self._hist[k]
-            x, P = self._propagate(x, P, nk.u, nk.t - self._hist[k - 1].t)
-            nk.x, nk.P = x.copy(), P.copy()
+        for k in range(j + 1, len(hist)):
+            nk = hist[k]
+            x, P = self._propagate(x, P, nk.u, nk.t - hist[k - 1].t)
+            nk.x, nk.P = x, P
             for meas in nk.meas:
                 x, P = self._apply(x, P, meas)
+            nk.post = (x, P)
         self._x, self._P = x, P
         self._counts[kind]["accepted"] += 1
         self.last_nis[kind] = nis
         return True, nis
+
+
+try:  # what np.linalg.inv runs, without its checks and conversions (a third of its time here)
+    from numpy.linalg import _umath_linalg
+
+    def _inv(S: np.ndarray) -> np.ndarray:
+        S_inv = _umath_linalg.inv(S, signature="d->d")
+        if S_inv[0, 0] != S_inv[0, 0]:  # singular (NaN-filled): np.linalg.inv's LinAlgError
+            return np.linalg.inv(S)
+        return S_inv
+except ImportError:  # pragma: no cover - a numpy without it
+    _inv = np.linalg.inv
+
+
+_H_POSITION = np.zeros((3, N_STATE))
+_H_POSITION[:, 0:3] = np.eye(3)
 
 
 def _vec(v, n: int, name: str) -> np.ndarray:
@@ -664,6 +889,58 @@ def _vec(v, n: int, name: str) -> np.ndarray:
     if a.shape != (n,):
         raise PositionEKFError(f"{name} must have {n} elements (got {np.shape(v)})")
     return a
+
+
+def _floats(v, n: int, name: str) -> list:
+    """_vec(v, n, name) as a list of floats, without numpy for the usual inputs."""
+    if isinstance(v, np.ndarray):
+        if v.shape == (n,) and v.dtype == np.float64:
+            return v.tolist()
+    elif isinstance(v, (list, tuple)) and len(v) == n:
+        try:
+            return [float(a) for a in v]
+        except TypeError:  # nested: let _vec decide
+            pass
+    return _vec(v, n, name).tolist()
+
+
+@functools.lru_cache(maxsize=None)
+def _chi2_ppf(p: float, dof: int) -> float:
+    """The chi-square quantile scipy.stats.chi2.ppf(p, dof) gives (to ~1e-15), for an
+    integer dof, without importing scipy.stats (~0.3 s in a 100 Hz service): bisection on
+    the survival function in closed form, with y = x / 2,
+    Q = e^-y sum_{i<dof/2} y^i / i!  (dof even),
+    Q = erfc(sqrt y) + e^-y sum_{i=1}^{(dof-1)/2} y^(i-1/2) / Gamma(i+1/2)  (dof odd)."""
+    if not (isinstance(dof, int) and dof >= 1 and 0.0 < p < 1.0):
+        raise PositionEKFError(f"chi-square quantile: need an integer dof >= 1 and 0 < p < 1 (got {dof}, {p})")
+    tail = 1.0 - p
+
+    def sf(x):
+        y = 0.5 * x
+        if dof % 2 == 0:
+            term = total = 1.0
+            for i in range(1, dof // 2):
+                term *= y / i
+                total += term
+            return math.exp(-y) * total
+        term = math.sqrt(y) / math.gamma(1.5)
+        total = 0.0
+        for i in range(1, (dof + 1) // 2):
+            total += term
+            term *= y / (i + 0.5)
+        return math.erfc(math.sqrt(y)) + math.exp(-y) * total
+
+    lo, hi = 0.0, max(1.0, float(dof))
+    while sf(hi) > tail:
+        lo, hi = hi, 2.0 * hi
+    while True:
+        mid = 0.5 * (lo + hi)
+        if not lo < mid < hi:
+            return hi
+        if sf(mid) > tail:
+            lo = mid
+        else:
+            hi = mid
 
 
 class LaggedMotorInput:
@@ -674,25 +951,38 @@ class LaggedMotorInput:
     command, lagged over the whole step, puts the force of the step's end on all of it:
     through a flip the rotor forces swing by ~6 N within 60 ms, ~0.5 N (0.6 m/s^2) off
     for half a step at a time. The mean of the lagged force over each held command is
-    exact for a held command: c + (f0 - c) (tau / h) (1 - exp(-h / tau))."""
+    exact for a held command: c + (f0 - c) (tau / h) (1 - exp(-h / tau)).
+
+    Kept in plain floats (four of them, several times a step); the lag is that of
+    flight.plan.motor_forces_update, c + (f0 - c) exp(-h / tau)."""
 
     def __init__(self, time_constant_s: float):
         if not (math.isfinite(time_constant_s) and time_constant_s > 0):
             raise PositionEKFError(f"time_constant_s must be > 0 (got {time_constant_s!r})")
         self.tau = float(time_constant_s)
-        self.forces = np.zeros(4)   # rotor forces at self.t
-        self.command = np.zeros(4)  # the command held since self.t
+        self._forces = [0.0] * 4   # rotor forces at self.t
+        self._command = [0.0] * 4  # the command held since self.t
         self.t: float | None = None
-        self._pending: list[tuple[float, np.ndarray]] = []  # commands stamped after self.t
+        self._pending: list[tuple[float, list]] = []  # commands stamped after self.t
+
+    @property
+    def forces(self) -> np.ndarray:
+        """Rotor forces (4,) at self.t."""
+        return np.array(self._forces)
+
+    @property
+    def command(self) -> np.ndarray:
+        """The command (4,) held since self.t."""
+        return np.array(self._command)
 
     def add(self, t_s: float, command_n) -> None:
         """A command sent at t_s (held from then until the next). One older than the
         forces already integrated is taken to hold from their time (it cannot be undone)."""
-        c = np.asarray(command_n, dtype=np.float64).reshape(4)
+        c = _floats(command_n, 4, "command_n")
         if self.t is None:
-            self.t, self.forces, self.command = float(t_s), c.copy(), c
+            self.t, self._forces, self._command = float(t_s), c, list(c)
         elif t_s <= self.t:
-            self.command = c
+            self._command = c
         else:
             self._pending.append((float(t_s), c))
 
@@ -700,22 +990,27 @@ class LaggedMotorInput:
         """Mean rotor forces (4,) over [self.t, t_s]; advances to t_s. Commands stamped at or
         after t_s wait for the next step (a command sent at t_s acts from t_s on)."""
         if self.t is None or t_s <= self.t:
-            return self.forces.copy()
-        self._pending.sort(key=lambda e: e[0])
-        total = np.zeros(4)
+            return np.array(self._forces)
+        pending = self._pending
+        pending.sort(key=lambda e: e[0])
+        total = [0.0] * 4
         start = self.t
+        tau = self.tau
         while True:
             end = t_s
-            if self._pending and self._pending[0][0] < t_s:
-                end = self._pending[0][0]
+            if pending and pending[0][0] < t_s:
+                end = pending[0][0]
             h = end - self.t
             if h > 0.0:
-                decay = math.exp(-h / self.tau)
-                c, f0 = self.command, self.forces
-                total += h * (c + (f0 - c) * (self.tau / h) * (1.0 - decay))
-                self.forces = motor_forces_update(f0, c, h, self.tau)
+                decay = math.exp(-h / tau)
+                th = tau / h
+                rest = 1.0 - decay
+                c, f0 = self._command, self._forces
+                total = [s + h * (ci + (fi - ci) * th * rest) for s, ci, fi in zip(total, c, f0)]
+                self._forces = [ci + (fi - ci) * decay for ci, fi in zip(c, f0)]
                 self.t = end
             if end >= t_s:
                 break
-            self.command = self._pending.pop(0)[1]
-        return total / (t_s - start)
+            self._command = pending.pop(0)[1]
+        span = t_s - start
+        return np.array([s / span for s in total])

@@ -85,3 +85,10 @@ def rotate_vector(q, v) -> np.ndarray:
     """Rotate body vector(s) v, shape (3,) or (N, 3), into the world frame."""
     v = np.asarray(v, dtype=np.float64)
     return v @ quat_to_rotation(q).T
+
+
+def quat_tilt(q) -> float:
+    """Angle between the body z axis and the world z axis, rad (0 level, pi inverted)."""
+    w, x, y, z = q.tolist() if isinstance(q, np.ndarray) else (float(v) for v in q)
+    r22 = (w * w - x * x - y * y + z * z) / (w * w + x * x + y * y + z * z)
+    return math.acos(min(1.0, max(-1.0, r22)))

@@ -13,15 +13,15 @@ is held and the planner's attitude reference passed through.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 
 import numpy as np
 
 import schemas
-from flight.attitude_filter import quat_tilt as tilt_rad
 from flight.control import altitude_law, position_law
 from flight.position_ekf import LaggedMotorInput, PositionEKF, PositionEKFParams
-from flight.quat import quat_to_euler
+from flight.quat import quat_tilt, quat_to_euler
 from flight.vehicle import load_vehicle
 from services.runtime import Runtime, main_guard, service_parser
 
@@ -76,7 +76,9 @@ def run(args) -> None:
     state_out = rt.publisher(schemas.POSITION_STATE)
     k, alpha = rt.live_array("k"), rt.live_array("alpha")  # param/set applies them live
     m, g = vehicle.mass_kg, vehicle.gravity_m_s2
+    allocation = vehicle.allocation
     hold = {"position": None}
+    tilt_limit = {"deg": None, "rad": 0.0}  # vehicle.tilt_limit_rad of the (live) max_tilt_deg
     velocities: deque = deque(maxlen=max(2, round(ACCEL_WINDOW_S * rt.rate_hz) + 1))
 
     def count(reason: str) -> None:
@@ -96,16 +98,17 @@ def run(args) -> None:
         for out in motors.take():  # what the mixer really asked of the motors (after saturation)
             rotor_forces.add(out["header"]["t_s"], out["thrust_n"])
         if t > ekf.t:
-            ekf.predict(t, vehicle.allocation @ rotor_forces.mean_to(t))
+            ekf.predict(t, allocation @ rotor_forces.mean_to(t))
         att = attitude.latest()
+        # the messages' lists go to the EKF as they are (it takes plain floats)
         if att is not None and att["state_source"] == "estimate" \
-                and tilt_rad(att["quaternion_wxyz"]) > np.radians(p["attitude_pin_tilt_deg"]):
-            ekf.pin_attitude(att["header"]["t_s"], np.asarray(att["euler_rad"]), np.asarray(att["rate_rad_s"]))
+                and quat_tilt(att["quaternion_wxyz"]) > math.radians(p["attitude_pin_tilt_deg"]):
+            ekf.pin_attitude(att["header"]["t_s"], att["euler_rad"], att["rate_rad_s"])
             count("attitude_pinned_tilted")
         elif att is not None and att["state_source"] == "estimate":
-            if not ekf.update_attitude(att["header"]["t_s"], np.asarray(att["euler_rad"]), np.asarray(att["rate_rad_s"]),
-                                       np.maximum(att["euler_var_rad2"], p["attitude_var_floor"]),
-                                       np.maximum(att["rate_var_rad2_s2"], p["rate_var_floor"])):
+            if not ekf.update_attitude(att["header"]["t_s"], att["euler_rad"], att["rate_rad_s"],
+                                       [max(v, f) for v, f in zip(att["euler_var_rad2"], p["attitude_var_floor"])],
+                                       [max(v, f) for v, f in zip(att["rate_var_rad2_s2"], p["rate_var_floor"])]):
                 count("fusion_attitude_gate")
         for pose in poses.take():
             cov = np.asarray(pose["position_cov_m2"]).reshape(3, 3) + np.eye(3) * p["camera_var_floor"]
@@ -120,7 +123,8 @@ def run(args) -> None:
                 ekf.reset_position(pose["position_m"], cov)
                 count("fusion_position_reset")
                 started["refused"] = 0
-        return ekf.position, ekf.velocity, ekf.euler, ekf.position_cov, ekf.thrust_scale
+        x = ekf.x
+        return x[0:3], x[3:6], x[6:9], ekf.position_cov, float(x[12])
 
     def step(t: float) -> None:
         state, sp = read_state(t), planner.latest()
@@ -141,11 +145,14 @@ def run(args) -> None:
         else:
             ref_pos = hold["position"] if stale else np.asarray(sp["position_m"])
             yaw_ref = yaw if stale else sp["attitude_rad"][2]
+            if p["max_tilt_deg"] != tilt_limit["deg"]:
+                tilt_limit["deg"] = p["max_tilt_deg"]
+                tilt_limit["rad"] = vehicle.tilt_limit_rad(tilt_limit["deg"])
             r, pt, thrust = position_law(m_eff, g, pos, vel, ref_pos, k, alpha, yaw_ref,
-                                         max_tilt_rad=vehicle.tilt_limit_rad(p["max_tilt_deg"]))
+                                         max_tilt_rad=tilt_limit["rad"])
             att_ref = [r, pt, yaw_ref]
         thrust = float(min(thrust, 4 * vehicle.max_thrust_n))
-        velocities.append((t, vel.copy()))
+        velocities.append((t, vel))  # a fresh array each step
         (t0, v0), (t1, v1) = velocities[0], velocities[-1]
         accel = (v1 - v0) / (t1 - t0) if t1 > t0 else np.zeros(3)
         setpoint_out.put({"attitude_ref_rad": att_ref, "thrust_n": thrust}, t_s=t)

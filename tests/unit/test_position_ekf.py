@@ -1,6 +1,7 @@
 """Position-level EKF of document 000 (flight/position_ekf.py)."""
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 
@@ -492,3 +493,386 @@ def test_lagged_motor_input_late_and_degenerate():
     np.testing.assert_array_equal(lag.mean_to(1.02), lag.forces)  # no time: the forces now
     with pytest.raises(PositionEKFError, match="time_constant_s"):
         LaggedMotorInput(0.0)
+
+
+# --------------------------------------------------------------------------- the plain-float rewrite
+# The filter before its arithmetic went to plain floats and fewer numpy calls (a2ef311),
+# kept as the reference the rewrite must reproduce: the same equations, so the same
+# numbers to rounding (here bit for bit; 1e-9 is the bound held).
+def _ref_f(x, u, vehicle):
+    _, _, _, vx, vy, vz, r, p, y, wx, wy, wz = list(x)
+    u1, u2, u3, u4 = list(u)
+    m, c = vehicle.mass_kg, vehicle.drag_n_per_m_s
+    ixx, iyy, izz = vehicle.inertia_kg_m2
+    sr, cr, sp, cp, sy, cy = math.sin(r), math.cos(r), math.sin(p), math.cos(p), math.sin(y), math.cos(y)
+    a, k, tp = u1 / m, c / m, sp / cp
+    q = sr * wy + cr * wz
+    return np.array([vx, vy, vz,
+                     a * (sy * sr + cy * cr * sp) - k * vx,
+                     a * (-cy * sr + sy * cr * sp) - k * vy,
+                     a * (cr * cp) - k * vz - vehicle.gravity_m_s2,
+                     wx + tp * q, cr * wy - sr * wz, q / cp,
+                     (u2 - (izz - iyy) * wy * wz) / ixx,
+                     (u3 - (ixx - izz) * wz * wx) / iyy,
+                     (u4 - (iyy - ixx) * wx * wy) / izz])
+
+
+def _ref_jacobian(x, u, vehicle):
+    _, _, _, _, _, _, r, p, y, wx, wy, wz = list(x)
+    m = vehicle.mass_kg
+    k = vehicle.drag_n_per_m_s / m
+    ixx, iyy, izz = vehicle.inertia_kg_m2
+    sr, cr, sp, cp, sy, cy = math.sin(r), math.cos(r), math.sin(p), math.cos(p), math.sin(y), math.cos(y)
+    a, tp = float(u[0]) / m, sp / cp
+    q, qd = sr * wy + cr * wz, cr * wy - sr * wz
+    J = np.zeros((12, 12))
+    J[0, 3] = J[1, 4] = J[2, 5] = 1.0
+    J[3, 3] = J[4, 4] = J[5, 5] = -k
+    J[3, 6], J[3, 7], J[3, 8] = a * (sy * cr - cy * sr * sp), a * (cy * cr * cp), a * (cy * sr - sy * cr * sp)
+    J[4, 6], J[4, 7], J[4, 8] = a * (-cy * cr - sy * sr * sp), a * (sy * cr * cp), a * (sy * sr + cy * cr * sp)
+    J[5, 6], J[5, 7] = -a * sr * cp, -a * cr * sp
+    J[6, 6], J[6, 7], J[6, 9], J[6, 10], J[6, 11] = tp * qd, q / (cp * cp), 1.0, sr * tp, cr * tp
+    J[7, 6], J[7, 10], J[7, 11] = -q, cr, -sr
+    J[8, 6], J[8, 7], J[8, 10], J[8, 11] = qd / cp, q * sp / (cp * cp), sr / cp, cr / cp
+    J[9, 10], J[9, 11] = -(izz - iyy) * wz / ixx, -(izz - iyy) * wy / ixx
+    J[10, 9], J[10, 11] = -(ixx - izz) * wz / iyy, -(ixx - izz) * wx / iyy
+    J[11, 9], J[11, 10] = -(iyy - ixx) * wy / izz, -(iyy - ixx) * wx / izz
+    return J
+
+
+def _ref_rk4(x, u, vehicle, dt):
+    x, u = np.asarray(x, dtype=float), np.asarray(u, dtype=float)
+    k1 = _ref_f(x, u, vehicle)
+    k2 = _ref_f(x + 0.5 * dt * k1, u, vehicle)
+    k3 = _ref_f(x + 0.5 * dt * k2, u, vehicle)
+    k4 = _ref_f(x + dt * k3, u, vehicle)
+    return x + (dt / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+
+def _ref_discretize(x, u, vehicle, dt, q_density=None):
+    x, u = np.asarray(x, dtype=float), np.asarray(u, dtype=float)
+    if x.shape[0] == 12:
+        x_next, A = _ref_rk4(x, u, vehicle, dt), _ref_jacobian(x, u, vehicle) * dt
+    else:
+        u_real = u.copy()
+        u_real[0] *= x[12]
+        x_next = x.copy()
+        x_next[:12] = _ref_rk4(x[:12], u_real, vehicle, dt)
+        J = np.zeros((13, 13))
+        J[:12, :12] = _ref_jacobian(x[:12], u_real, vehicle)
+        r, p, y = x[6:9]
+        sr, cr, sp, cp, sy, cy = math.sin(r), math.cos(r), math.sin(p), math.cos(p), math.sin(y), math.cos(y)
+        J[3:6, 12] = (u[0] / vehicle.mass_kg) * np.array([sy * sr + cy * cr * sp, -cy * sr + sy * cr * sp, cr * cp])
+        A = J * dt
+    F = np.eye(x.shape[0]) + A + 0.5 * (A @ A)
+    Q = None if q_density is None else np.diag(np.asarray(q_density, dtype=float) * dt)
+    return x_next, F, Q
+
+
+def _ref_wrap(v):
+    return (v + math.pi) % (2 * math.pi) - math.pi
+
+
+class _RefEKF:
+    """PositionEKF as it was (predict, the three measurement kinds, replay), numpy throughout."""
+
+    def __init__(self, vehicle, params=None, dt=DT):
+        from scipy.stats import chi2
+        self.vehicle, self.params, self.dt = vehicle, params or PositionEKFParams(), dt
+        self._qc = self.params.process_noise_density
+        p = self.params.gate_probability
+        self._gate = {n: (math.inf if p >= 1.0 else float(chi2.ppf(p, n))) for n in (3, 6)}
+        self._eps = 1e-6 * dt
+        self.counts = {k: {"accepted": 0, "gate": 0, "too_old": 0, "future": 0, "invalid": 0}
+                       for k in ("attitude", "position", "pin")}
+        self.last_nis = {}
+
+    def initialize(self, t, position, euler):
+        x = np.zeros(13)
+        x[0:3], x[6:9], x[12] = position, euler, 1.0
+        x[6], x[8] = _ref_wrap(x[6]), _ref_wrap(x[8])
+        P = self.params.initial_covariance
+        self.t, self.x, self.P = float(t), x, 0.5 * (P + P.T)
+        self.hist = [[self.t, None, x.copy(), self.P.copy(), []]]  # t, u, prior x, prior P, measurements
+
+    def predict(self, t, u):
+        u = np.array(u, dtype=float)
+        self.x, self.P = self._propagate(self.x, self.P, u, float(t) - self.t)
+        self.t = float(t)
+        self.hist.append([self.t, u, self.x.copy(), self.P.copy(), []])
+        horizon = self.t - self.params.max_delay_s + self._eps
+        drop = 0
+        while drop + 1 < len(self.hist) and self.hist[drop + 1][0] <= horizon:
+            drop += 1
+        del self.hist[:drop]
+
+    def update_attitude(self, t, euler, rates, euler_var, rate_var):
+        return self._fuse("attitude", float(t), np.r_[euler, rates], np.diag(np.r_[euler_var, rate_var]))[0]
+
+    def pin_attitude(self, t, euler, rates):
+        return self._fuse("pin", float(t), np.r_[euler, rates], None)[0]
+
+    def update_position(self, t, position, cov):
+        R = np.array(cov, dtype=float)
+        return self._fuse("position", float(t), np.array(position, dtype=float), 0.5 * (R + R.T))
+
+    def _propagate(self, x, P, u, h):
+        n = max(1, math.ceil(h / self.dt - 1e-6))
+        for _ in range(n):
+            x, F, Q = _ref_discretize(x, u, self.vehicle, h / n, self._qc)
+            P = F @ P @ F.T + Q
+        P = 0.5 * (P + P.T)
+        x[6], x[8] = _ref_wrap(x[6]), _ref_wrap(x[8])
+        if x[2] <= 0.0:
+            x[2], x[5] = 0.0, max(x[5], 0.0)
+            if u[0] * x[12] < self.vehicle.mass_kg * self.vehicle.gravity_m_s2:
+                x[3:6] = 0.0
+        return x, P
+
+    @staticmethod
+    def _innovate(kind, x, P, z, R, offset):
+        if kind == "position":
+            H = np.zeros((3, 13))
+            H[:, 0:3] = np.eye(3)
+            if offset:
+                H[:, 3:6] = offset * np.eye(3)
+            y = z - (x[0:3] + offset * x[3:6])
+        else:
+            H = np.zeros((6, 13))
+            H[:, 6:12] = np.eye(6)
+            y = z - x[6:12]
+            y[0:3] = _ref_wrap(y[0:3])
+        return y, H, H @ P @ H.T + R
+
+    @staticmethod
+    def _correct(x, P, y, H, S_inv, R):
+        K = P @ H.T @ S_inv
+        x = x + K @ y
+        IKH = np.eye(13) - K @ H
+        P = IKH @ P @ IKH.T + K @ R @ K.T
+        x[6], x[8] = _ref_wrap(x[6]), _ref_wrap(x[8])
+        x[12] = min(max(x[12], 0.5), 2.0)
+        return x, 0.5 * (P + P.T)
+
+    def _apply(self, x, P, meas):
+        kind, z, R, offset = meas
+        if kind == "pin":
+            x = x.copy()
+            x[6:12] = z
+            x[6], x[8] = _ref_wrap(x[6]), _ref_wrap(x[8])
+            return x, P
+        y, H, S = self._innovate(kind, x, P, z, R, offset)
+        return self._correct(x, P, y, H, np.linalg.inv(S), R)
+
+    def _reject(self, kind, reason, nis=math.nan):
+        self.counts[kind][reason] += 1
+        self.last_nis[kind] = nis
+        return False, nis
+
+    def _fuse(self, kind, t, z, R):
+        if not (math.isfinite(t) and np.all(np.isfinite(z)) and (R is None or np.all(np.isfinite(R)))):
+            return self._reject(kind, "invalid")
+        if t > self.t + self._eps:
+            return self._reject(kind, "future")
+        if t < self.t - self.params.max_delay_s - self._eps or t < self.hist[0][0] - self._eps:
+            return self._reject(kind, "too_old")
+        j = len(self.hist) - 1
+        while self.hist[j][0] > t + self._eps:
+            j -= 1
+        node = self.hist[j]
+        offset = t - node[0] if t - node[0] > self._eps else 0.0
+        if j == len(self.hist) - 1:
+            x, P = self.x, self.P
+        else:
+            x, P = node[2].copy(), node[3].copy()
+            for meas in node[4]:
+                x, P = self._apply(x, P, meas)
+        if kind == "pin":
+            nis = math.nan
+            x, P = self._apply(x, P, (kind, z, None, offset))
+        else:
+            y, H, S = self._innovate(kind, x, P, z, R, offset)
+            S_inv = np.linalg.inv(S)
+            nis = float(y @ S_inv @ y)
+            if nis > self._gate[len(z)]:
+                return self._reject(kind, "gate", nis)
+            x, P = self._correct(x, P, y, H, S_inv, R)
+        node[4].append((kind, z.copy(), None if R is None else R.copy(), offset))
+        for k in range(j + 1, len(self.hist)):
+            nk = self.hist[k]
+            x, P = self._propagate(x, P, nk[1], nk[0] - self.hist[k - 1][0])
+            nk[2], nk[3] = x.copy(), P.copy()
+            for meas in nk[4]:
+                x, P = self._apply(x, P, meas)
+        self.x, self.P = x, P
+        self.counts[kind]["accepted"] += 1
+        self.last_nis[kind] = nis
+        return True, nis
+
+
+class _RefLaggedMotorInput:
+    """LaggedMotorInput as it was (numpy 4-vectors)."""
+
+    def __init__(self, tau):
+        self.tau, self.forces, self.command, self.t, self.pending = tau, np.zeros(4), np.zeros(4), None, []
+
+    def add(self, t_s, command_n):
+        c = np.asarray(command_n, dtype=float).reshape(4)
+        if self.t is None:
+            self.t, self.forces, self.command = float(t_s), c.copy(), c
+        elif t_s <= self.t:
+            self.command = c
+        else:
+            self.pending.append((float(t_s), c))
+
+    def mean_to(self, t_s):
+        if self.t is None or t_s <= self.t:
+            return self.forces.copy()
+        self.pending.sort(key=lambda e: e[0])
+        total, start = np.zeros(4), self.t
+        while True:
+            end = self.pending[0][0] if self.pending and self.pending[0][0] < t_s else t_s
+            h = end - self.t
+            if h > 0.0:
+                decay = math.exp(-h / self.tau)
+                c, f0 = self.command, self.forces
+                total += h * (c + (f0 - c) * (self.tau / h) * (1.0 - decay))
+                self.forces = c + (f0 - c) * decay
+                self.t = end
+            if end >= t_s:
+                break
+            self.command = self.pending.pop(0)[1]
+        return total / (t_s - start)
+
+
+def _assert_same(new, ref, what):
+    new, ref = np.asarray(new, dtype=float), np.asarray(ref, dtype=float)
+    scale = max(1.0, float(np.max(np.abs(ref))))
+    np.testing.assert_allclose(new, ref, rtol=1e-9, atol=1e-12 * scale, err_msg=what)
+
+
+def test_model_step_equals_the_reference():
+    """rk4_step and discretize (12 states, and 13 with the thrust scale) as before the rewrite."""
+    rng = np.random.default_rng(11)
+    veh_unequal = dataclasses.replace(VEH, inertia_kg_m2=(5e-3, 8e-3, 14e-3))
+    for veh in (VEH, veh_unequal):
+        for _ in range(30):
+            x = _random_state(rng)
+            u = np.array([rng.uniform(0.0, 10.0), *rng.normal(scale=0.05, size=3)])
+            dt = float(rng.uniform(1e-3, 2e-2))
+            _assert_same(rk4_step(x, u, veh, dt), _ref_rk4(x, u, veh, dt), "rk4_step")
+            for xx in (x, np.r_[x, rng.uniform(0.6, 1.5)]):
+                q = rng.uniform(0.0, 1.0, xx.shape[0])
+                for new, ref, name in zip(discretize(xx, u, veh, dt, q), _ref_discretize(xx, u, veh, dt, q),
+                                          ("x_next", "F", "Q")):
+                    _assert_same(new, ref, f"discretize {name} ({xx.shape[0]} states)")
+            np.testing.assert_array_equal(f(x, u, veh), _ref_f(x, u, veh))
+            np.testing.assert_array_equal(jacobian_f(x, u, veh), _ref_jacobian(x, u, veh))
+
+
+def _equivalence_flight(new, ref):
+    """Fly both filters through the same 8 s: the step manoeuvre, attitude at 100 Hz (jittered
+    time stamps, one 20 ms gap: two substeps), pinned attitude for 0.1 s, an attitude sample
+    fused 20 ms late, camera fixes 50 ms late, two out of order, one between two nodes, one
+    outlier, one too old, one from the future; compares state, covariance and answers at every step."""
+    xs, us = _truth(0)
+    rng = np.random.default_rng(21)
+    for e in (new, ref):
+        e.initialize(0.0, xs[0, 0:3] + [0.01, -0.02, 0.005], xs[0, 6:9])
+    cam_cov = np.eye(3) * CAM_STD ** 2 + 1e-7
+    pending, late_att = [], None
+    for k in range(len(us)):
+        if k == 300:
+            continue  # no step at 3.01 s: the next predict covers 20 ms
+        t = (k + 1) * DT + (5e-9 * rng.uniform() if k % 3 else 0.0)  # time-stamp jitter, < 1e-6 dt
+        xt = xs[k + 1]
+        for e in (new, ref):
+            e.predict(t, us[k])
+        euler = xt[6:9] + rng.normal(size=3) * ATT_STD
+        rates = xt[9:12] + rng.normal(size=3) * RATE_STD
+        if 500 <= k < 510:
+            answers = [e.pin_attitude(t, euler, rates) for e in (new, ref)]
+        elif k == 600:
+            late_att = (t, euler, rates)
+            answers = []
+        else:
+            answers = [e.update_attitude(t, euler, rates, ATT_STD ** 2, RATE_STD ** 2) for e in (new, ref)]
+            if k == 602:
+                answers += [e.update_attitude(late_att[0], late_att[1], late_att[2], ATT_STD ** 2, RATE_STD ** 2)
+                            for e in (new, ref)]
+        assert answers[0::2] == answers[1::2], k
+        if (k + 1) % CAM_EVERY == 0:
+            z = xt[0:3] + rng.normal(scale=CAM_STD, size=3)
+            if k + 1 == 450:
+                z = z + [0.5, 0.0, 0.0]  # gated out
+            t_exp = t + 0.004 if k + 1 == 350 else t  # between two nodes: h = p + d v
+            pending.append((k + 1 + (12 if k + 1 == 700 else 5), t_exp, z))
+        if k + 1 == 250:
+            pending.append((k + 1, t - 0.5, xt[0:3]))  # too old
+            pending.append((k + 1, t + 0.05, xt[0:3]))  # not taken yet
+        for item in sorted((p for p in pending if p[0] <= k + 1), key=lambda p: p[1]):
+            pending.remove(item)
+            (ok_n, nis_n), (ok_r, nis_r) = (e.update_position(item[1], item[2], cam_cov) for e in (new, ref))
+            assert ok_n == ok_r, (k, item[1])
+            if not math.isnan(nis_r):
+                assert nis_n == pytest.approx(nis_r, rel=1e-9), k
+        _assert_same(new.x, ref.x, f"x at step {k}")
+        _assert_same(new.P, ref.P, f"P at step {k}")
+    return new, ref
+
+
+def test_filter_equals_the_reference_through_a_flight():
+    new, ref = _equivalence_flight(PositionEKF(VEH, dt=DT), _RefEKF(VEH, dt=DT))
+    assert new._gate == pytest.approx(ref._gate, rel=1e-12)
+    assert new.counters == ref.counts
+    assert new.counters["position"]["gate"] == 1 and new.counters["position"]["too_old"] == 1
+    assert new.counters["position"]["future"] == 1 and new.counters["pin"]["accepted"] == 10
+    assert new.counters["position"]["accepted"] > 140 and new.counters["attitude"]["accepted"] > 700
+    for kind in ("attitude", "position"):
+        assert new.last_nis[kind] == pytest.approx(ref.last_nis[kind], rel=1e-9)
+
+
+def test_gate_thresholds_equal_scipys_chi_square_quantiles():
+    from scipy.stats import chi2
+
+    from flight.position_ekf import _chi2_ppf
+    for dof in range(1, 9):
+        for p in (0.5, 0.9, 0.95, 0.99, 0.999, 0.9999, 1 - 1e-7):
+            assert _chi2_ppf(p, dof) == pytest.approx(float(chi2.ppf(p, dof)), rel=1e-12), (dof, p)
+    for p in (0.99, 0.999):
+        assert PositionEKF(VEH, PositionEKFParams(gate_probability=p))._gate == pytest.approx(
+            {n: float(chi2.ppf(p, n)) for n in (3, 6)}, rel=1e-12)
+    assert PositionEKF(VEH, PositionEKFParams(gate_probability=1.0))._gate == {3: math.inf, 6: math.inf}
+
+
+def test_filter_module_does_not_import_scipy_stats():
+    import subprocess
+    import sys
+    code = "import sys, flight.position_ekf; sys.exit('scipy.stats' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", code]).returncode == 0
+
+
+def test_lagged_motor_input_equals_the_reference():
+    rng = np.random.default_rng(31)
+    new, ref = LaggedMotorInput(0.02), _RefLaggedMotorInput(0.02)
+    for step in range(60):
+        for j in range(int(rng.integers(0, 6))):
+            t_cmd = step * 0.01 + float(rng.uniform(-0.004, 0.012))
+            c = rng.uniform(0.0, 6.5, 4)
+            new.add(t_cmd, c.tolist() if j % 2 else c)
+            ref.add(t_cmd, c)
+        t = (step + 1) * 0.01
+        _assert_same(new.mean_to(t), ref.mean_to(t), f"mean at step {step}")
+        _assert_same(new.forces, ref.forces, f"forces at step {step}")
+        assert new.t == ref.t
+
+
+def test_quat_tilt():
+    from flight.quat import quat_tilt, quat_to_rotation
+    rng = np.random.default_rng(41)
+    for _ in range(200):
+        q = rng.normal(size=4)
+        q = q / np.linalg.norm(q)
+        assert quat_tilt(q.tolist()) == quat_tilt(q)
+        assert quat_tilt(q) == pytest.approx(math.acos(np.clip(quat_to_rotation(q)[2, 2], -1, 1)), abs=1e-7)
+    assert quat_tilt([1.0, 0.0, 0.0, 0.0]) == 0.0 and quat_tilt([0.0, 1.0, 0.0, 0.0]) == pytest.approx(math.pi)
