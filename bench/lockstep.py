@@ -22,6 +22,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 TARGETS = {"steps": 5.0, "hover": 5.0, "flip-short": 3.0, "flip": 3.0}
+FLIP_SHORT = "tests/integration/missions/flip-short.toml"
 
 
 def fly(mission: str, seed: int, out: Path, extra: list[str]) -> float:
@@ -47,7 +48,8 @@ def run_totals(out: Path) -> dict[str, dict]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--missions", nargs="+", default=["steps", "flip-short"])
+    ap.add_argument("--missions", nargs="+", default=["steps", FLIP_SHORT],
+                    help="mission names or files (default: steps and the flip-short mission)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="runs/bench-lockstep")
     ap.add_argument("--set", action="append", default=[], metavar="SERVICE.KEY=VALUE")
@@ -55,11 +57,17 @@ def main() -> None:
     print("$ python bench/lockstep.py " + " ".join(sys.argv[1:]))
     extra = [a for item in args.set for a in ("--set", item)]
     for mission in args.missions:
-        out = Path(args.out) / mission
+        name = Path(mission).stem
+        out = Path(args.out) / name
         total_wall = fly(mission, args.seed, out, extra)
-        sim_log = (out / "logs" / "sim.log").read_text()
-        m = re.search(r"([0-9.]+) s simulated in ([0-9.]+) s of wall time", sim_log)
+        sim_log = out / "logs" / "sim.log"
+        m = re.search(r"([0-9.]+) s simulated in ([0-9.]+) s of wall time", sim_log.read_text()) \
+            if sim_log.exists() else None
+        if m is None:
+            print(f"bench: {mission}: no simulator figures (see {out / 'logs'})")
+            continue
         sim_s, wall_s = float(m.group(1)), float(m.group(2))
+        mission = name
         totals = run_totals(out)
         sim = totals["sim"]
         ticks = max(sim["runs"], 1)
