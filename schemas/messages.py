@@ -43,7 +43,7 @@ CLOCK = Message(
 )
 
 SYNC_DONE = Message(
-    "sync_done", "sync/{service}", 1,
+    "sync_done", "sync/{service}", 2,
     "Lockstep only: a service finished `tick` (its outputs for it are published) "
     "and says when it next needs to run. header.source names the service.",
     (
@@ -51,6 +51,8 @@ SYNC_DONE = Message(
         F("next_tick", "int", "next tick this service must run at; -1 when it only "
           "runs on the simulator topics in `triggers`", min=-1),
         F("triggers", "str[]", "simulator topics whose publication makes this service run"),
+        F("period_ticks", "int", "ticks between two runs of a rate service (0: it runs on its triggers); "
+          "the clock's schedule, fixed before the first tick", min=0),
     ),
 )
 

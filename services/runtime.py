@@ -229,6 +229,7 @@ class _Upstream:
         self.last_done = -2  # -1: ready, nothing run yet
         self.next_tick = 0
         self.triggers: tuple[str, ...] = ()
+        self.period_ticks = 0
 
 
 # ---------------------------------------------------------------- runtime
@@ -409,7 +410,7 @@ class Runtime:
                 self.reject(f"sync/{upstream}", exc)
                 return
             u = self._upstreams[upstream]
-            u.next_tick, u.triggers = msg["next_tick"], tuple(msg["triggers"])
+            u.next_tick, u.triggers, u.period_ticks = msg["next_tick"], tuple(msg["triggers"]), msg["period_ticks"]
             u.last_done = max(u.last_done, msg["tick"])
             self._sync_event.set()
         return on_sync
@@ -568,7 +569,8 @@ class Runtime:
         self.subscribe(schemas.CLOCK.key(self.vehicle_id, self.name), self._on_clock)
         # announce readiness until the first clock tick arrives
         while not self.stop_event.is_set() and not self._clock_queue:
-            sync.put({"tick": -1, "next_tick": next_tick, "triggers": list(triggers)}, t_s=0.0, repeat=True)
+            sync.put({"tick": -1, "next_tick": next_tick, "triggers": list(triggers), "period_ticks": period},
+                     t_s=0.0, repeat=True)
             self._clock_event.wait(READY_RESEND_S)
         sync.seq += 1
         self.state = "running"
@@ -591,7 +593,8 @@ class Runtime:
             self.publish_health()
             if period:
                 next_tick = k + period
-            sync.put({"tick": k, "next_tick": next_tick, "triggers": list(triggers)}, t_s=self._t)
+            sync.put({"tick": k, "next_tick": next_tick, "triggers": list(triggers), "period_ticks": period},
+                     t_s=self._t)
 
     def _wait_upstreams(self, k: int, done_before: dict[str, int]) -> bool:
         """Wait until every upstream's sync for its last run before k has arrived

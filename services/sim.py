@@ -87,8 +87,8 @@ class SimService:
 
     # -- lockstep: this service drives the clock ------------------------------
     def run_lockstep(self) -> None:
-        """Pipelined lockstep. Every participant's runs are fixed by the schedule (its period
-        from the stack file, or the simulator topics that trigger it), so the clock can say,
+        """Pipelined lockstep. Every participant's runs are fixed by the schedule (the period it
+        announced when ready, or the simulator topics that trigger it), so the clock can say,
         before anything has run, which run of each upstream a service must wait for (the last
         one due before its tick). The simulator itself waits only for the services whose
         outputs it applies (the motors' PWM, the planner's mission state) before stepping the
@@ -107,7 +107,8 @@ class SimService:
             rt._sync_event.clear()
         time.sleep(START_GRACE_S)
         rt.state = "running"
-        period = {p: rt.stack.period_ticks(p) if rt.stack.service(p).rate_hz > 0 else 0 for p in self.participants}
+        # each participant's own period, as it announced it ready (the planner runs faster for a flip)
+        period = {p: rt._upstreams[p].period_ticks for p in self.participants}
         next_due = {p: rt._upstreams[p].next_tick for p in self.participants}
         triggers = {p: set(rt._upstreams[p].triggers) for p in self.participants}
         last_due = {p: -1 for p in self.participants}   # the last tick each was due at (-1: none yet)
