@@ -13,10 +13,17 @@ a restart loads it instead of compiling) and the loop runs at least at the re-so
 item runs, the setpoint's mode is `plan` and every re-solve from the latest
 estimate (pos/state + att/state, and the rotor forces implied by motors/pwm)
 goes out on planner/plan for the motor driver.
+
+Real time (bench/flip_realtime.py): the stack gives the planner a real-time priority below
+the control loops and vision; the solver is built at normal scheduling and then runs on one
+XLA thread, dispatched synchronously (flight.ilqr.use_one_solver_thread); at the position
+level's rate the loop runs on each new position state; the session uses no Zenoh shared
+memory (see run).
 """
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import replace
 
@@ -36,6 +43,10 @@ PARAMS = {
     "compile_cache_dir": "~/.cache/zenpilot/jax",
 }
 NO_MISSION = ("", "none")
+NO_SHARED_MEMORY = "transport/shared_memory/enabled:false"
+# woken by the position state: at most one run per this many periods (a late state and the next
+# one on time both run; a step that overran runs the next one as soon as it ends)
+WAKE_MIN_GAP = 0.25
 
 
 def flip_controllers(rt: Runtime, mission) -> dict:
@@ -47,6 +58,10 @@ def flip_controllers(rt: Runtime, mission) -> dict:
     from flight.vehicle import load_vehicle
     vehicle = load_vehicle(rt.vehicle_name)
     rate = rt.params["mpc_rate_hz"] or None
+    if any(m != "baseline" for m in methods):
+        from flight.ilqr import use_one_solver_thread
+        if not use_one_solver_thread():
+            rt.problem("JAX started before the solver's thread settings (flight.ilqr.use_one_solver_thread)")
     if rt.params["compile_cache_dir"]:
         from flight.ilqr import use_compile_cache
         try:
@@ -69,7 +84,37 @@ def flip_controllers(rt: Runtime, mission) -> dict:
     return controllers
 
 
+def built_off_realtime(build):
+    """build() at normal scheduling, then every thread of the process at the service's
+    real-time policy again (a no-op when the service runs at normal scheduling: lockstep,
+    or the OS refused). The flip controllers' build traces and compiles the solver (seconds
+    of CPU, on every core for XLA's compile workers when the compile cache misses), which at
+    a real-time priority would take the CPU from every normal-priority process meanwhile
+    (the router, the recorder); the threads the build starts (XLA's pool, whose thread runs
+    every solve) are created at normal scheduling, so they are put at the service's policy."""
+    policy = os.sched_getscheduler(0)
+    if policy not in (os.SCHED_FIFO, os.SCHED_RR):
+        return build()
+    param = os.sched_getparam(0)
+    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    try:
+        return build()
+    finally:
+        for tid in os.listdir("/proc/self/task"):
+            try:
+                if os.sched_getscheduler(int(tid)) == os.SCHED_OTHER:
+                    os.sched_setscheduler(int(tid), policy, param)
+            except OSError:  # a thread that ended meanwhile
+                pass
+
+
 def run(args) -> None:
+    # No Zenoh shared memory for the planner's session: a plan (26 KB) is over Zenoh's SHM
+    # threshold, and the first message over it creates the SHM pool (16 MB of fresh memory,
+    # a new runtime thread and two watchdog threads): ~11 ms inside the flip's first put, with
+    # the session's receive thread blocked meanwhile, which cost a re-solve at every flip's
+    # start. Over the TCP link a plan's put takes ~0.1-0.3 ms. A --cfg of the command line wins.
+    args.cfg = [NO_SHARED_MEMORY, *args.cfg]
     rt = Runtime(NAME, args, PARAMS)
     name = args.mission if args.mission is not None else rt.params["mission"]
     mission = None if name in NO_MISSION else load_mission(name)
@@ -77,7 +122,7 @@ def run(args) -> None:
         method = rt.choice("flip_method", FLIP_METHODS)
         mission = replace(mission, items=tuple({**i, "method": method} if i["type"] == "flip" else i
                                                for i in mission.items))
-    controllers = flip_controllers(rt, mission)
+    controllers = built_off_realtime(lambda: flip_controllers(rt, mission))
     state = rt.inbox(schemas.POSITION_STATE, "position")
     commands = rt.inbox(schemas.PLANNER_COMMAND, "mavlink", keep=16)
     out = rt.publisher(schemas.PLANNER_SETPOINT)
@@ -147,15 +192,25 @@ def run(args) -> None:
             flip["pos"] = np.array(s["position_m"])
             flip["plan"] = None
         sp = planner.update(t, s["position_m"], s["velocity_m_s"])
-        out.put(sp.as_message(), t_s=t)
         if controllers and flip["plan"] is not None:
+            # the plan before the setpoint: a motor driver run between the two (real time)
+            # would otherwise see the flip's first setpoint in mode `plan` with no plan yet
             plan_out.put(flip["plan"], t_s=t)
+        out.put(sp.as_message(), t_s=t)
         if sp.mission_state != reported["state"]:
             reported["state"] = sp.mission_state
             if sp.mission_state == "failed":
                 rt.problem(f"mission {name} failed: {sp.phase}")
 
-    rt.run(step)
+    # With an iLQR flip at the position level's rate (the project's 100 Hz re-solves), the loop
+    # runs as each position state arrives (real time; lockstep runs on its ticks): every solve
+    # starts from a state that is new and fresh, not one up to a period old (or the same twice);
+    # a step that overran is followed at once by the next one rather than the next period's.
+    position = rt.stack.services.get("position")
+    if controllers and position is not None and abs(position.rate_hz - rt.rate_hz) < 1e-9:
+        rt.run(step, wake_on=state, min_gap=WAKE_MIN_GAP)
+    else:
+        rt.run(step)
 
 
 def main(argv=None) -> None:
