@@ -17,8 +17,7 @@ goes out on planner/plan for the motor driver.
 Real time (bench/flip_realtime.py): the stack gives the planner a real-time priority below
 the control loops and vision; the solver is built at normal scheduling and then runs on one
 XLA thread, dispatched synchronously (flight.ilqr.use_one_solver_thread); at the position
-level's rate the loop runs on each new position state; the session uses no Zenoh shared
-memory (see run).
+level's rate the loop runs on each new position state.
 """
 
 from __future__ import annotations
@@ -43,7 +42,6 @@ PARAMS = {
     "compile_cache_dir": "~/.cache/zenpilot/jax",
 }
 NO_MISSION = ("", "none")
-NO_SHARED_MEMORY = "transport/shared_memory/enabled:false"
 # woken by the position state: at most one run per this many periods (a late state and the next
 # one on time both run; a step that overran runs the next one as soon as it ends)
 WAKE_MIN_GAP = 0.25
@@ -109,12 +107,6 @@ def built_off_realtime(build):
 
 
 def run(args) -> None:
-    # No Zenoh shared memory for the planner's session: a plan (26 KB) is over Zenoh's SHM
-    # threshold, and the first message over it creates the SHM pool (16 MB of fresh memory,
-    # a new runtime thread and two watchdog threads): ~11 ms inside the flip's first put, with
-    # the session's receive thread blocked meanwhile, which cost a re-solve at every flip's
-    # start. Over the TCP link a plan's put takes ~0.1-0.3 ms. A --cfg of the command line wins.
-    args.cfg = [NO_SHARED_MEMORY, *args.cfg]
     rt = Runtime(NAME, args, PARAMS)
     name = args.mission if args.mission is not None else rt.params["mission"]
     mission = None if name in NO_MISSION else load_mission(name)

@@ -76,6 +76,11 @@ def zenoh_config(args: argparse.Namespace) -> zenoh.Config:
     if args.listen:
         conf.insert_json5("listen/endpoints", json.dumps(args.listen))
     conf.insert_json5("scouting/multicast/enabled", "false")
+    # No Zenoh shared memory unless asked for (--cfg): the first message over its size threshold
+    # (a flip's plan, 26 KB; camera frames at altitude) creates the pool, 16 MB and three threads,
+    # ~11 ms inside that put with the session's receiving thread blocked (measured in a real-time
+    # flip); over the TCP link a plan's put takes 0.1-0.3 ms.
+    conf.insert_json5("transport/shared_memory/enabled", "false")
     for item in args.cfg:
         key, _, value = item.partition(":")
         if not value:
