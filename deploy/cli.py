@@ -88,9 +88,9 @@ def cmd_fly(args) -> int:
     if not completed_run:
         print(f"zenpilot: the simulator stopped with an error (see {out / 'logs' / 'sim.log'})", file=sys.stderr)
     metrics = analyse(out, {"mission": mission.name, "mode": "lockstep" if args.lockstep else "realtime",
-                            "seed": args.seed, "vehicle": mission.vehicle})
+                            "seed": args.seed, "vehicle": mission.vehicle}, plots=not args.no_plots)
     print(f"zenpilot: {metrics['duration_s']:.1f} s flown in {wall:.1f} s of wall time; "
-          f"log, plots and metrics.json in {out}")
+          f"log{'' if args.no_plots else ', plots'} and metrics.json in {out}")
     if metrics.get("crashed"):
         print("zenpilot: the vehicle crashed (truth on the ground mid-mission, or tilted past 60 deg)", file=sys.stderr)
     return 0 if metrics.get("completed") and not metrics.get("crashed") else 1
@@ -115,14 +115,15 @@ def _read(path: Path) -> str:
         return ""
 
 
-def analyse(out: Path, info: dict) -> dict:
+def analyse(out: Path, info: dict, plots: bool = True) -> dict:
     from deploy.metrics import compute_metrics, format_table
-    from deploy.plots import make_plots
 
     log = read_log(out / LOG_NAME)
     metrics = compute_metrics(log, info)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
-    make_plots(log, out, vehicle=info.get("vehicle"))
+    if plots:
+        from deploy.plots import make_plots
+        make_plots(log, out, vehicle=info.get("vehicle"))
     print(format_table(metrics))
     return metrics
 
@@ -309,6 +310,8 @@ def build_parser() -> argparse.ArgumentParser:
     fly.add_argument("--mission", help=f"mission name or file (default: {DEFAULT_MISSION}; see `zenpilot missions`)")
     fly.add_argument("--out", help="output directory (default: runs/<mission>-<mode>-seed<N>)")
     fly.add_argument("--port", type=int, help="router port (default: a free one)")
+    fly.add_argument("--no-plots", action="store_true",
+                     help="metrics only (sweeps, tests); `zenpilot report DIR` draws the plots later")
     fly.set_defaults(func=cmd_fly)
 
     up = sub.add_parser("up", help="start the router and a machine's services; show live status")

@@ -16,9 +16,11 @@ TRUTH_STATE = ("--set", "attitude.state_source=truth", "--set", "position.state_
 
 
 def fly(out: Path, mission: str, *extra: str, lockstep: bool = True, seed: int = 0,
-        timeout: float = 400, background: bool = False):
+        timeout: float = 400, background: bool = False, plots: bool = False):
     argv = [sys.executable, "-m", "deploy.cli", "fly", "--mission", mission, "--seed", str(seed),
             "--out", str(out), *extra]
+    if not plots:   # ~2 s a flight; the hover fixture's flight draws them and a test checks them
+        argv.append("--no-plots")
     if lockstep:
         argv.append("--lockstep")
     if background:
@@ -31,4 +33,4 @@ def fly(out: Path, mission: str, *extra: str, lockstep: bool = True, seed: int =
 @pytest.fixture(scope="session")
 def hover_lockstep(tmp_path_factory):
     out = tmp_path_factory.mktemp("hover-lockstep")
-    return out, fly(out, "hover", *TRUTH_STATE)
+    return out, fly(out, "hover", *TRUTH_STATE, plots=True)

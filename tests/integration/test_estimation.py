@@ -15,7 +15,7 @@ NEES_BAND_95_3DOF = (0.2158, 9.3484)
 @pytest.fixture(scope="module")
 def hover_estimate(tmp_path_factory):
     out = tmp_path_factory.mktemp("hover-estimate")
-    return out, fly(out, "hover")
+    return out, fly(out, "hover", plots=True)
 
 
 def test_hover_on_estimates_meets_the_paper(hover_estimate):

@@ -27,7 +27,7 @@ FROM_HOVER_MISSION = str(Path(__file__).resolve().parent / "missions" / "flip-sh
 @pytest.fixture(scope="module")
 def flip_lockstep(tmp_path_factory):
     out = tmp_path_factory.mktemp("flip-lockstep")
-    return out, fly(out, MISSION, *TRUTH_STATE)
+    return out, fly(out, MISSION, *TRUTH_STATE, plots=True)
 
 
 def test_project_flip_completes_within_the_pure_loops_figures(flip_lockstep):
