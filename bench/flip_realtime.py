@@ -42,6 +42,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench.realtime import descendants  # noqa: E402
 from deploy.flightlog import read_log  # noqa: E402
 
 TICK = os.sysconf("SC_CLK_TCK")
@@ -51,29 +52,7 @@ SOLVE_RATE_HZ = 100.0  # the project's re-solve rate (flight/flip_runner.DEFAULT
 
 def planner_pid(root_pid: int) -> int | None:
     """The planner service's process among root_pid's descendants."""
-    children: dict[int, list[int]] = {}
-    module: dict[int, str] = {}
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            with open(f"/proc/{entry}/stat") as fh:
-                ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
-            with open(f"/proc/{entry}/cmdline", "rb") as fh:
-                argv = [a.decode(errors="replace") for a in fh.read().split(b"\0")]
-        except OSError:
-            continue
-        children.setdefault(ppid, []).append(int(entry))
-        if "-m" in argv[:-1]:
-            module[int(entry)] = argv[argv.index("-m") + 1]
-    todo = [root_pid]
-    while todo:
-        p = todo.pop()
-        for c in children.get(p, []):
-            if module.get(c) == "services.planner":
-                return c
-            todo.append(c)
-    return None
+    return next((p for p, name in descendants(root_pid).items() if name == "planner"), None)
 
 
 def foreign_realtime() -> list[int]:
@@ -94,25 +73,6 @@ def foreign_realtime() -> list[int]:
         except OSError:
             continue
         out.append(int(entry))
-    return out
-
-
-def descendants(root_pid: int) -> list[int]:
-    children: dict[int, list[int]] = {}
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            with open(f"/proc/{entry}/stat") as fh:
-                ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
-        except OSError:
-            continue
-        children.setdefault(ppid, []).append(int(entry))
-    out, todo = [], [root_pid]
-    while todo:
-        for c in children.get(todo.pop(), []):
-            out.append(c)
-            todo.append(c)
     return out
 
 
