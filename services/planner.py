@@ -22,7 +22,6 @@ level's rate the loop runs on each new position state.
 
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import replace
 
@@ -82,30 +81,6 @@ def flip_controllers(rt: Runtime, mission) -> dict:
     return controllers
 
 
-def built_off_realtime(build):
-    """build() at normal scheduling, then every thread of the process at the service's
-    real-time policy again (a no-op when the service runs at normal scheduling: lockstep,
-    or the OS refused). The flip controllers' build traces and compiles the solver (seconds
-    of CPU, on every core for XLA's compile workers when the compile cache misses), which at
-    a real-time priority would take the CPU from every normal-priority process meanwhile
-    (the router, the recorder); the threads the build starts (XLA's pool, whose thread runs
-    every solve) are created at normal scheduling, so they are put at the service's policy."""
-    policy = os.sched_getscheduler(0)
-    if policy not in (os.SCHED_FIFO, os.SCHED_RR):
-        return build()
-    param = os.sched_getparam(0)
-    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    try:
-        return build()
-    finally:
-        for tid in os.listdir("/proc/self/task"):
-            try:
-                if os.sched_getscheduler(int(tid)) == os.SCHED_OTHER:
-                    os.sched_setscheduler(int(tid), policy, param)
-            except OSError:  # a thread that ended meanwhile
-                pass
-
-
 def run(args) -> None:
     rt = Runtime(NAME, args, PARAMS)
     name = args.mission if args.mission is not None else rt.params["mission"]
@@ -114,7 +89,7 @@ def run(args) -> None:
         method = rt.choice("flip_method", FLIP_METHODS)
         mission = replace(mission, items=tuple({**i, "method": method} if i["type"] == "flip" else i
                                                for i in mission.items))
-    controllers = built_off_realtime(lambda: flip_controllers(rt, mission))
+    controllers = flip_controllers(rt, mission)   # at normal scheduling: the runtime raises it for the loop
     state = rt.inbox(schemas.POSITION_STATE, "position")
     commands = rt.inbox(schemas.PLANNER_COMMAND, "mavlink", keep=16)
     out = rt.publisher(schemas.PLANNER_SETPOINT)

@@ -171,7 +171,6 @@ class Inbox:
                 self.runtime.count_dropped(self.key, seq - expected)
             if expected is None or seq >= expected - 1 or seq < expected - 1000:  # a repeat keeps its seq; a restart starts over
                 self._next_seq[source] = seq + 1
-            msg["_n"] = self.arrived   # arrival number: which messages a reader has seen
             items.append((tag, self.arrived, msg))
 
     def latest(self) -> dict | None:
@@ -284,13 +283,6 @@ class Runtime:
         self.event_driven = False   # real time, no rate: the loop runs on any input's arrival
         self.inboxes: list[Inbox] = []
         self._param_callbacks: dict[str, list[Callable[[Any], None]]] = {}
-        if not self.lockstep and spec is not None:
-            # before the session opens: Zenoh's threads inherit the policy and the affinity
-            self.scheduling = apply_scheduling(spec.priority, spec.cpu)
-            if "refused" in self.scheduling:
-                self.problem(f"scheduling: {self.scheduling}")
-            elif self.scheduling != "normal":
-                print(f"zenpilot-{name}: scheduling {self.scheduling}", flush=True)
         try:
             self.session = zenoh.open(self.conf)
         except zenoh.ZError as exc:
@@ -518,7 +510,16 @@ class Runtime:
             self.publish_health()
 
     def enter_loop(self) -> None:
-        """Set-up is over: move everything allocated so far out of the garbage collector's way."""
+        """Set-up is over: the scheduling the stack file asks for (real time), for every thread
+        of the process (Zenoh's, XLA's); set-up itself ran at normal scheduling, so a long one (the
+        flip's JAX compile) never takes the CPU from normal processes. Then everything allocated
+        so far goes out of the garbage collector's way."""
+        if not self.lockstep and self.spec is not None:
+            self.scheduling = apply_scheduling(self.spec.priority, self.spec.cpu)
+            if "refused" in self.scheduling:
+                self.problem(f"scheduling: {self.scheduling}")
+            elif self.scheduling != "normal":
+                print(f"zenpilot-{self.name}: scheduling {self.scheduling}", flush=True)
         gc.collect()
         gc.freeze()  # start-up objects (modules, JAX, tables) are never scanned again
 
@@ -604,21 +605,27 @@ class Runtime:
     def _wait_upstreams(self, k: int, done_before: dict[str, int]) -> bool:
         """Wait until every upstream's sync for its last run before k has arrived
         (and with it, over the same link, that run's outputs)."""
-        warned = False
         start = time.perf_counter()
         try:
-            while not self.stop_event.is_set():
-                self._sync_event.clear()  # clear before checking, so a sync arriving now is not lost
-                waiting = [n for n, u in self._upstreams.items() if u.last_done < done_before.get(n, -2)]
-                if not waiting:
-                    return True
-                self._sync_event.wait(0.5)
-                if not warned and time.perf_counter() - start > 5.0:
-                    self.problem(f"lockstep: tick {k} still waiting for {', '.join(waiting)}")
-                    warned = True
-            return False
+            return self.wait_synced({n: done_before.get(n, -2) for n in self._upstreams}, k)
         finally:
             self.wait_s += time.perf_counter() - start
+
+    def wait_synced(self, ticks: dict[str, int], k: int) -> bool:
+        """Lockstep: wait until each service named has reported its run at the tick given done
+        (False: stopped meanwhile); after 5 s, say who is missing at tick k."""
+        warned = False
+        start = time.monotonic()
+        while not self.stop_event.is_set():
+            self._sync_event.clear()  # clear before checking, so a sync arriving now is not lost
+            waiting = [n for n, t in ticks.items() if self._upstreams[n].last_done < t]
+            if not waiting:
+                return True
+            self._sync_event.wait(0.5)
+            if not warned and time.monotonic() - start > 5.0:
+                self.problem(f"lockstep: tick {k} still waiting for {', '.join(waiting)}")
+                warned = True
+        return False
 
     def close(self) -> None:
         if self.state != "stopping":
@@ -634,23 +641,42 @@ class Runtime:
             pass
 
 
+def _threads() -> list[int]:
+    """Every thread of this process (Linux); [0], the calling thread, elsewhere."""
+    try:
+        return [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        return [0]
+
+
 def apply_scheduling(priority: int, cpus: tuple[int, ...]) -> str:
-    """Ask the OS for SCHED_FIFO at `priority` (0: leave the normal scheduler) and for the
-    CPUs `cpus` (empty: any). Returns what holds, with the reason for what was refused."""
+    """Ask the OS, for every thread of the process, for SCHED_FIFO at `priority` (0: leave the
+    normal scheduler) and for the CPUs `cpus` (empty: any); threads started later inherit it.
+    Returns what holds, with the reason for what was refused."""
     parts, refused = [], []
+    threads = _threads()
     if cpus:
         try:
-            os.sched_setaffinity(0, set(cpus))
+            for tid in threads:
+                _per_thread(os.sched_setaffinity, tid, set(cpus))
             parts.append("cpu " + ",".join(map(str, sorted(cpus))))
         except (OSError, ValueError, AttributeError) as exc:
             refused.append(f"cpu {list(cpus)} refused: {exc}")
     if priority:
         try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+            for tid in threads:
+                _per_thread(os.sched_setscheduler, tid, os.SCHED_FIFO, os.sched_param(priority))
             parts.insert(0, f"fifo {priority}")
         except (OSError, AttributeError) as exc:
             refused.append(f"priority {priority} refused ({exc}); normal scheduling")
     return ", ".join((parts or ["normal"]) + refused)
+
+
+def _per_thread(call, tid: int, *args) -> None:
+    try:
+        call(tid, *args)
+    except ProcessLookupError:   # a thread that ended meanwhile
+        pass
 
 
 def main_guard(name: str, fn: Callable[[], None]) -> None:

@@ -5,7 +5,6 @@ import os
 import threading
 from types import SimpleNamespace
 
-import pytest
 
 import schemas
 from services.runtime import RAW_QUEUE_MAX, Inbox, apply_scheduling
@@ -93,17 +92,26 @@ def test_unread_overflow_is_a_loss_only_for_a_reader_of_every_message():
     assert every.take()[-1]["header"]["seq"] == RAW_QUEUE_MAX + 9
 
 
-def test_scheduling_reports_what_holds():
+def test_scheduling_reports_what_holds_for_every_thread():
     assert apply_scheduling(0, ()) == "normal"
     allowed = sorted(os.sched_getaffinity(0))
+    started, stop = threading.Event(), threading.Event()
+    helper = threading.Thread(target=lambda: (started.set(), stop.wait()))
+    helper.start()
+    started.wait()
     try:
         assert apply_scheduling(0, (allowed[0],)) == f"cpu {allowed[0]}"
+        assert os.sched_getaffinity(helper.native_id) == {allowed[0]}   # not only the caller
         refused = apply_scheduling(0, (4096,))
         assert "cpu [4096] refused" in refused
     finally:
-        os.sched_setaffinity(0, set(allowed))
+        apply_scheduling(0, tuple(allowed))
+        stop.set()
+        helper.join()
+    assert os.sched_getaffinity(0) == set(allowed)
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="root may take SCHED_FIFO")
 def test_refused_priority_is_reported_not_fatal():
-    assert "priority 50 refused" in apply_scheduling(50, ())
+    # 100 is beyond SCHED_FIFO's 1..99 for anyone (root included): the OS refuses it
+    assert "priority 100 refused" in apply_scheduling(100, ())
+    assert os.sched_getscheduler(0) == os.SCHED_OTHER
