@@ -58,7 +58,7 @@ def run(args) -> None:
     kf = vehicle.thrust_coefficient_kf
     u_max = vehicle.max_rotor_speed_rad_s
     dt_tick = 1.0 / rt.rate_hz if rt.rate_hz > 0 else 1.0 / rt.tick_rate
-    held = {"plans": [], "seen": -1, "forces": np.zeros(4), "mode": "", "stale": False}
+    held = {"plans": [], "forces": np.zeros(4), "mode": "", "stale": False}
 
     def count(reason: str) -> None:
         rt.rejected[reason] = rt.rejected.get(reason, 0) + 1
@@ -67,10 +67,8 @@ def run(args) -> None:
         """Rotor forces from a valid plan (in the plan's model, the airframe file's),
         with the thrust scale of the latest pos/state; or None (fall back to the
         attitude command)."""
-        for m in plans.take():
-            if m["_n"] > held["seen"]:
-                held["seen"] = m["_n"]
-                held["plans"] = (held["plans"] + [RotorPlan.from_message(m)])[-2:]  # newest two
+        for m in plans.take():   # each plan once
+            held["plans"] = (held["plans"] + [RotorPlan.from_message(m)])[-2:]  # newest two
         if sp is None or sp["mode"] != "plan":
             held["plans"] = []
             return None

@@ -131,7 +131,7 @@ class SimService:
                 if period[p]:
                     next_due[p] = k + period[p]
             t1 = clock()
-            if not self.wait_for({p: k for p in due if p in applied}):
+            if not rt.wait_synced({p: k for p in due if p in applied}, k):
                 break
             t2 = clock()
             rt.count_run(rt._t)
@@ -142,24 +142,8 @@ class SimService:
             rt.cycles += 1
             if not more:
                 # the runs still going finish before the simulator says it is done: the log holds them all
-                self.wait_for({p: t for p, t in last_due.items() if t >= 0})
+                rt.wait_synced({p: t for p, t in last_due.items() if t >= 0}, k)
                 break
-
-    def wait_for(self, ticks: dict[str, int]) -> bool:
-        """Wait until each participant named has finished its run at the tick given."""
-        rt = self.rt
-        start = time.monotonic()
-        warned = False
-        while not rt.stop_event.is_set():
-            rt._sync_event.clear()
-            waiting = [p for p, k in ticks.items() if rt._upstreams[p].last_done < k]
-            if not waiting:
-                return True
-            rt._sync_event.wait(0.5)
-            if not warned and time.monotonic() - start > 5.0:
-                rt.problem(f"lockstep: tick {self.sim.tick} waiting for {', '.join(waiting)}")
-                warned = True
-        return False
 
     # -- real time -------------------------------------------------------------
     def run_realtime(self) -> None:
