@@ -157,7 +157,8 @@ def sort_log(src: str | Path, dst: str | Path) -> int:
                                            schema.encoding if schema else "", channel.metadata)
             return out_ids[cid]
 
-        heap: list[tuple[int, str, int, bytes, int]] = []   # (t, topic, seq, data, channel): a total order
+        # (t, topic, seq, data, publish time, channel): a total order on what is written
+        heap: list[tuple[int, str, int, bytes, int, int]] = []
         previous = None
 
         def emit_before(t_ns: float) -> None:
@@ -166,7 +167,7 @@ def sort_log(src: str | Path, dst: str | Path) -> int:
                 row = heapq.heappop(heap)
                 if row[:4] != previous:   # a repeat: same sample time, key, sequence and bytes
                     previous = row[:4]
-                    out.add(out_channel(row[4]), row[0], row[3], row[2])
+                    out.add(out_channel(row[5]), row[0], row[3], row[2], row[4])
 
         for index in sorted(summary.chunk_indexes, key=lambda c: (c.message_start_time, c.chunk_start_offset)):
             emit_before(index.message_start_time)
@@ -174,7 +175,8 @@ def sort_log(src: str | Path, dst: str | Path) -> int:
             for record in breakup_chunk(Chunk.read(ReadDataStream(fh)), validate_crc=True):
                 if isinstance(record, Message):
                     topic = summary.channels[record.channel_id].topic
-                    heapq.heappush(heap, (record.log_time, topic, record.sequence, record.data, record.channel_id))
+                    heapq.heappush(heap, (record.log_time, topic, record.sequence, record.data,
+                                          record.publish_time, record.channel_id))
         emit_before(float("inf"))
     out.close()
     return out.count
