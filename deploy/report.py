@@ -34,7 +34,8 @@ def write_report(out: Path, metrics: dict, metrics_table: str, plots: list[Path]
                '<span class="ok">completed</span>' if completed else '<span class="bad">not completed</span>')
     facts = [("mission", metrics.get("mission")), ("vehicle", metrics.get("vehicle")), ("mode", metrics.get("mode")),
              ("seed", metrics.get("seed")), ("flown", f"{metrics.get('duration_s', 0.0):.1f} s"),
-             ("position RMS", f"{metrics['position_rms_m']:.4f} m" if metrics.get("position_rms_m") is not None else "-")]
+             ("position RMS", f"{1e3 * metrics['position_rms_m']:.2f} mm" if metrics.get("position_rms_m") is not None
+              else "-")]
     parts = [f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>zenpilot: {esc(str(metrics.get('mission')))}"
              f" ({esc(out.name)})</title><style>{_STYLE}</style></head><body>",
              f"<h1>zenpilot flight {esc(out.name)}: {verdict}</h1>",
