@@ -57,8 +57,11 @@ def cmd_fly(args) -> int:
     out = Path(args.out or f"runs/{mission.name}-{'lockstep' if args.lockstep else 'realtime'}-seed{args.seed}")
     out.mkdir(parents=True, exist_ok=True)
     # what flew, beside its log: report.html shows them
-    shutil.copyfile(mission.path, out / RUN_FILES["mission"])
-    shutil.copyfile(stack.path, out / RUN_FILES["stack"])
+    for source, name in ((mission.path, RUN_FILES["mission"]), (stack.path, RUN_FILES["stack"])):
+        try:
+            shutil.copyfile(source, out / name)
+        except shutil.SameFileError:   # flown from the copy itself
+            pass
     (out / RUN_FILES["command"]).write_text("zenpilot " + shlex.join(sys.argv[1:]) + "\n")
     router = f"tcp/127.0.0.1:{args.port or free_port()}"
     launcher = Launcher(stack, out, router, lockstep=args.lockstep, seed=args.seed,
@@ -434,7 +437,10 @@ def cmd_down(args) -> int:
                 time.sleep(0.05)
             for n in names:
                 if _running(pids[n]):
-                    os.kill(pids[n], signal.SIGKILL)
+                    try:
+                        os.kill(pids[n], signal.SIGKILL)
+                    except ProcessLookupError:   # it ended just now
+                        continue
                     print(f"zenpilot: {n} did not stop within {grace_s:.0f} s of SIGTERM; killed", file=sys.stderr)
         for f in st.files:
             f.unlink(missing_ok=True)
