@@ -272,7 +272,8 @@ def compute_metrics(log: dict[str, list[dict]], info: dict, vehicle_id: int = 0)
     m["crash_reason"] = None
     if truth and sp:
         flying = np.array([x["phase"] in FLYING_PHASES or x["phase"].startswith("flip") for x in sp])[sp_idx]
-        if np.any(landed & flying):
+        if np.any(landed & flying) and not _failsafes(log, p):
+            # (a vehicle's own failsafe landing it mid-mission is judged by the touchdown below)
             m["crash_reason"] = "on the ground while the mission flies"
         elif (m["max_tilt_deg"] or 0.0) > 60.0:
             m["crash_reason"] = "tilted past 60 deg"
@@ -313,6 +314,7 @@ def compute_metrics(log: dict[str, list[dict]], info: dict, vehicle_id: int = 0)
         rates[service] = _f(np.median(inner)) if inner else None
         rejected[service] = {str(k): int(v) for k, v in hs[-1].get("rejected", {}).items()}
     m["rates_hz"] = rates
+    m["failsafes"] = _failsafes(log, p)
     m["rejected_messages"] = rejected
     m["rejected_total"] = int(sum(sum(r.values()) for r in rejected.values()))
 
@@ -359,6 +361,22 @@ GROUND_Z_M = 0.05  # truth altitude below this during a flip item: it hit the gr
 # (a landing disarms on the ground; higher than a landing's last bounce)
 MOTOR_CUT_ALTITUDE_M = 0.3
 HARD_TOUCHDOWN_M_S = 2.0   # vertical speed at touchdown above this: a fall, not a landing
+
+
+FAILSAFE_COUNTS = ("failsafe_engaged", "failsafe_landed", "failsafe_recovered", "planner_lost",
+                   "planner_lost_landed", "vision_lost")
+
+
+def _failsafes(log, p) -> dict:
+    """service -> {failsafe count: n} from each service's last health (empty: none engaged)."""
+    out = {}
+    for key, msgs in log.items():
+        if key.startswith(p) and key.endswith("/health") and msgs:
+            last = _sorted(msgs)[-1].get("rejected", {})
+            got = {k: int(v) for k, v in last.items() if k in FAILSAFE_COUNTS or k.startswith("lockstep_dropped_")}
+            if got:
+                out[key[len(p):-len("/health")]] = got
+    return out
 
 
 def _motor_cut_in_air(pwm: list[dict], truth_t: np.ndarray, pos: np.ndarray, landed: np.ndarray,

@@ -287,6 +287,7 @@ class Runtime:
         self._t = 0.0
         self._upstreams: dict[str, _Upstream] = {}
         self.gone: set[str] = set()   # lockstep participants dropped from the clock (dead or frozen)
+        self._gone_why: dict[str, str] = {}   # dropped, not reported yet
         self._sim_tick = -1
         self._clock_queue: deque[dict] = deque()
         self._clock_event = threading.Event()
@@ -437,12 +438,17 @@ class Runtime:
         self.session.liveliness().declare_subscriber(self.key("alive/*"), on_token)
 
     def _drop(self, name: str, why: str) -> None:
-        if name in self.gone:
-            return
-        self.gone.add(name)
-        self.rejected[f"lockstep_dropped_{name}"] = 1
-        self.problem(f"lockstep: {name} dropped from the clock ({why}); the others run on")
-        self._sync_event.set()
+        """Stop waiting for `name`; reported when a wait skips it (report_gone): a service that
+        merely stops after the flight is waited for by nobody, and the log stays the same."""
+        if name not in self.gone:
+            self._gone_why[name] = why
+            self.gone.add(name)
+            self._sync_event.set()
+
+    def report_gone(self, name: str) -> None:
+        if name in self._gone_why:
+            self.rejected[f"lockstep_dropped_{name}"] = 1
+            self.problem(f"lockstep: {name} dropped from the clock ({self._gone_why.pop(name)}); the others run on")
 
     def _on_clock(self, sample: zenoh.Sample) -> None:
         try:
@@ -653,7 +659,11 @@ class Runtime:
         start = time.monotonic()
         while not self.stop_event.is_set():
             self._sync_event.clear()  # clear before checking, so a sync arriving now is not lost
-            waiting = [n for n, t in ticks.items() if self._upstreams[n].last_done < t and n not in self.gone]
+            waiting = [n for n, t in ticks.items() if self._upstreams[n].last_done < t]
+            if self.gone.intersection(waiting):
+                for n in self.gone.intersection(waiting):
+                    self.report_gone(n)
+                waiting = [n for n in waiting if n not in self.gone]
             if not waiting:
                 return True
             self._sync_event.wait(0.5)
@@ -664,6 +674,7 @@ class Runtime:
             if waited > LOCKSTEP_DROP_AFTER_S:
                 for n in waiting:
                     self._drop(n, f"no sync for tick {k} in {LOCKSTEP_DROP_AFTER_S:.0f} s")
+                    self.report_gone(n)
         return False
 
     def close(self) -> None:

@@ -122,6 +122,9 @@ class SimService:
             k = self.sim.tick
             rt._t = self.sim.t
             published = self.publish_outputs()
+            if rt.gone:   # dropped from the clock (killed or frozen): no more clocks for them
+                for p in rt.gone.intersection(self.participants):
+                    rt.report_gone(p)
             due = [p for p in self.participants if p not in rt.gone
                    and (next_due[p] == k or (next_due[p] < 0 and triggers[p].intersection(published)))]
             done = dict(last_due)
