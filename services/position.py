@@ -74,6 +74,7 @@ LAND_BELOW_M = 0.3
 LANDED_HEIGHT_M = 0.1
 LANDED_SPEED_M_S = 0.2
 LANDED_FOR_S = 1.0
+VISION_MIN_HEIGHT_M = 0.3   # below this the camera's silence is not a loss (too close to the markers)
 
 
 def run(args) -> None:
@@ -167,7 +168,9 @@ def run(args) -> None:
             hold["position"] = None
         flying = sp is not None and sp["armed"] and sp["mode"] != "idle"
         if estimate and flying and started["fused_t"] is not None:
-            lost = t - started["fused_t"] > p["vision_timeout_s"]
+            # near the ground the camera sees too little of the marker map to solve (take-off, landing)
+            lost = (t - started["fused_t"] > p["vision_timeout_s"]
+                    and (hold["vision_lost"] or pos[2] > p["home_position_m"][2] + VISION_MIN_HEIGHT_M))
             if lost != hold["vision_lost"]:
                 hold["vision_lost"] = lost
                 count("vision_lost" if lost else "vision_back")
