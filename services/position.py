@@ -17,7 +17,8 @@ it, land there (the height reference sinking at `land_speed_m_s`; on the ground 
 `vision_timeout_s` while flying on the estimate -> the EKF coasts (its covariance grows) and
 the position level withholds its setpoint, so that the attitude level's own descent lands the
 vehicle ("vision_lost"); a fix fused again resumes it. A camera fix older than
-`pose_timeout_s` at arrival is not fused ("stale_pose").
+`pose_timeout_s` at arrival is not fused ("stale_pose"), an attitude estimate older than
+`attitude_timeout_s` neither ("stale_att_state").
 """
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ PARAMS = {
     "land_speed_m_s": 0.5,
     "vision_timeout_s": 3.0,     # no camera fix fused this long in the air -> attitude's descent lands
     "pose_timeout_s": 0.5,       # a camera fix older than this (exposure time) is not fused
+    "attitude_timeout_s": 0.05,  # an att/state older than this is not fused
     "home_position_m": [0.0, 0.0, 0.0],  # where the EKF starts: the take-off point
     "position_reset_after": 5,
     "fuse_camera_at_exposure": True,  # False: ablation, fuse a camera fix as if it were taken now
@@ -87,7 +89,7 @@ def run(args) -> None:
         attitude = rt.inbox(schemas.ATTITUDE_STATE, "attitude")
         motors = rt.inbox(schemas.MOTOR_PWM, "motors", keep=32)  # every 400 Hz command of a step
         poses = rt.inbox(schemas.VISION_POSE, "vision", keep=16)
-        started = {"ekf": False, "refused": 0, "fused_t": None}
+        started = {"ekf": False, "refused": 0, "fused_t": None, "stale_att_t": None}
         rotor_forces = LaggedMotorInput(vehicle.motor_time_constant_s)  # the plant's motor lag
     else:
         truth = rt.inbox(schemas.TRUTH, "sim")
@@ -120,6 +122,11 @@ def run(args) -> None:
         if t > ekf.t:
             ekf.predict(t, allocation @ rotor_forces.mean_to(t))
         att = attitude.latest()
+        if att is not None and t - att["header"]["t_s"] > p["attitude_timeout_s"]:
+            if att["header"]["t_s"] != started["stale_att_t"]:   # counted once per message
+                started["stale_att_t"] = att["header"]["t_s"]
+                count("stale_att_state")
+            att = None   # the attitude level gone or late: predict on, never re-fuse an old estimate
         # the messages' lists go to the EKF as they are (it takes plain floats)
         if att is not None and att["state_source"] == "estimate" \
                 and quat_tilt(att["quaternion_wxyz"]) > math.radians(p["attitude_pin_tilt_deg"]):

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import signal
 import sys
 import tempfile
@@ -29,6 +30,17 @@ from deploy.stack import load_stack, lockstep_services
 from flight.mission import load_mission
 
 TRUTH_STATE = ("attitude.state_source=truth", "position.state_source=truth", "sim.truth_rate_hz=200")
+
+
+def first_tick(out: Path, deadline_s: float) -> float:
+    """Real time: the wall time of the simulator's tick 0 (its log says it)."""
+    end = time.monotonic() + deadline_s
+    while time.monotonic() < end:
+        found = re.search(r"first tick at ([0-9.]+)", (out / "logs" / "sim.log").read_text())
+        if found:
+            return float(found.group(1))
+        time.sleep(0.05)
+    raise RuntimeError("the simulator did not start ticking")
 
 
 def fly_with_fault(out: Path, service: str, fault: str = "kill", at_s: float = 8.0, stop_s: float = 2.0,
@@ -52,11 +64,13 @@ def fly_with_fault(out: Path, service: str, fault: str = "kill", at_s: float = 8
         if missing:
             raise RuntimeError(f"no liveliness token from {sorted(missing)}")
         session = client_session(router)
+        # truth headers: simulated time in lockstep; in real time the wall clock from the first tick
+        t_origin = 0.0 if lockstep else first_tick(out, deadline_s=30.0)
 
         def on_truth(sample) -> None:
             msg = schemas.TRUTH.decode(sample.payload.to_bytes())
             seen["t"], seen["z"] = msg["header"]["t_s"], msg["position_m"][2]
-            if seen["t"] >= t_fault:
+            if seen["t"] - t_origin >= t_fault:
                 reached.set()
         t_fault = at_s
         sub = session.declare_subscriber(schemas.TRUTH.key(stack.vehicle_id), on_truth)
@@ -64,7 +78,8 @@ def fly_with_fault(out: Path, service: str, fault: str = "kill", at_s: float = 8
         while not reached.wait(0.1):
             if launcher.procs["sim"].poll() is not None or time.monotonic() > deadline:
                 raise RuntimeError(f"the flight ended before t={at_s} s (truth at {seen['t']:.2f} s)")
-        fault_info["injected_at_s"] = seen["t"]
+        fault_info["injected_at_s"] = seen["t"]   # on the truth's clock
+        fault_info["flight_time_s"] = seen["t"] - t_origin
         fault_info["altitude_m"] = seen["z"]
         pid = launcher.procs[service].pid
         if fault == "kill":
