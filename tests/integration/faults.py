@@ -110,6 +110,9 @@ def fly_with_fault(out: Path, service: str, fault: str = "kill", at_s: float = 8
     after = [x for x in truth if x["header"]["t_s"] >= fault_info["injected_at_s"]]   # same clock
     fault_info["landed_at_end"] = bool(truth and truth[-1]["landed"])
     fault_info["min_altitude_after_m"] = min((x["position_m"][2] for x in after), default=None)
+    # the fault's own effect, before the mission's later items (its landing) count
+    soon = [x["position_m"][2] for x in after if x["header"]["t_s"] <= fault_info["injected_at_s"] + stop_s + 3.0]
+    fault_info["min_altitude_soon_m"] = min(soon, default=None)
     fault_info["max_altitude_after_m"] = max((x["position_m"][2] for x in after), default=None)
     # when the truth first rested on the ground after the fault (s after it), if it did
     down = next((x["header"]["t_s"] for x in after if x["landed"]), None)

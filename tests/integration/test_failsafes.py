@@ -77,7 +77,7 @@ def test_attitude_frozen_2s_real_time_the_motor_driver_covers_and_hands_back(tmp
     m = fly_with_fault(tmp_path, "attitude", "stop", stop_s=2.0, lockstep=False, settings=TRUTH_STATE)
     f = m["fault"]
     assert not m["crashed"], m["crash_reason"]
-    assert f["min_altitude_after_m"] > 0.2, f            # descending slowly, not falling
+    assert f["min_altitude_soon_m"] > 0.2, f            # descending slowly, not falling (fault + 5 s)
     assert m["failsafes"]["motors"]["failsafe_engaged"] >= 1
     assert m["failsafes"]["motors"]["failsafe_recovered"] >= 1   # fresh commands took over again
     assert m["completed"]
@@ -88,6 +88,6 @@ def test_position_frozen_2s_real_time_the_attitude_level_covers(tmp_path):
     m = fly_with_fault(tmp_path, "position", "stop", stop_s=2.0, lockstep=False, settings=TRUTH_STATE)
     f = m["fault"]
     assert not m["crashed"], m["crash_reason"]
-    assert f["min_altitude_after_m"] > 0.2, f
+    assert f["min_altitude_soon_m"] > 0.2, f
     assert m["failsafes"]["attitude"]["failsafe_engaged"] >= 1
     assert m["completed"]
