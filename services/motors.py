@@ -132,8 +132,7 @@ def run(args) -> None:
         if armed and not failsafe.latched:
             if cmd is not None:
                 failsafe.resume(t)
-                if cmd["thrust_n"] > 0.0:
-                    failsafe.flying = cmd["thrust_n"]
+                failsafe.flying = cmd["thrust_n"]   # 0: idle on the ground, nothing to land
             elif failsafe.flying:   # in the air and the attitude level gone: fly on our own
                 forces = failsafe.forces(t, att_state, pos_state)
         if forces is not None:
@@ -211,7 +210,7 @@ class MotorFailsafe:
         self.rt.problem(f"failsafe: no fresh attitude command at t={t:.3f}: level, descend, disarm on the ground")
         if self.imu is None:
             self.imu = self.rt.inbox(schemas.IMU, "sim", keep=64)
-        self.imu.take()   # what queued before is not ours to integrate
+        self.imu.idle()   # what queued since the last use is not ours to integrate (let go undecoded)
         att, pos = att_state.latest(), pos_state.latest()
         self.level = None
         self.yaw = 0.0
