@@ -14,7 +14,7 @@ Law (8) u = I [-(alpha+k) w - alpha k (angle - ref)] tracks the position
 level's reference; the collective thrust is passed on to the motor driver.
 
 Stale inputs: a run whose newest IMU sample (or truth) is older than `state_timeout_s`
-publishes no command (counted "stale_state": a loop resumed after a freeze must not steer on
+publishes no command (counted once per sample, "stale_state": a loop resumed after a freeze must not steer on
 old samples; the motor driver's failsafe covers the gap). A position setpoint older than
 `setpoint_timeout_s` is not used: in the air (the last fresh one asked for thrust) the level
 holds level and descends on its own (flight/failsafe.Descent: the accelerometer's vertical
@@ -160,7 +160,7 @@ def run(args) -> None:
     last_motion = (motion if estimate and motion is not None
                    else rt.inbox(schemas.POSITION_STATE, "position"))
     descent_params = rt.table("failsafe_descent", DescentParams.from_dict)
-    failsafe = {"flying": 0.0, "descent": None, "accel": []}
+    failsafe = {"flying": 0.0, "descent": None, "accel": [], "stale_t": None}
     command = rt.publisher(schemas.ATTITUDE_COMMAND)
     state_out = rt.publisher(schemas.ATTITUDE_STATE)
     k, alpha = rt.live_array("k"), rt.live_array("alpha")
@@ -308,7 +308,9 @@ def run(args) -> None:
             return
         q, euler, rates, euler_var, rate_var, sample_t = state
         if t - sample_t > p["state_timeout_s"]:   # steering on old samples: worse than nothing
-            count("stale_state")
+            if sample_t != failsafe["stale_t"]:       # counted once per sample, not per run
+                failsafe["stale_t"] = sample_t
+                count("stale_state")
             return
         if sp is None or t - sp["header"]["t_s"] > p["setpoint_timeout_s"]:
             ref, thrust = np.array([0.0, 0.0, euler[2]]), descend(t, q)
