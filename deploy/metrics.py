@@ -269,9 +269,24 @@ def compute_metrics(log: dict[str, list[dict]], info: dict, vehicle_id: int = 0)
                else np.zeros(truth_t.size, dtype=bool))
     m["max_tilt_deg"] = _f(np.max(tilt[~in_flip])) if truth and np.any(~in_flip) else None
     m["crashed"] = False
+    m["crash_reason"] = None
     if truth and sp:
         flying = np.array([x["phase"] in FLYING_PHASES or x["phase"].startswith("flip") for x in sp])[sp_idx]
-        m["crashed"] = bool(np.any(landed & flying) or (m["max_tilt_deg"] or 0.0) > 60.0)
+        if np.any(landed & flying) and not _failsafes(log, p):
+            # (a vehicle's own failsafe landing it mid-mission is judged by the touchdown below)
+            m["crash_reason"] = "on the ground while the mission flies"
+        elif (m["max_tilt_deg"] or 0.0) > 60.0:
+            m["crash_reason"] = "tilted past 60 deg"
+    # a disarm or a motor cut in the air, or a hard touchdown, is a crash whatever the planner
+    # believes (a disarm command says nothing about where the vehicle is): judged on the truth
+    m["touchdown_speed_m_s"] = _touchdown_speed(truth, landed)
+    if m["crash_reason"] is None and truth:
+        cut = _motor_cut_in_air(log.get(p + "motors/pwm", []), truth_t, pos, landed, in_flip)
+        if cut is not None:
+            m["crash_reason"] = f"motors cut in the air at t={cut:.2f} s"
+        elif (m["touchdown_speed_m_s"] or 0.0) > HARD_TOUCHDOWN_M_S:
+            m["crash_reason"] = f"touchdown at {m['touchdown_speed_m_s']:.2f} m/s"
+    m["crashed"] = m["crash_reason"] is not None
     m["flip"] = _flip(log, p, sp, truth, truth_t, sp_idx) if truth and in_flip.any() else None
     if m["flip"] is not None:  # a flip that reaches the ground is a crash, whatever the flags say
         flip_z = pos[in_flip, 2]
@@ -281,6 +296,7 @@ def compute_metrics(log: dict[str, list[dict]], info: dict, vehicle_id: int = 0)
         m["flip"]["hit_ground"] = bool(low < GROUND_Z_M)
         if low < GROUND_Z_M:
             m["crashed"] = True
+            m["crash_reason"] = m["crash_reason"] or "hit the ground in the flip"
             m["flip"]["completed"] = False
 
     # service health
@@ -298,6 +314,7 @@ def compute_metrics(log: dict[str, list[dict]], info: dict, vehicle_id: int = 0)
         rates[service] = _f(np.median(inner)) if inner else None
         rejected[service] = {str(k): int(v) for k, v in hs[-1].get("rejected", {}).items()}
     m["rates_hz"] = rates
+    m["failsafes"] = _failsafes(log, p)
     m["rejected_messages"] = rejected
     m["rejected_total"] = int(sum(sum(r.values()) for r in rejected.values()))
 
@@ -340,6 +357,53 @@ def compute_metrics(log: dict[str, list[dict]], info: dict, vehicle_id: int = 0)
 
 
 GROUND_Z_M = 0.05  # truth altitude below this during a flip item: it hit the ground
+# motors disarmed or asked for no thrust at all while the truth is this high and not resting: a cut
+# (a landing disarms on the ground; higher than a landing's last bounce)
+MOTOR_CUT_ALTITUDE_M = 0.3
+HARD_TOUCHDOWN_M_S = 2.0   # vertical speed at touchdown above this: a fall, not a landing
+
+
+FAILSAFE_COUNTS = ("failsafe_engaged", "failsafe_landed", "failsafe_recovered", "planner_lost",
+                   "planner_lost_landed", "vision_lost")
+
+
+def _failsafes(log, p) -> dict:
+    """service -> {failsafe count: n} from each service's last health (empty: none engaged)."""
+    out = {}
+    for key, msgs in log.items():
+        if key.startswith(p) and key.endswith("/health") and msgs:
+            last = _sorted(msgs)[-1].get("rejected", {})
+            got = {k: int(v) for k, v in last.items() if k in FAILSAFE_COUNTS or k.startswith("lockstep_dropped_")}
+            if got:
+                out[key[len(p):-len("/health")]] = got
+    return out
+
+
+def _motor_cut_in_air(pwm: list[dict], truth_t: np.ndarray, pos: np.ndarray, landed: np.ndarray,
+                      in_flip: np.ndarray) -> float | None:
+    """Time of the first motor output that is disarmed or asks no thrust of any motor while the
+    truth (at that time) is airborne above MOTOR_CUT_ALTITUDE_M, outside a flip; or None."""
+    if not pwm or truth_t.size == 0:
+        return None
+    out = _sorted(pwm)
+    t = _times(out)
+    cut = np.array([not x["armed"] or not any(x["thrust_n"]) for x in out])
+    if not cut.any():
+        return None
+    t, idx = t[cut], np.searchsorted(truth_t, t[cut], side="right") - 1
+    ok = idx >= 0
+    t, idx = t[ok], idx[ok]
+    air = ~landed[idx] & (pos[idx, 2] > MOTOR_CUT_ALTITUDE_M) & ~in_flip[idx]
+    return float(t[air][0]) if air.any() else None
+
+
+def _touchdown_speed(truth: list[dict], landed: np.ndarray) -> float | None:
+    """Largest downward speed of the truth at its last sample before each touchdown; None
+    when it never touched down from the air."""
+    down = np.nonzero(landed[1:] & ~landed[:-1])[0]   # i: airborne at i, resting at i + 1
+    if down.size == 0:
+        return None
+    return _f(max(max(0.0, -truth[i]["velocity_m_s"][2]) for i in down))
 FLIP_PHASES = {"flip": "flip", "flip-recovery": "recovery"}  # setpoint phase -> flip.Phase
 
 

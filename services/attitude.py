@@ -12,6 +12,14 @@ written by `zenpilot train-gyrovertical`). State source
 `truth`: the simulator's ground truth (an explicit ablation setting).
 Law (8) u = I [-(alpha+k) w - alpha k (angle - ref)] tracks the position
 level's reference; the collective thrust is passed on to the motor driver.
+
+Stale inputs: a run whose newest IMU sample (or truth) is older than `state_timeout_s`
+publishes no command (counted once per sample, "stale_state": a loop resumed after a freeze must not steer on
+old samples; the motor driver's failsafe covers the gap). A position setpoint older than
+`setpoint_timeout_s` is not used: in the air (the last fresh one asked for thrust) the level
+holds level and descends on its own (flight/failsafe.Descent: the accelerometer's vertical
+speed, a thrust ramp to a slow sink, thrust cut past the ground estimated from the last
+pos/state; counted "failsafe_engaged", "failsafe_landed"); fresh setpoints take over again.
 """
 
 from __future__ import annotations
@@ -31,8 +39,9 @@ from flight.attitude_filter import (
     accel_roll_pitch,
 )
 from flight.control import STOPPING_ACCEL_FRACTION, attitude_law, stopping_accel
+from flight.failsafe import Descent, DescentParams
 from flight.gyrovertical import DEFAULT_PARAMS_FILE, GyroVertical, load_trained
-from flight.quat import quat_from_euler, quat_to_euler, quat_to_rotation
+from flight.quat import quat_from_euler, quat_to_euler, quat_to_rotation, rotate_vector
 from flight.vehicle import load_vehicle
 from services.runtime import Runtime, main_guard, service_parser
 
@@ -46,7 +55,10 @@ PARAMS = {
     # heavy frame the linear law saturates the rotors, overshoots and can limit-cycle. Errors
     # below (fraction a_max) / (alpha k / (alpha + k))^2 see law (8) exactly. 0: law (8) as printed.
     "stopping_accel_fraction": STOPPING_ACCEL_FRACTION,
-    "setpoint_timeout_s": 0.1,    # stale position setpoint -> level, zero thrust
+    # stale position setpoint -> in the air: level, controlled descent (failsafe); on the ground: idle
+    "setpoint_timeout_s": 0.1,
+    "state_timeout_s": 0.05,      # newest IMU sample (truth) older than this -> no command
+    "failsafe_descent": {},       # flight/failsafe.DescentParams overrides
     "filter": {},                 # AttitudeFilterParams overrides (flight/attitude_filter.py)
     # Subtract the position level's acceleration estimate from the accelerometer
     # (the V' terms of 004's observation (5)) before deriving roll and pitch: a
@@ -83,6 +95,12 @@ COMPENSATIONS = ("window", "slope")
 VELOCITY_KEEP_S = 0.2  # pos/state history kept beyond the window: covers an IMU transport delay
 ESTIMATORS = ("kalman-000", "gyro-vertical")
 _sample_time = itemgetter(0)
+
+
+def truth_specific_force(truth: dict, gravity_m_s2: float):
+    """(t, body specific force) from a truth message: R^T (a + g z)."""
+    a, q = truth["acceleration_m_s2"], np.asarray(truth["quaternion_wxyz"])
+    return truth["header"]["t_s"], rotate_vector(q * [1.0, -1.0, -1.0, -1.0], [a[0], a[1], a[2] + gravity_m_s2])
 
 
 def load_gyrovertical(rt: Runtime):
@@ -138,6 +156,11 @@ def run(args) -> None:
     else:
         truth = rt.inbox(schemas.TRUTH, "sim")
     setpoint = rt.inbox(schemas.POSITION_SETPOINT, "position")
+    # the last altitude and climb rate when the position level goes (the descent's start)
+    last_motion = (motion if estimate and motion is not None
+                   else rt.inbox(schemas.POSITION_STATE, "position"))
+    descent_params = rt.table("failsafe_descent", DescentParams.from_dict)
+    failsafe = {"flying": 0.0, "descent": None, "accel": [], "stale_t": None}
     command = rt.publisher(schemas.ATTITUDE_COMMAND)
     state_out = rt.publisher(schemas.ATTITUDE_STATE)
     k, alpha = rt.live_array("k"), rt.live_array("alpha")
@@ -191,10 +214,12 @@ def run(args) -> None:
             if s is None:
                 return None
             q = s["quaternion_wxyz"]
+            failsafe["accel"] = s   # the descent reads the specific force from it (truth_specific_force)
             return q, np.array(quat_to_euler(q)), np.asarray(s["rate_rad_s"]), np.zeros(3), np.zeros(3), s["header"]["t_s"]
         # the decoded lists go to the filter as they are (it reads floats); in time order, once
         samples = [(m["header"]["t_s"], m["gyro_rad_s"], m["accel_m_s2"]) for m in imu.take()]
         samples.sort(key=_sample_time)
+        failsafe["accel"] = [(ts, acc) for ts, _, acc in samples]   # raw: the descent's vertical speed
         if make_gyrovertical is not None:
             samples = [(ts, gyro, acc, gyrovertical_update(ts, np.asarray(gyro), np.asarray(acc)))
                        for ts, gyro, acc in samples]
@@ -246,16 +271,56 @@ def run(args) -> None:
                 q = quat_from_euler(*euler)
         return q, euler, rates, est.euler_var, est.rate_var, sample_t
 
+    def count(reason: str) -> None:
+        rt.rejected[reason] = rt.rejected.get(reason, 0) + 1
+
+    def descend(t: float, q) -> float:
+        """The failsafe's thrust with no position setpoint: 0 on the ground (or never flown),
+        else a controlled descent (module docstring)."""
+        if not failsafe["flying"]:
+            return 0.0
+        d = failsafe["descent"]
+        if d is None:
+            count("failsafe_engaged")
+            rt.problem(f"failsafe: no position setpoint at t={t:.3f}: level, descend, cut on the ground")
+            pos = last_motion.latest()
+            d = failsafe["descent"] = Descent(descent_params, vehicle.mass_kg, vehicle.gravity_m_s2,
+                                              4 * vehicle.max_thrust_n)
+            d.scale = pos["thrust_scale"] if pos is not None else 1.0
+            d.start(t, pos["position_m"][2] if pos is not None else None,
+                    pos["velocity_m_s"][2] if pos is not None else 0.0, failsafe["flying"])
+        samples = failsafe["accel"]
+        if isinstance(samples, dict):   # truth: the specific force an IMU would read
+            samples = [truth_specific_force(samples, vehicle.gravity_m_s2)]
+        for ts, acc in samples:
+            d.update(ts, q, acc, d.scale)
+        if d.landed:
+            failsafe["flying"], failsafe["descent"] = 0.0, None
+            count("failsafe_landed")
+            rt.problem(f"failsafe: descended past the ground at t={t:.3f}: thrust cut")
+            return 0.0
+        return d.thrust
+
     def step(t: float) -> None:
         state = read_state(t)
         sp = setpoint.latest()
         if state is None:
             return
         q, euler, rates, euler_var, rate_var, sample_t = state
+        if t - sample_t > p["state_timeout_s"]:   # steering on old samples: worse than nothing
+            if sample_t != failsafe["stale_t"]:       # counted once per sample, not per run
+                failsafe["stale_t"] = sample_t
+                count("stale_state")
+            return
         if sp is None or t - sp["header"]["t_s"] > p["setpoint_timeout_s"]:
-            ref, thrust = np.array([0.0, 0.0, euler[2]]), 0.0
+            ref, thrust = np.array([0.0, 0.0, euler[2]]), descend(t, q)
         else:
             ref, thrust = np.asarray(sp["attitude_ref_rad"]), sp["thrust_n"]
+            if failsafe["descent"] is not None:
+                failsafe["descent"] = None
+                count("failsafe_recovered")
+                rt.problem(f"failsafe: position setpoints again at t={t:.3f}: control handed back")
+            failsafe["flying"] = thrust
         torque = attitude_law(vehicle.inertia_kg_m2, euler, rates, ref, k, alpha, max_accel)
         if thrust <= 0.0:
             torque = np.zeros(3)  # on the ground, idle: nothing to steer (and nothing to wind up)

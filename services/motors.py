@@ -16,6 +16,16 @@ thrust scale (pos/state; flight/plan.scale_collective). The newest plan is used;
 previous one while it lasts ("plan_fallback_previous"), then the attitude
 level's command ("plan_fallback_hover"): both counted per output in health.
 
+Stale commands and the failsafe: an attitude command is judged by its sample times against
+the driver's clock (its header's, and the IMU sample behind it: a controller resumed after a
+freeze publishes "now" from old samples); one older than `command_timeout_s` (50 ms) is never
+mixed (counted per message: "stale_att_command"). Armed and flying with no fresh command, the
+driver flies on its own (flight/failsafe.py, counted "failsafe_engaged"): it subscribes to the
+IMU then (nothing of it costs the 400 Hz path before), keeps the vehicle level with law (8) on a
+complementary estimate started from the last att/state, descends on a thrust ramp to a slow
+sink from the last thrust, and disarms past the estimated ground (latched until the planner
+disarms). A fresh command before that gives control back ("failsafe_recovered").
+
 Output `sim` (default): motors/pwm for the simulator (or ESCs). Output
 `mavlink`: the same, and at the motor rate the mixer's result goes to an
 external autopilot as SET_ACTUATOR_CONTROL_TARGET group 0 (normalised FRD
@@ -27,6 +37,8 @@ from __future__ import annotations
 import numpy as np
 
 import schemas
+from flight.control import STOPPING_ACCEL_FRACTION, attitude_law, stopping_accel
+from flight.failsafe import Descent, DescentParams, LevelEstimate
 from flight.mixer import mix, pwm_to_thrust, thrust_to_pwm
 from flight.plan import RotorPlan, body_state, motor_forces_update, scale_collective
 from flight.vehicle import load_vehicle
@@ -34,10 +46,15 @@ from services.runtime import Runtime, main_guard, service_parser
 
 NAME = "motors"
 PARAMS = {
-    # no fresh attitude command for this long -> motors to minimum (counted: "command_timeout").
-    # Until then the last command holds: a controller that misses a few cycles on a busy computer
-    # must not drop the vehicle, one that has died must not fly it for long.
-    "command_timeout_s": 0.25,
+    # an attitude command older than this (header time, or the IMU sample behind it) is never
+    # mixed ("stale_att_command"); armed and flying without a fresh one, the driver's own
+    # failsafe flies (level, controlled descent, disarm on the ground; "failsafe_engaged")
+    "command_timeout_s": 0.05,
+    # the failsafe's law (8) gains per axis (roll, pitch, yaw), 1/s: softer than the attitude
+    # level's (its rates are the raw gyro), yaw only held
+    "failsafe_k": [8.0, 8.0, 2.0],
+    "failsafe_alpha": [8.0, 8.0, 2.0],
+    "failsafe_descent": {},   # flight/failsafe.DescentParams overrides
     "output": "sim",            # "sim" | "mavlink"
     "mavlink_endpoint": "udpout:127.0.0.1:14560",  # pymavlink connection string (output = "mavlink")
     "mavlink_target_system": 1,
@@ -58,10 +75,28 @@ def run(args) -> None:
     kf = vehicle.thrust_coefficient_kf
     u_max = vehicle.max_rotor_speed_rad_s
     dt_tick = 1.0 / rt.rate_hz if rt.rate_hz > 0 else 1.0 / rt.tick_rate
-    held = {"plans": [], "forces": np.zeros(4), "mode": "", "stale": False}
+    held = {"plans": [], "forces": np.zeros(4), "mode": "", "cmd": None}
+    max_age = rt.params["command_timeout_s"]
+    if not (isinstance(max_age, (int, float)) and 0.0 < max_age <= 1.0):
+        raise ValueError(f"{rt.where()} command_timeout_s: must be in (0, 1] s, got {max_age!r}")
+    failsafe = MotorFailsafe(rt, vehicle)
 
     def count(reason: str) -> None:
         rt.rejected[reason] = rt.rejected.get(reason, 0) + 1
+
+    def fresh_command(t: float):
+        """The newest attitude command young enough to act on, or None; every one too old
+        (by its header or by the IMU sample behind it) is counted and never used."""
+        for c in command.take():
+            if t - c["header"]["t_s"] > max_age or (c["imu_t_s"] >= 0.0 and t - c["imu_t_s"] > max_age):
+                count("stale_att_command")
+            else:
+                held["cmd"] = c
+        c = held["cmd"]
+        if c is not None and (t - c["header"]["t_s"] > max_age
+                              or (c["imu_t_s"] >= 0.0 and t - c["imu_t_s"] > max_age)):
+            held["cmd"] = c = None   # aged while held: the failsafe's from here
+        return c
 
     def plan_forces(t: float, sp: dict):
         """Rotor forces from a valid plan (in the plan's model, the airframe file's),
@@ -89,16 +124,28 @@ def run(args) -> None:
             "saturated": False, "imu_t_s": -1.0}
 
     def step(t: float) -> None:
-        cmd, sp = command.latest(), setpoint.latest()
+        cmd, sp = fresh_command(t), setpoint.latest()
         armed = sp is not None and sp["armed"]
-        stale = cmd is not None and t - cmd["header"]["t_s"] > rt.params["command_timeout_s"]
-        if armed and stale and not held["stale"]:
-            count("command_timeout")
-            rt.problem(f"no attitude command for {t - cmd['header']['t_s']:.3f} s: motors to minimum")
-        held["stale"] = stale
-        if not armed or cmd is None or stale:
+        if not armed:
+            failsafe.disarmed()
+        forces = None
+        if armed and not failsafe.latched:
+            if cmd is not None:
+                failsafe.resume(t)
+                failsafe.flying = cmd["thrust_n"]   # 0: idle on the ground, nothing to land
+            elif failsafe.flying:   # in the air and the attitude level gone: fly on our own
+                forces = failsafe.forces(t, att_state, pos_state)
+        if forces is not None:
+            pwm = thrust_to_pwm(vehicle, forces)
+            held["forces"] = motor_forces_update(held["forces"], forces, dt_tick, vehicle.motor_time_constant_s)
+            if link:
+                link(t, forces)
+            out.put({"pwm_us": pwm, "thrust_n": forces, "armed": True, "saturated": False,
+                     "imu_t_s": failsafe.sample_t}, t_s=t)
+            return
+        if not armed or failsafe.latched or cmd is None:
             held["forces"] = motor_forces_update(held["forces"], np.zeros(4), dt_tick, vehicle.motor_time_constant_s)
-            out.put({**idle, "armed": bool(armed)}, t_s=t)
+            out.put({**idle, "armed": bool(armed and not failsafe.latched)}, t_s=t)
             if link:
                 link(t, idle["thrust_n"])
             return
@@ -125,6 +172,87 @@ def run(args) -> None:
 
     # a new attitude command is mixed and sent at once; between commands the 400 Hz timer runs
     rt.run(step, wake_on=command, min_gap=0.0)
+
+
+class MotorFailsafe:
+    """The driver's own flight when the attitude level is gone (module docstring)."""
+
+    def __init__(self, rt: Runtime, vehicle):
+        self.rt, self.vehicle = rt, vehicle
+        self.descent_params = rt.table("failsafe_descent", DescentParams.from_dict)
+        self.k, self.alpha = rt.live_array("failsafe_k"), rt.live_array("failsafe_alpha")
+        self.max_accel = stopping_accel(vehicle.max_angular_accel_rad_s2, STOPPING_ACCEL_FRACTION)
+        self.imu = None          # subscribed when first needed: no cost to the normal path
+        self.flying = 0.0        # the last fresh command's thrust (0: on the ground or never flown)
+        self.active = False
+        self.latched = False     # landed and disarmed by the failsafe: until the planner disarms
+        self.level = None
+        self.descent = None
+        self.yaw = 0.0
+        self.sample_t = -1.0
+
+    def _count(self, reason: str) -> None:
+        self.rt.rejected[reason] = self.rt.rejected.get(reason, 0) + 1
+
+    def disarmed(self) -> None:
+        self.flying, self.latched, self.active = 0.0, False, False
+
+    def resume(self, t: float) -> None:
+        if self.active:
+            self.active = False
+            self._count("failsafe_recovered")
+            self.rt.problem(f"failsafe: fresh attitude commands again at t={t:.3f}: control handed back")
+            self.imu.idle()
+
+    def _engage(self, t: float, att_state, pos_state) -> None:
+        self.active = True
+        self._count("failsafe_engaged")
+        self.rt.problem(f"failsafe: no fresh attitude command at t={t:.3f}: level, descend, disarm on the ground")
+        if self.imu is None:
+            self.imu = self.rt.inbox(schemas.IMU, "sim", keep=64)
+        self.imu.idle()   # what queued since the last use is not ours to integrate (let go undecoded)
+        att, pos = att_state.latest(), pos_state.latest()
+        self.level = None
+        self.yaw = 0.0
+        if att is not None:   # the attitude level's last word: level from it, no settling needed
+            self.level = LevelEstimate(att["quaternion_wxyz"], att["header"]["t_s"])
+            self.yaw = float(att["euler_rad"][2])
+        self.scale = pos["thrust_scale"] if pos is not None else 1.0
+        height = float(pos["position_m"][2]) if pos is not None else None
+        vz = float(pos["velocity_m_s"][2]) if pos is not None else 0.0
+        v = self.vehicle
+        self.descent = Descent(self.descent_params, v.mass_kg, v.gravity_m_s2, 4 * v.max_thrust_n)
+        self.descent.start(t, height, vz, self.flying)
+
+    def forces(self, t: float, att_state, pos_state):
+        """Rotor forces for tick t; None once landed (the driver then disarms, latched)."""
+        if not self.active:
+            self._engage(t, att_state, pos_state)
+        thrust = None
+        for m in self.imu.take():
+            ts, gyro, accel = m["header"]["t_s"], m["gyro_rad_s"], m["accel_m_s2"]
+            if self.level is None:
+                self.level = LevelEstimate.from_accel(ts, accel, self.yaw)
+            self.level.update(ts, gyro, accel)
+            thrust = self.descent.update(ts, self.level.q, accel, self.scale)
+            self.sample_t = ts
+        if thrust is None:   # no new sample this tick: the ramp goes on, nothing to integrate
+            thrust = self.descent.update(t, self.level.q if self.level else (1.0, 0.0, 0.0, 0.0), None, self.scale)
+        if self.descent.landed:
+            self.latched, self.active, self.flying = True, False, 0.0
+            self._count("failsafe_landed")
+            self.rt.problem(f"failsafe: descended past the ground at t={t:.3f}: disarmed")
+            self.imu.idle()
+            return None
+        v = self.vehicle
+        if self.level is None:
+            torque = np.zeros(3)
+        else:
+            roll, pitch, yaw = self.level.euler
+            torque = attitude_law(v.inertia_kg_m2, (roll, pitch, yaw), self.level.rate, (0.0, 0.0, self.yaw),
+                                  self.k, self.alpha, self.max_accel)
+        forces, _ = mix(v, thrust, torque)   # thrust as commanded: the descent divided by the scale
+        return np.asarray(forces)
 
 
 def actuator_link(rt: Runtime, vehicle):

@@ -9,6 +9,16 @@ State source `truth`: the simulator's ground truth (an explicit ablation).
 In `position` mode laws (10), (9), (11) turn the planner's reference into an
 attitude reference and collective thrust; in `attitude` mode the altitude
 is held and the planner's attitude reference passed through.
+
+Failsafes (the vehicle's own, never waiting on the ground): the planner's setpoint older
+than `setpoint_timeout_s` -> hold the position we had; after `planner_loss_land_after_s` of
+it, land there (the height reference sinking at `land_speed_m_s`; on the ground -> idle,
+"planner_lost_landed"); a fresh setpoint takes over again. No camera fix fused for
+`vision_timeout_s` while flying on the estimate -> the EKF coasts (its covariance grows) and
+the position level withholds its setpoint, so that the attitude level's own descent lands the
+vehicle ("vision_lost"); a fix fused again resumes it. A camera fix older than
+`pose_timeout_s` at arrival is not fused ("stale_pose"), an attitude estimate older than
+`attitude_timeout_s` neither ("stale_att_state").
 """
 
 from __future__ import annotations
@@ -37,6 +47,11 @@ PARAMS = {
     # A vehicle file's max_tilt_deg lowers it for that airframe (Vehicle.tilt_limit_rad)
     "max_tilt_deg": 20.0,
     "setpoint_timeout_s": 0.5,   # stale planner setpoint -> hold where we are
+    "planner_loss_land_after_s": 5.0,  # ... then land there
+    "land_speed_m_s": 0.5,
+    "vision_timeout_s": 3.0,     # no camera fix fused this long in the air -> attitude's descent lands
+    "pose_timeout_s": 0.5,       # a camera fix older than this (exposure time) is not fused
+    "attitude_timeout_s": 0.05,  # an att/state older than this is not fused
     "home_position_m": [0.0, 0.0, 0.0],  # where the EKF starts: the take-off point
     "position_reset_after": 5,
     "fuse_camera_at_exposure": True,  # False: ablation, fuse a camera fix as if it were taken now
@@ -55,6 +70,13 @@ PARAMS = {
 }
 STATE_SOURCES = ("truth", "estimate")
 ACCEL_WINDOW_S = 0.1  # acceleration = slope of the velocity over this window
+# landing with no planner: the reference goes this far below home (pressing down), and the
+# vehicle is down once this low and this slow for this long
+LAND_BELOW_M = 0.3
+LANDED_HEIGHT_M = 0.1
+LANDED_SPEED_M_S = 0.2
+LANDED_FOR_S = 1.0
+VISION_MIN_HEIGHT_M = 0.3   # below this the camera's silence is not a loss (too close to the markers)
 
 
 def run(args) -> None:
@@ -67,7 +89,7 @@ def run(args) -> None:
         attitude = rt.inbox(schemas.ATTITUDE_STATE, "attitude")
         motors = rt.inbox(schemas.MOTOR_PWM, "motors", keep=32)  # every 400 Hz command of a step
         poses = rt.inbox(schemas.VISION_POSE, "vision", keep=16)
-        started = {"ekf": False, "refused": 0}
+        started = {"ekf": False, "refused": 0, "fused_t": None, "stale_att_t": None}
         rotor_forces = LaggedMotorInput(vehicle.motor_time_constant_s)  # the plant's motor lag
     else:
         truth = rt.inbox(schemas.TRUTH, "sim")
@@ -77,7 +99,7 @@ def run(args) -> None:
     k, alpha = rt.live_array("k"), rt.live_array("alpha")  # param/set applies them live
     m, g = vehicle.mass_kg, vehicle.gravity_m_s2
     allocation = vehicle.allocation
-    hold = {"position": None}
+    hold = {"position": None, "since": 0.0, "landed": False, "vision_lost": False}
     tilt_limit = {"deg": None, "rad": 0.0}  # vehicle.tilt_limit_rad of the (live) max_tilt_deg
     velocities: deque = deque(maxlen=max(2, round(ACCEL_WINDOW_S * rt.rate_hz) + 1))
 
@@ -100,6 +122,11 @@ def run(args) -> None:
         if t > ekf.t:
             ekf.predict(t, allocation @ rotor_forces.mean_to(t))
         att = attitude.latest()
+        if att is not None and t - att["header"]["t_s"] > p["attitude_timeout_s"]:
+            if att["header"]["t_s"] != started["stale_att_t"]:   # counted once per message
+                started["stale_att_t"] = att["header"]["t_s"]
+                count("stale_att_state")
+            att = None   # the attitude level gone or late: predict on, never re-fuse an old estimate
         # the messages' lists go to the EKF as they are (it takes plain floats)
         if att is not None and att["state_source"] == "estimate" \
                 and quat_tilt(att["quaternion_wxyz"]) > math.radians(p["attitude_pin_tilt_deg"]):
@@ -111,11 +138,15 @@ def run(args) -> None:
                                        [max(v, f) for v, f in zip(att["rate_var_rad2_s2"], p["rate_var_floor"])]):
                 count("fusion_attitude_gate")
         for pose in poses.take():
+            if t - pose["header"]["t_s"] > p["pose_timeout_s"]:
+                count("stale_pose")
+                continue
             cov = np.asarray(pose["position_cov_m2"]).reshape(3, 3) + np.eye(3) * p["camera_var_floor"]
             t_fix = pose["header"]["t_s"] if p["fuse_camera_at_exposure"] else ekf.t
             accepted, _nis = ekf.update_position(t_fix, np.asarray(pose["position_m"]), cov)
             if accepted:
                 started["refused"] = 0
+                started["fused_t"] = t
                 continue
             count("fusion_position_rejected")
             started["refused"] += 1
@@ -135,8 +166,30 @@ def run(args) -> None:
         stale = sp is None or t - sp["header"]["t_s"] > p["setpoint_timeout_s"]
         if stale and hold["position"] is None:
             hold["position"] = pos.copy()  # planner lost: hold the position we had
+            hold["since"], hold["landed"] = t, False
+            if sp is not None and sp["armed"] and sp["mode"] != "idle":
+                count("planner_lost")
+                rt.problem(f"failsafe: no planner setpoint at t={t:.3f}: holding, landing after "
+                           f"{p['planner_loss_land_after_s']} s")
         if not stale:
             hold["position"] = None
+        flying = sp is not None and sp["armed"] and sp["mode"] != "idle"
+        if estimate and flying and started["fused_t"] is not None:
+            # near the ground the camera sees too little of the marker map to solve (take-off, landing)
+            lost = (t - started["fused_t"] > p["vision_timeout_s"]
+                    and (hold["vision_lost"] or pos[2] > p["home_position_m"][2] + VISION_MIN_HEIGHT_M))
+            if lost != hold["vision_lost"]:
+                hold["vision_lost"] = lost
+                count("vision_lost" if lost else "vision_back")
+                rt.problem(f"failsafe: no camera fix for {p['vision_timeout_s']} s at t={t:.3f}: the attitude "
+                           "level lands" if lost else f"camera fixes again at t={t:.3f}")
+            if lost:   # the attitude level's own descent lands; the estimate still goes out
+                publish_state(t, pos, vel, pos, cov, thrust_scale)
+                return
+        if stale and sp is not None and sp["armed"] and t - hold["since"] > p["planner_loss_land_after_s"]:
+            land(t, pos, vel, yaw, m_eff)
+            publish_state(t, pos, vel, hold["position"], cov, thrust_scale)
+            return
         if sp is not None and not stale and (sp["mode"] == "idle" or not sp["armed"]):
             ref_pos, att_ref, thrust = pos, [0.0, 0.0, yaw], 0.0
         elif sp is not None and not stale and sp["mode"] == "attitude":
@@ -152,13 +205,38 @@ def run(args) -> None:
                                          max_tilt_rad=tilt_limit["rad"])
             att_ref = [r, pt, yaw_ref]
         thrust = float(min(thrust, 4 * vehicle.max_thrust_n))
+        setpoint_out.put({"attitude_ref_rad": att_ref, "thrust_n": thrust}, t_s=t)
+        publish_state(t, pos, vel, ref_pos, cov, thrust_scale)
+
+    def publish_state(t, pos, vel, ref_pos, cov, thrust_scale) -> None:
         velocities.append((t, vel))  # a fresh array each step
         (t0, v0), (t1, v1) = velocities[0], velocities[-1]
         accel = (v1 - v0) / (t1 - t0) if t1 > t0 else np.zeros(3)
-        setpoint_out.put({"attitude_ref_rad": att_ref, "thrust_n": thrust}, t_s=t)
         state_out.put({"position_m": pos, "velocity_m_s": vel, "position_ref_m": ref_pos,
                        "position_cov_m2": np.asarray(cov).reshape(-1), "acceleration_m_s2": accel,
                        "thrust_scale": thrust_scale, "state_source": p["state_source"]}, t_s=t)
+
+    def land(t, pos, vel, yaw, m_eff) -> None:
+        """Planner lost for planner_loss_land_after_s: land where we held; idle once down."""
+        home_z = p["home_position_m"][2]
+        if not hold["landed"] and pos[2] < home_z + LANDED_HEIGHT_M and abs(vel[2]) < LANDED_SPEED_M_S:
+            hold["landed_for"] = hold.get("landed_for", 0.0) + 1.0 / rt.rate_hz
+            if hold["landed_for"] >= LANDED_FOR_S:
+                hold["landed"] = True
+                count("planner_lost_landed")
+                rt.problem(f"failsafe: landed at t={t:.3f} with no planner: idle")
+        else:
+            hold["landed_for"] = 0.0
+        if hold["landed"]:
+            setpoint_out.put({"attitude_ref_rad": [0.0, 0.0, yaw], "thrust_n": 0.0}, t_s=t)
+            return
+        sinking = t - hold["since"] - p["planner_loss_land_after_s"]
+        hold["position"][2] = max(hold["position"][2] - p["land_speed_m_s"] / rt.rate_hz, home_z - LAND_BELOW_M) \
+            if sinking > 0 else hold["position"][2]
+        r, pt, thrust = position_law(m_eff, g, pos, vel, hold["position"], k, alpha, yaw,
+                                     max_tilt_rad=vehicle.tilt_limit_rad(p["max_tilt_deg"]))
+        setpoint_out.put({"attitude_ref_rad": [r, pt, yaw], "thrust_n": float(min(thrust, 4 * vehicle.max_thrust_n))},
+                         t_s=t)
 
     rt.run(step)
 

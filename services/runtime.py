@@ -49,6 +49,11 @@ RAW_QUEUE_MAX = 256   # payloads per key waiting to be read; beyond, the oldest 
 # A loop woken by its input (run(..., wake_on=inbox)) runs at the input's arrival, at most
 # once per `min_gap` periods; without input it runs on its own timer this much past a period.
 WAKE_TIMER_MARGIN = 0.25
+# Lockstep: a participant whose liveliness token is gone (killed), or that has not reported a
+# tick it owes for this long of wall time (frozen), is dropped from the clock: the rest fly on
+# (the failsafes act) instead of all waiting for it for ever. Generous: a slow but live run of
+# any service on a loaded 2-core machine stays far below it.
+LOCKSTEP_DROP_AFTER_S = 15.0
 
 
 # ---------------------------------------------------------------- CLI and Zenoh
@@ -184,6 +189,14 @@ class Inbox:
                     return msg
         return None
 
+    def idle(self) -> None:
+        """The reader stops reading for now (e.g. a failsafe's input between uses): what is
+        queued is let go, and messages that do not fit while nobody reads are not counted lost."""
+        with self._lock:
+            self._raw.clear()
+            self._superseded = True
+            self._takes = False
+
     def take(self) -> list[dict]:
         """Visible messages not taken before, oldest first."""
         self._takes = True
@@ -273,6 +286,8 @@ class Runtime:
         self._periods: deque[float] = deque(maxlen=2000)
         self._t = 0.0
         self._upstreams: dict[str, _Upstream] = {}
+        self.gone: set[str] = set()   # lockstep participants dropped from the clock (dead or frozen)
+        self._gone_why: dict[str, str] = {}   # dropped, not reported yet
         self._sim_tick = -1
         self._clock_queue: deque[dict] = deque()
         self._clock_event = threading.Event()
@@ -411,6 +426,29 @@ class Runtime:
             u.last_done = max(u.last_done, msg["tick"])
             self._sync_event.set()
         return on_sync
+
+    def watch_participants(self) -> None:
+        """Lockstep: drop a participant from the clock when its liveliness token goes."""
+        prefix = self.key("alive/")
+
+        def on_token(sample: zenoh.Sample) -> None:
+            name = str(sample.key_expr)[len(prefix):]
+            if sample.kind == zenoh.SampleKind.DELETE and name in self._upstreams:
+                self._drop(name, "its liveliness token is gone")
+        self.session.liveliness().declare_subscriber(self.key("alive/*"), on_token)
+
+    def _drop(self, name: str, why: str) -> None:
+        """Stop waiting for `name`; reported when a wait skips it (report_gone): a service that
+        merely stops after the flight is waited for by nobody, and the log stays the same."""
+        if name not in self.gone:
+            self._gone_why[name] = why
+            self.gone.add(name)
+            self._sync_event.set()
+
+    def report_gone(self, name: str) -> None:
+        if name in self._gone_why:
+            self.rejected[f"lockstep_dropped_{name}"] = 1
+            self.problem(f"lockstep: {name} dropped from the clock ({self._gone_why.pop(name)}); the others run on")
 
     def _on_clock(self, sample: zenoh.Sample) -> None:
         try:
@@ -573,6 +611,7 @@ class Runtime:
         sync = Publisher(self, schemas.SYNC_DONE, self.key(f"sync/{self.name}"))
         next_tick = 0 if period else -1
         self.subscribe(schemas.CLOCK.key(self.vehicle_id, self.name), self._on_clock)
+        self.watch_participants()
         # announce readiness until the first clock tick arrives
         while not self.stop_event.is_set() and not self._clock_queue:
             sync.put({"tick": -1, "next_tick": next_tick, "triggers": list(triggers), "period_ticks": period},
@@ -613,18 +652,29 @@ class Runtime:
 
     def wait_synced(self, ticks: dict[str, int], k: int) -> bool:
         """Lockstep: wait until each service named has reported its run at the tick given done
-        (False: stopped meanwhile); after 5 s, say who is missing at tick k."""
+        (False: stopped meanwhile); after 5 s, say who is missing at tick k. A participant
+        dropped from the clock (watch_participants; or silent for LOCKSTEP_DROP_AFTER_S) is
+        not waited for."""
         warned = False
         start = time.monotonic()
         while not self.stop_event.is_set():
             self._sync_event.clear()  # clear before checking, so a sync arriving now is not lost
             waiting = [n for n, t in ticks.items() if self._upstreams[n].last_done < t]
+            if self.gone.intersection(waiting):
+                for n in self.gone.intersection(waiting):
+                    self.report_gone(n)
+                waiting = [n for n in waiting if n not in self.gone]
             if not waiting:
                 return True
             self._sync_event.wait(0.5)
-            if not warned and time.monotonic() - start > 5.0:
+            waited = time.monotonic() - start
+            if not warned and waited > 5.0:
                 self.problem(f"lockstep: tick {k} still waiting for {', '.join(waiting)}")
                 warned = True
+            if waited > LOCKSTEP_DROP_AFTER_S:
+                for n in waiting:
+                    self._drop(n, f"no sync for tick {k} in {LOCKSTEP_DROP_AFTER_S:.0f} s")
+                    self.report_gone(n)
         return False
 
     def close(self) -> None:

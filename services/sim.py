@@ -98,6 +98,7 @@ class SimService:
         clocks = {p: rt.publisher(schemas.CLOCK, schemas.CLOCK.key(rt.vehicle_id, p)) for p in self.participants}
         for p in self.participants:
             rt.follow(p)
+        rt.watch_participants()
         # wait for every participant's "ready"
         while not rt.stop_event.is_set():
             missing = [p for p in self.participants if rt._upstreams[p].last_done < -1]
@@ -121,8 +122,11 @@ class SimService:
             k = self.sim.tick
             rt._t = self.sim.t
             published = self.publish_outputs()
-            due = [p for p in self.participants
-                   if next_due[p] == k or (next_due[p] < 0 and triggers[p].intersection(published))]
+            if rt.gone:   # dropped from the clock (killed or frozen): no more clocks for them
+                for p in rt.gone.intersection(self.participants):
+                    rt.report_gone(p)
+            due = [p for p in self.participants if p not in rt.gone
+                   and (next_due[p] == k or (next_due[p] < 0 and triggers[p].intersection(published)))]
             done = dict(last_due)
             for p in due:
                 clocks[p].put({"tick": k, "tick_rate_hz": rt.tick_rate, "published": published,

@@ -387,3 +387,46 @@ def test_the_flight_ends_when_the_simulator_stops():
     m = compute_metrics({P + "sim/imu": imu, P + "motors/pwm": msgs}, INFO)
     assert m["latency_ms"]["samples"] == 200
     assert m["latency_ms"]["output_age_p99"] == pytest.approx(1.0, abs=1e-6)
+
+
+def test_a_disarm_or_motor_cut_in_the_air_is_a_crash_whatever_the_planner_says():
+    # the planner was told to disarm at 2 s and says "completed"; the truth falls from 3 m
+    log = hover_log()
+    out = [pwm(k / 400, k, k / 400) for k in range(1600)]
+    log[P + "motors/pwm"] = out
+    m = compute_metrics(log, INFO)
+    assert m["crashed"] is False and m["crash_reason"] is None
+    for k in range(800, 1600):
+        out[k] = {**pwm(k / 400, k, k / 400, armed=False), "thrust_n": [0.0] * 4}
+    m = compute_metrics(log, INFO)
+    assert m["completed"] and m["crashed"] and m["crash_reason"].startswith("motors cut in the air at t=2.00")
+    # armed, but the mixer asks for no thrust at all (attitude commanded zero): a cut too
+    for k in range(800, 1600):
+        out[k] = {**pwm(k / 400, k, k / 400), "thrust_n": [0.0] * 4}
+    assert compute_metrics(log, INFO)["crashed"]
+    # a disarm on the ground after a landing is not
+    log = hover_log()
+    for k in range(300, 401):
+        log[P + "sim/truth"][k] = truth(k / 100, k, (1.0, 2.0, 0.0), landed=True)
+    log[P + "planner/setpoint"] = [setpoint(j / 50, j, phase="hold" if j < 140 else "landed",
+                                            state="completed" if j == 200 else "running") for j in range(201)]
+    log[P + "motors/pwm"] = [pwm(k / 400, k, k / 400, armed=k < 1250) for k in range(1600)]
+    m = compute_metrics(log, INFO)
+    assert not m["crashed"], m["crash_reason"]
+
+
+def test_a_hard_touchdown_is_a_crash():
+    def landing(speed):
+        tr = []
+        for k in range(301):
+            t = k / 100
+            z = max(0.0, 1.0 - speed * max(0.0, t - 1.0))
+            rec = truth(t, k, (0.0, 0.0, z), landed=z == 0.0)
+            rec["velocity_m_s"] = [0.0, 0.0, -speed if 0.0 < z < 1.0 else 0.0]
+            tr.append(rec)
+        sp = [setpoint(j / 50, j, phase="land", state="completed" if j == 150 else "running") for j in range(151)]
+        return compute_metrics({P + "sim/truth": tr, P + "planner/setpoint": sp}, INFO)
+    soft, hard = landing(0.5), landing(4.0)
+    assert soft["touchdown_speed_m_s"] == pytest.approx(0.5) and not soft["crashed"]
+    assert hard["touchdown_speed_m_s"] == pytest.approx(4.0) and hard["crashed"]
+    assert hard["crash_reason"] == "touchdown at 4.00 m/s"

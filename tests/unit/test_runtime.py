@@ -7,6 +7,7 @@ from types import SimpleNamespace
 
 
 import schemas
+from services import runtime
 from services.runtime import RAW_QUEUE_MAX, Inbox, apply_scheduling
 
 
@@ -115,3 +116,52 @@ def test_refused_priority_is_reported_not_fatal():
     # 100 is beyond SCHED_FIFO's 1..99 for anyone (root included): the OS refuses it
     assert "priority 100 refused" in apply_scheduling(100, ())
     assert os.sched_getscheduler(0) == os.SCHED_OTHER
+
+
+def test_an_idle_reader_loses_nothing_it_did_not_ask_for():
+    rt = FakeRuntime()
+    box = Inbox(rt, schemas.IMU, "imu", "sim", keep=2)
+    deliver(box, imu_payload(0))
+    assert box.take()                          # a failsafe read it ...
+    box.idle()                                 # ... and went back to sleep
+    for seq in range(1, RAW_QUEUE_MAX + 10):
+        deliver(box, imu_payload(seq))
+    assert rt.dropped == {}
+    assert box.take()[-1]["header"]["seq"] == RAW_QUEUE_MAX + 9   # reading again: the newest
+
+
+class FakeClock:
+    """What Runtime.wait_synced needs: the upstreams' progress and the drop bookkeeping."""
+    wait_synced, _drop, report_gone = runtime.Runtime.wait_synced, runtime.Runtime._drop, runtime.Runtime.report_gone
+
+    def __init__(self, *names):
+        self.stop_event, self._sync_event = threading.Event(), threading.Event()
+        self._upstreams = {n: runtime._Upstream() for n in names}
+        self.gone, self._gone_why, self.rejected, self.problems = set(), {}, {}, []
+
+    def problem(self, text):
+        self.problems.append(text)
+
+
+def test_lockstep_wait_drops_a_participant_whose_token_went():
+    clock = FakeClock("attitude", "planner")
+    clock._upstreams["planner"].last_done = 10
+    clock._drop("planner", "its liveliness token is gone")   # gone, but owed nothing: not reported
+    assert clock.wait_synced({"planner": 10}, 10) and clock.rejected == {}
+    result = []
+    waiter = threading.Thread(target=lambda: result.append(clock.wait_synced({"attitude": 8}, 9)))
+    waiter.start()
+    waiter.join(0.3)
+    assert waiter.is_alive()                   # attitude owes tick 8: waiting
+    clock._drop("attitude", "its liveliness token is gone")
+    waiter.join(2.0)
+    assert result == [True]
+    assert clock.rejected == {"lockstep_dropped_attitude": 1}
+    assert "attitude dropped from the clock (its liveliness token is gone)" in clock.problems[-1]
+
+
+def test_lockstep_wait_drops_a_silent_participant_after_the_timeout(monkeypatch):
+    monkeypatch.setattr(runtime, "LOCKSTEP_DROP_AFTER_S", 0.6)
+    clock = FakeClock("position")
+    assert clock.wait_synced({"position": 3}, 4)   # frozen: dropped after 0.6 s (checked every 0.5 s)
+    assert clock.gone == {"position"} and clock.rejected == {"lockstep_dropped_position": 1}
