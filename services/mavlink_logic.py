@@ -335,6 +335,16 @@ class Bridge:
         cov = pos.get("position_cov_m2", [0.0] * 9)
         return max(cov[0], cov[4], cov[8]) <= self.cfg.converged_position_std_m ** 2
 
+    def at_start_on_ground(self, wall: float) -> bool:
+        """Disarmed on the ground where the vehicle started, vision running: the position estimator
+        has no fix there (the camera sees no marker from the ground; its covariance grows) but the
+        start point is known and vision corrects it once airborne. Arming is allowed; the GPS health
+        bit (MAVSDK's is_local_position_ok) still says the estimate has not converged."""
+        pos = self.position_enu()
+        return (pos is not None and not self.armed() and self.landed_state() == mavlink.MAV_LANDED_STATE_ON_GROUND
+                and math.hypot(pos[0], pos[1]) < 0.05 and abs(pos[2]) < 0.05
+                and ("vision" not in self.services or self.healthy("vision", wall)))
+
     # ------------------------------------------------------------------ outgoing
     def tick(self, now_stack: float, now_wall: float) -> list[tuple[str, dict]]:
         """Send the streams that are due; follow the mission, offboard and the failsafe. Returns actions."""
@@ -345,7 +355,8 @@ class Bridge:
         for name, interval in self.intervals_s.items():
             if interval <= 0.0 or now_wall < self.next_due[name]:
                 continue
-            self.next_due[name] = max(self.next_due[name] + interval, now_wall - interval)
+            due = self.next_due[name]  # on its period; a stream behind by a period or more restarts from now
+            self.next_due[name] = due + interval if now_wall - due < interval else now_wall + interval
             self.send_stream(name, now_stack, now_wall)
         action = self.failsafe.update(now_wall, self.flying())
         if action:
@@ -690,7 +701,7 @@ class Bridge:
             return "no fresh attitude/position estimate"
         if not self.estimates_converged("attitude", now):
             return "attitude estimate not converged"
-        if not self.estimates_converged("position", now):
+        if not self.estimates_converged("position", now) and not self.at_start_on_ground(wall):
             return "position estimate not converged"
         if self.failsafe.state != "ok":
             return "failsafe active"

@@ -168,7 +168,7 @@ def test_arm_takeoff_land_disarm_commands(link):
     assert send(long(gcs, mavlink.MAV_CMD_NAV_TAKEOFF, *[math.nan] * 7)) == []  # a repeat: still climbing
     ack = acks(received())[0]
     assert ack.result == mavlink.MAV_RESULT_IN_PROGRESS and ack.progress == 50
-    hb = [m for m in (bridge.send_stream("HEARTBEAT", NOW, NOW), received())[1]][0]
+    hb = [m for m in (bridge.send_stream("HEARTBEAT", NOW, NOW), received())[1] if m.get_type() == "HEARTBEAT"][-1]
     assert hb.custom_mode == MODES["takeoff"]
     bridge.inputs["setpoint"] = setpoint(armed=True, phase="hold", z=2.0)
     bridge.inputs["pos"]["position_m"] = [0.0, 0.0, 2.0]
@@ -290,7 +290,7 @@ def test_offboard_position_and_velocity_targets_with_timeout(link):
     assert cmd["position_m"] == pytest.approx([2.0, 1.0, 3.0]) and cmd["yaw_rad"] == pytest.approx(0.3)
     send(target)
     assert bridge.tick(NOW + 0.04, NOW + 0.04) == []  # the same target again: nothing new
-    hb = [m for m in (bridge.send_stream("HEARTBEAT", NOW, NOW), received())[1]][0]
+    hb = [m for m in (bridge.send_stream("HEARTBEAT", NOW, NOW), received())[1] if m.get_type() == "HEARTBEAT"][-1]
     assert hb.custom_mode == MODES["offboard"]
     # velocity (MAVSDK's set_velocity_ned): the target moves at it on the stack's clock
     velocity = 0b110111000111
@@ -423,6 +423,11 @@ def test_is_armable_follows_estimates_and_checks(link):
     assert st.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK
     assert st.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_SENSOR_GPS
     bridge.inputs["pos"]["position_cov_m2"] = [0.25, 0, 0, 0, 0.25, 0, 0, 0, 0.25]  # 0.5 m std: not converged
+    bridge.inputs["pos"]["position_m"] = [0.0, 0.0, 0.0]
+    st = status()   # at the start point on the ground, vision running: armable, the estimate not yet converged
+    assert st.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK
+    assert not st.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_SENSOR_GPS
+    bridge.inputs["pos"]["position_m"] = [1.0, 2.0, 0.0]   # moved: not the known start point
     st = status()
     assert not st.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK
     assert not st.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_SENSOR_GPS
