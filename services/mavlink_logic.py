@@ -18,7 +18,7 @@ STABILIZED (reported, not settable). The flip is the custom command
 MAV_CMD_USER_1 (31010), as a command (flying) or a mission item.
 
 Missions (MISSION_INT): NAV_WAYPOINT, NAV_TAKEOFF, NAV_LAND, NAV_LOITER_TIME,
-NAV_LOITER_UNLIM, NAV_RETURN_TO_LAUNCH, MAV_CMD_USER_1 (flip); DO_CHANGE_SPEED
+NAV_LOITER_UNLIM, NAV_DELAY (seconds), NAV_RETURN_TO_LAUNCH, MAV_CMD_USER_1 (flip); DO_CHANGE_SPEED
 is accepted and ignored (the position level flies its own speed). Frames: global
 (relative or AMSL altitude, around the configured home) and LOCAL_NED.
 Takeoff altitudes in commands (MAV_CMD_NAV_TAKEOFF param7) are relative to
@@ -112,13 +112,14 @@ PREARM_REPEAT_S = 10.0  # a pre-arm failure that lasts is said again in STATUSTE
 # mission items the planner flies (see mission_to_planner)
 MISSION_NAV = {mavlink.MAV_CMD_NAV_WAYPOINT, mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_CMD_NAV_LAND,
                mavlink.MAV_CMD_NAV_LOITER_TIME, mavlink.MAV_CMD_NAV_LOITER_UNLIM,
-               mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH, MAV_CMD_FLIP}
+               mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH, mavlink.MAV_CMD_NAV_DELAY, MAV_CMD_FLIP}
 MISSION_IGNORED = {mavlink.MAV_CMD_DO_CHANGE_SPEED}
 GLOBAL_FRAMES = {mavlink.MAV_FRAME_GLOBAL: False, mavlink.MAV_FRAME_GLOBAL_INT: False,
                  mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT: True, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT: True}
 MISSION_RETRY_S = 1.0   # an upload waiting for an item asks again after this long ...
 MISSION_RETRIES = 5     # ... this many times, then gives up (MAV_MISSION_OPERATION_CANCELLED)
 FOREVER_S = 1e9
+ARM_PENDING_S = 3.0  # an accepted arm counts as armed this long before the planner shows it
 MISSION_START_GRACE_S = 3.0  # the planner shows a sent mission within this (wall) time, or it refused it
 
 
@@ -246,6 +247,7 @@ class Bridge:
         self.last_stack_t: float | None = None
         self.takeoff_pending: dict | None = None  # a takeoff acked IN_PROGRESS: {"peer", "altitude", "wall"}
         self.prearm_said: tuple[str, float] = ("", -math.inf)
+        self.arm_accepted_wall: float | None = None
 
     # ------------------------------------------------------------------ helpers
     def count(self, reason: str) -> None:
@@ -279,6 +281,11 @@ class Bridge:
     def armed(self) -> bool:
         sp = self.inputs.get("setpoint")
         return bool(sp and sp["armed"])
+
+    def armed_or_arming(self, wall: float) -> bool:
+        """Armed, or an accepted arm command the planner has not shown yet: a GCS may follow its
+        arm with takeoff or mission start at once (after the ACK, PX4 is armed)."""
+        return self.armed() or (self.arm_accepted_wall is not None and wall - self.arm_accepted_wall < ARM_PENDING_S)
 
     def mode_name(self) -> str:
         """The project's mode now: what the GCS asked for, as the planner's phase shows it."""
@@ -627,12 +634,13 @@ class Bridge:
                 if why:
                     return self._deny(msg, command, R.MAV_RESULT_TEMPORARILY_REJECTED, f"Preflight Fail: {why}")
                 self._ack(msg, command, R.MAV_RESULT_ACCEPTED)
+                self.arm_accepted_wall = wall
                 self.mode = self.mode if self.mode in ("hold", "position") else "hold"
                 return [("command", self.command_fields("arm", origin=origin))]
             if self.flying() and not force:
                 return self._deny(msg, command, R.MAV_RESULT_DENIED, "in the air: land first")
             self._ack(msg, command, R.MAV_RESULT_ACCEPTED)
-            self.offboard = None
+            self.offboard, self.arm_accepted_wall = None, None
             return [("command", self.command_fields("disarm", origin=origin))]
         if command == C.MAV_CMD_NAV_TAKEOFF:
             alt = p[6] if _finite(p[6]) else self.params.own("takeoff_alt_m")
@@ -690,6 +698,7 @@ class Bridge:
 
     def _deny(self, msg, command: int, result: int, reason: str) -> list:
         self._ack(msg, command, result, reason)
+        self.problem(f"command {command} from {msg.get_srcSystem()}: {reason}")
         return []
 
     def arming_blocker(self, now: float, wall: float) -> str:
@@ -724,7 +733,7 @@ class Bridge:
         replaces it); a repeat while it climbs gets IN_PROGRESS again."""
         if not _finite(alt) or not 0.0 < alt <= 100.0:
             return self._deny(msg, command, mavlink.MAV_RESULT_DENIED, f"altitude {alt} outside (0, 100] m")
-        if not self.armed():
+        if not self.armed_or_arming(wall):
             return self._deny(msg, command, mavlink.MAV_RESULT_TEMPORARILY_REJECTED, "not armed")
         peer = (msg.get_srcSystem(), msg.get_srcComponent())
         if self.takeoff_pending is not None:
@@ -749,7 +758,7 @@ class Bridge:
             return []
         sp = self.inputs.get("setpoint")
         sys_id, comp = pend["peer"]
-        if self.mode != "takeoff" or (sp is not None and not sp["armed"]):
+        if self.mode != "takeoff" or (sp is not None and not sp["armed"] and not self.armed_or_arming(wall)):
             result = mavlink.MAV_RESULT_FAILED  # replaced by another command, or disarmed
         elif sp is not None and sp["phase"] in ("hold", "settle") and wall - pend["wall"] > 0.2:
             result = mavlink.MAV_RESULT_ACCEPTED  # the planner's takeoff item is done: at the altitude
@@ -766,7 +775,7 @@ class Bridge:
     def _switch(self, msg, command: int, mode: str, origin: str, now: float, wall: float) -> list:
         """Fly `mode` (one of SETTABLE_MODES) now, or refuse with the reason."""
         R = mavlink
-        flying, armed = self.flying(), self.armed()
+        flying, armed = self.flying(), self.armed_or_arming(wall)
         actions: list = []
         if mode in ("hold", "position"):
             if flying:
@@ -885,7 +894,8 @@ class Bridge:
             if not _finite(item.z) or (item.command == M.MAV_CMD_NAV_TAKEOFF and item.frame in GLOBAL_FRAMES
                                        and GLOBAL_FRAMES[item.frame] and not 0.0 < item.z <= 100.0):
                 return M.MAV_MISSION_INVALID_PARAM7
-        if item.command == M.MAV_CMD_NAV_LOITER_TIME and not (_finite(item.param1) and item.param1 >= 0):
+        if item.command in (M.MAV_CMD_NAV_LOITER_TIME, M.MAV_CMD_NAV_DELAY) and not (
+                _finite(item.param1) and item.param1 >= 0):  # NAV_DELAY by time of day (param1 -1): not flown
             return M.MAV_MISSION_INVALID_PARAM1
         return M.MAV_MISSION_ACCEPTED
 
@@ -911,6 +921,8 @@ class Bridge:
                 z = target[2] if target is not None else (it.z if _finite(it.z) else self.params.own("takeoff_alt_m"))
                 out.append(("takeoff", [here[0], here[1], z], yaw, 0.0, acc_default))
                 here = [here[0], here[1], z]
+            elif it.command == M.MAV_CMD_NAV_DELAY:  # MAVSDK's loiter_time_s: wait where it is
+                out.append(("hold", here, yaw, float(it.param1), acc_default))
             elif it.command in (M.MAV_CMD_NAV_LOITER_TIME, M.MAV_CMD_NAV_LOITER_UNLIM):
                 if target is not None:
                     out.append(("goto", target, yaw, 0.0, acc_default))
@@ -1032,7 +1044,9 @@ class Bridge:
         if result != mavlink.MAV_MISSION_ACCEPTED:
             self.mission.upload = None
             self._mission_ack(msg, result)
-            self.statustext(f"mission item {msg.seq}: command {msg.command} frame {msg.frame} refused")
+            why = f"mission item {msg.seq}: command {msg.command} frame {msg.frame} refused ({result})"
+            self.statustext(why)
+            self.problem(why)
             return []
         up["items"].append(msg)
         up["asked_wall"], up["tries"] = wall, 0
