@@ -1,8 +1,9 @@
 """MAVSDK (the real `mavsdk` package, 4.x) flies the stack through the MAVLink bridge.
 
-The flows are MAVSDK's own example flows, written as a user would (the README's
-script is the first flight here): telemetry, parameters, arm / take off / hold /
-land, offboard position steps, a 4-waypoint mission with return to launch. The
+The flows are MAVSDK's own example flows, written as a user would: telemetry,
+health and parameters on the ground; arm / take off / hold / offboard position
+steps / land in one flight; the README's script (examples/mavsdk_mission.py, run
+as it is) flies a 4-waypoint mission and returns to launch in another. The
 stack runs in lockstep with no mission (the planner waits for commands); the
 bridge lives on the wall clock, so every wait is generous (the simulator runs
 slower than real time on a busy machine). One stack serves every test, in order:
@@ -28,10 +29,10 @@ from deploy.launcher import free_port  # noqa: E402
 
 from .conftest import ROOT  # noqa: E402
 
-mavsdk = pytest.importorskip("mavsdk")
+import mavsdk  # noqa: E402  (the `test` extra: mavsdk 4.x, which ships its C++ core)
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk  # noqa: E402
 from mavsdk.asyncio.plugins.action import ActionAsync  # noqa: E402
-from mavsdk.asyncio.plugins.mission import MissionAsync, MissionItem, MissionPlan  # noqa: E402
+from mavsdk.asyncio.plugins.mission import MissionAsync  # noqa: E402
 from mavsdk.asyncio.plugins.offboard import OffboardAsync, PositionNedYaw  # noqa: E402
 from mavsdk.asyncio.plugins.param import ParamAsync  # noqa: E402
 from mavsdk.asyncio.plugins.telemetry import FlightMode, LandedState, TelemetryAsync  # noqa: E402
@@ -164,9 +165,10 @@ async def telemetry_and_parameters(udp: int):
         assert await param.get_param_float("POS_K_Z") == pytest.approx(4.0)
         await param.set_param_float("POS_K_Z", 4.5)
         assert await param.get_param_float("POS_K_Z") == pytest.approx(4.5)
+        await param.set_param_float("POS_K_Z", 4.0)  # as it was: the flights that follow fly the stack's gains
         assert await param.get_param_float("MIS_TAKEOFF_ALT") == pytest.approx(2.0)
         t0 = time.monotonic()
-        with pytest.raises(mavsdk.MavsdkError if hasattr(mavsdk, "MavsdkError") else Exception):
+        with pytest.raises(mavsdk.plugins.param.ParamError):
             await param.get_param_float("NO_SUCH_PARAM")
         unknown_s = time.monotonic() - t0
         everything = await param.get_all_params()
@@ -180,7 +182,8 @@ def test_telemetry_health_and_parameters(stack):
     unknown_s = run(telemetry_and_parameters(udp))
     assert unknown_s < 2.0, f"an unknown parameter took {unknown_s:.1f} s to be refused"
     time.sleep(0.5)
-    assert "param k = [4.0, 4.0, 4.5]" in (run_dir / "logs" / "position.log").read_text()
+    log = (run_dir / "logs" / "position.log").read_text()
+    assert "param k = [4.0, 4.0, 4.5]" in log and "param k = [4.0, 4.0, 4.0]" in log
 
 
 async def takeoff_offboard_land(udp: int):
@@ -204,10 +207,10 @@ async def takeoff_offboard_land(udp: int):
         await until(telemetry.subscribe_flight_mode(), lambda m: m == FlightMode.OFFBOARD, 10.0, "offboard")
         for north, east in ((1.5, 0.0), (1.5, 1.5), (0.0, 0.0)):
             await offboard.set_position_ned(PositionNedYaw(north, east, -2.0, 0.0))
-            pv = await until(telemetry.subscribe_position_velocity_ned(),
-                             lambda p: math.hypot(p.position.north_m - north, p.position.east_m - east) < 0.15,
-                             90.0, f"offboard position ({north}, {east})")
-            assert abs(pv.position.down_m + 2.0) < 0.3
+            await until(telemetry.subscribe_position_velocity_ned(),
+                        lambda p: math.dist((p.position.north_m, p.position.east_m, p.position.down_m),
+                                            (north, east, -2.0)) < 0.2,
+                        90.0, f"offboard position ({north}, {east}, -2)")
         await offboard.stop()
         await action.land()
         await until(telemetry.subscribe_flight_mode(), lambda m: m == FlightMode.LAND, 10.0, "land mode")
@@ -220,51 +223,40 @@ def test_takeoff_offboard_land(stack):
     run(takeoff_offboard_land(udp))
 
 
-def waypoint(north_m: float, east_m: float, up_m: float) -> MissionItem:
-    lat = HOME[0] + math.degrees(north_m / 6378137.0)
-    lon = HOME[1] + math.degrees(east_m / (6378137.0 * math.cos(math.radians(HOME[0]))))
-    return MissionItem(latitude_deg=lat, longitude_deg=lon, relative_altitude_m=up_m, speed_m_s=1.0,
-                       is_fly_through=False, acceptance_radius_m=0.3, loiter_time_s=0.5)
-
-
-async def mission_flight(udp: int):
-    """MAVSDK's mission example: upload 4 waypoints, download them back, arm, fly, return to launch."""
+async def after_the_example(udp: int):
+    """What the README's script left: its mission stored as uploaded, the vehicle home and landed."""
     sdk, drone = await connect(udp)
     async with sdk:
-        telemetry, action, mission = TelemetryAsync(drone), ActionAsync(drone), MissionAsync(drone)
-        square = [waypoint(0.0, 0.0, 2.0), waypoint(2.0, 0.0, 2.0), waypoint(2.0, 2.0, 2.5), waypoint(0.0, 2.0, 2.0)]
-        await mission.upload_mission(MissionPlan(square))
+        telemetry, mission = TelemetryAsync(drone), MissionAsync(drone)
         back = await mission.download_mission()
+        home = await until(telemetry.subscribe_home(), lambda p: True, 15.0, "home")
+        expected = [(0, 0, 2.0), (2, 0, 2.0), (2, 2, 2.5), (0, 2, 2.0)]
         assert len(back.mission_items) == 4
-        for sent, got in zip(square, back.mission_items):
-            assert got.latitude_deg == pytest.approx(sent.latitude_deg, abs=1e-6)
-            assert got.relative_altitude_m == pytest.approx(sent.relative_altitude_m)
-        await until(telemetry.subscribe_health(), lambda h: h.is_armable, 60.0, "armable vehicle")
-        await action.arm()
-        await mission.start_mission()
-        await until(telemetry.subscribe_flight_mode(), lambda m: m == FlightMode.MISSION, 10.0, "mission mode")
-        seen = []
-        async def progress():
-            async for p in mission.subscribe_mission_progress():
-                seen.append((p.current, p.total))
-                if p.current == p.total:
-                    return
-        await asyncio.wait_for(progress(), 240.0)
-        assert await mission.is_mission_finished()
-        assert [c for c, _ in seen] == sorted(c for c, _ in seen) and seen[-1] == (4, 4)
-        pv = await until(telemetry.subscribe_position_velocity_ned(), lambda p: True, 10.0, "position")
-        assert math.hypot(pv.position.north_m - 0.0, pv.position.east_m - 2.0) < 0.4  # at the last waypoint
-        await action.return_to_launch()
-        await until(telemetry.subscribe_flight_mode(), lambda m: m == FlightMode.RETURN_TO_LAUNCH, 10.0, "RTL")
-        await until(telemetry.subscribe_armed(), lambda a: not a, 120.0, "disarmed after return")
+        for (north, east, up), got in zip(expected, back.mission_items):
+            assert got.latitude_deg == pytest.approx(home.latitude_deg + math.degrees(north / 6378137.0), abs=1e-6)
+            assert got.relative_altitude_m == pytest.approx(up)
         pv = await until(telemetry.subscribe_position_velocity_ned(), lambda p: True, 10.0, "position")
         assert math.hypot(pv.position.north_m, pv.position.east_m) < 0.3 and pv.position.down_m > -0.1
+        assert await until(telemetry.subscribe_landed_state(), lambda s: True, 10.0, "") == LandedState.ON_GROUND
         await mission.clear_mission()
-        assert len((await mission.download_mission()).mission_items) == 0
-        return seen
+        assert await until(telemetry.subscribe_flight_mode(), lambda m: m != FlightMode.UNKNOWN, 10.0,
+                           "flight mode") in (FlightMode.RETURN_TO_LAUNCH, FlightMode.HOLD)
 
 
-def test_four_waypoint_mission_and_return(stack):
-    udp, _ = stack
-    seen = run(mission_flight(udp))
-    assert {c for c, _ in seen} >= {1, 2, 3, 4}
+def test_readme_mission_example_flies_four_waypoints_and_returns(stack):
+    """examples/mavsdk_mission.py (the README's script, run as a user runs it): upload, arm, mission,
+    progress to 4/4, return to launch, landed; then the mission downloads as uploaded."""
+    udp, run_dir = stack
+    script = ROOT / "examples" / "mavsdk_mission.py"
+    assert script.read_text().split('"""', 2)[2].strip() in (ROOT / "README.md").read_text(), \
+        "the README shows examples/mavsdk_mission.py as it is"
+    done = subprocess.run([sys.executable, str(script), f"udpin://127.0.0.1:{udp}"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=400)
+    assert done.returncode == 0, done.stdout + done.stderr
+    progress = [tuple(map(int, line.split()[-1].split("/"))) for line in done.stdout.splitlines()
+                if line.startswith("mission progress")]
+    assert progress[-1] == (4, 4) and [c for c, _ in progress] == sorted(c for c, _ in progress), progress
+    assert done.stdout.rstrip().endswith("landed and disarmed")
+    run(after_the_example(udp))
+    planner = (run_dir / "logs" / "planner.log").read_text()
+    assert "mission of 9 items" in planner and "mission of 2 items" in planner  # the square, then RTL

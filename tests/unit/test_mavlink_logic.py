@@ -514,3 +514,24 @@ def test_highres_imu_and_battery_in_frd_and_si(link):
     assert imu.zacc == pytest.approx(-9.81) and imu.ygyro == pytest.approx(-0.2) and imu.abs_pressure == 1000.0
     assert imu.time_usec == 99998000
     assert bat.voltages[:4] == [3700, 3700, 3700, 65535] and bat.current_battery == 800 and bat.battery_remaining == 90
+
+
+def test_arm_then_mission_start_at_once_with_mavsdk_items(link):
+    """MAVSDK's mission example: arm, then start at once (the planner has not shown the arm yet);
+    its items carry DO_CHANGE_SPEED and NAV_DELAY (loiter_time_s)."""
+    bridge, gcs, send, received, _ = link
+    healthy(bridge)
+    items = [waypoint(gcs, 0, 0.0, 0.0, 2.0),
+             gcs.mission_item_int_encode(1, 1, 1, 2, mavlink.MAV_CMD_DO_CHANGE_SPEED, 0, 1, 1, 1.0, -1, 0, 0, 0, 0, 0),
+             gcs.mission_item_int_encode(1, 1, 2, 2, mavlink.MAV_CMD_NAV_DELAY, 0, 1, 0.5, -1, -1, -1, 0, 0, 0, 0),
+             waypoint(gcs, 3, 2.0, 0.0, 2.0)]
+    assert upload(send, received, gcs, items).type == mavlink.MAV_MISSION_ACCEPTED
+    assert send(long(gcs, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0, math.nan))[0][1]["command"] == "arm"
+    assert bridge.inputs["setpoint"]["armed"] is False        # not shown by the planner yet
+    (kind, m), = send(long(gcs, mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 4, 4))
+    assert acks(received())[-1].result == mavlink.MAV_RESULT_ACCEPTED
+    assert m["types"] == ["takeoff", "goto", "hold", "goto"] and m["hold_s"][2] == 0.5
+    assert bridge.flying_seq == [0, 0, 2, 3] and bridge.mode_name() == "mission"
+    # SET_MODE (the older message) to PX4's hold: accepted on the ground
+    send(gcs.set_mode_encode(1, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, MODES["hold"]))
+    assert bridge.mode_name() == "hold"
