@@ -342,14 +342,14 @@ class Bridge:
         cov = pos.get("position_cov_m2", [0.0] * 9)
         return max(cov[0], cov[4], cov[8]) <= self.cfg.converged_position_std_m ** 2
 
-    def at_start_on_ground(self, wall: float) -> bool:
-        """Disarmed on the ground where the vehicle started, vision running: the position estimator
-        has no fix there (the camera sees no marker from the ground; its covariance grows) but the
-        start point is known and vision corrects it once airborne. Arming is allowed; the GPS health
-        bit (MAVSDK's is_local_position_ok) still says the estimate has not converged."""
-        pos = self.position_enu()
+    def resting_on_ground(self, wall: float) -> bool:
+        """Disarmed, on the ground and at rest, vision running: the position estimator has no fix
+        there (the camera sees no marker from the ground; its covariance grows) but the vehicle is
+        where it stopped, and vision corrects the estimate once airborne. Arming is allowed; the GPS
+        health bit (MAVSDK's is_local_position_ok) still says the estimate has not converged."""
+        pos = self.inputs.get("pos")
         return (pos is not None and not self.armed() and self.landed_state() == mavlink.MAV_LANDED_STATE_ON_GROUND
-                and math.hypot(pos[0], pos[1]) < 0.05 and abs(pos[2]) < 0.05
+                and math.hypot(*pos["velocity_m_s"]) < 0.1
                 and ("vision" not in self.services or self.healthy("vision", wall)))
 
     # ------------------------------------------------------------------ outgoing
@@ -710,7 +710,7 @@ class Bridge:
             return "no fresh attitude/position estimate"
         if not self.estimates_converged("attitude", now):
             return "attitude estimate not converged"
-        if not self.estimates_converged("position", now) and not self.at_start_on_ground(wall):
+        if not self.estimates_converged("position", now) and not self.resting_on_ground(wall):
             return "position estimate not converged"
         if self.failsafe.state != "ok":
             return "failsafe active"

@@ -423,11 +423,11 @@ def test_is_armable_follows_estimates_and_checks(link):
     assert st.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK
     assert st.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_SENSOR_GPS
     bridge.inputs["pos"]["position_cov_m2"] = [0.25, 0, 0, 0, 0.25, 0, 0, 0, 0.25]  # 0.5 m std: not converged
-    bridge.inputs["pos"]["position_m"] = [0.0, 0.0, 0.0]
-    st = status()   # at the start point on the ground, vision running: armable, the estimate not yet converged
+    bridge.inputs["pos"]["velocity_m_s"] = [0.0, 0.0, 0.0]
+    st = status()   # at rest on the ground, vision running: armable, the estimate not yet converged
     assert st.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK
     assert not st.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_SENSOR_GPS
-    bridge.inputs["pos"]["position_m"] = [1.0, 2.0, 0.0]   # moved: not the known start point
+    bridge.health["vision"] = (NOW - 10.0, {"state": "running"})   # and without vision: not armable
     st = status()
     assert not st.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK
     assert not st.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_SENSOR_GPS
