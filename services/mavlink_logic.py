@@ -660,7 +660,7 @@ class Bridge:
             if not _finite(p[0]) or not 0 <= int(p[0]) < len(self.mission.items):
                 return self._deny(msg, command, R.MAV_RESULT_DENIED, f"no mission item {p[0]}")
             self._ack(msg, command, R.MAV_RESULT_ACCEPTED)
-            return self.set_current(int(p[0]), origin)
+            return self.set_current(int(p[0]), origin, wall)
         if command == MAV_CMD_FLIP:
             if not self.flying():
                 return self._deny(msg, command, R.MAV_RESULT_TEMPORARILY_REJECTED, "not flying")
@@ -994,13 +994,14 @@ class Bridge:
             self.send(self._msg_mission_current(0.0, wall))
         return []
 
-    def set_current(self, seq: int, origin: str) -> list:
+    def set_current(self, seq: int, origin: str, wall: float) -> list:
+        """The mission goes on from `seq` (flown from there now if the mission is being flown)."""
         m = self.mission
         m.current, m.finished = seq, False
         m.reached = min(m.reached, seq - 1)
         actions = []
         if self.mode == "mission" and self.armed():
-            actions = [("mission", self.start_mission(seq, origin, self.mission_sent_wall or 0.0))]
+            actions = [("mission", self.start_mission(seq, origin, wall))]
         self.send(self._msg_mission_current(0.0, 0.0))
         return actions
 
@@ -1127,7 +1128,7 @@ class Bridge:
         if not 0 <= msg.seq < len(self.mission.items):
             self.statustext(f"mission: no item {msg.seq}")
             return []
-        return self.set_current(msg.seq, f"mavlink:{msg.get_srcSystem()}")
+        return self.set_current(msg.seq, f"mavlink:{msg.get_srcSystem()}", wall)
 
     # -- offboard --------------------------------------------------------------
     def _on_set_position_target_local_ned(self, msg, now, wall):

@@ -532,6 +532,16 @@ def test_arm_then_mission_start_at_once_with_mavsdk_items(link):
     assert acks(received())[-1].result == mavlink.MAV_RESULT_ACCEPTED
     assert m["types"] == ["takeoff", "goto", "hold", "goto"] and m["hold_s"][2] == 0.5
     assert bridge.flying_seq == [0, 0, 2, 3] and bridge.mode_name() == "mission"
+    # set current while flying it: the planner flies from there; the new mission is followed, not timed out
+    sp = setpoint(armed=True, phase="goto", z=2.0)
+    sp["item"] = 1
+    bridge.inputs["setpoint"] = sp
+    bridge.inputs["pos"]["position_m"] = [0.0, 0.0, 2.0]
+    bridge.mission_sent_wall = NOW - 100.0   # the first start, long ago
+    (kind, m), = send(gcs.mission_set_current_encode(1, 1, 3))
+    assert kind == "mission" and m["types"] == ["goto"] and bridge.flying_seq == [3]
+    bridge.tick(NOW + 1.0, NOW + 1.0)
+    assert bridge.mode_name() == "mission"
     # SET_MODE (the older message) to PX4's hold: accepted on the ground
     send(gcs.set_mode_encode(1, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, MODES["hold"]))
     assert bridge.mode_name() == "hold"
