@@ -109,6 +109,14 @@ def ned_to_geodetic(ned_m, home_lat_deg: float, home_lon_deg: float, home_alt_m:
     return lat, lon, home_alt_m - d
 
 
+def geodetic_to_ned(lat_deg: float, lon_deg: float, alt_m: float, home_lat_deg: float, home_lon_deg: float,
+                    home_alt_m: float) -> np.ndarray:
+    """(lat deg, lon deg, alt m AMSL) -> local NED (m) around home; the inverse of ned_to_geodetic."""
+    n = math.radians(lat_deg - home_lat_deg) * EARTH_RADIUS_M
+    e = math.radians(lon_deg - home_lon_deg) * EARTH_RADIUS_M * math.cos(math.radians(home_lat_deg))
+    return np.array([n, e, home_alt_m - alt_m])
+
+
 # ---- actuator controls (the motor driver's MAVLink output) ---------------------------
 def actuator_controls(allocation, max_thrust_n: float, forces_n) -> list[float]:
     """Mixer forces -> MAVLink actuator control group 0 (as PX4's): [roll, pitch, yaw]

@@ -16,7 +16,8 @@ Item types and their keys (defaults in ITEM_KEYS):
   arm       wait_s                      arm the motors, wait on the ground
   takeoff   altitude_m climb_rate_m_s tolerance_m
   hold      duration_s settle_s         hold the reference; measured after settle_s
-  goto      position_m yaw_deg settle_s hold_s    step the reference; measured after settle_s
+  goto      position_m yaw_deg settle_s hold_s acceptance_m   step the reference; measured after settle_s;
+            acceptance_m > 0 (a MAVLink waypoint): done hold_s after coming within acceptance_m
   attitude  roll_deg pitch_deg yaw_deg duration_s attitude reference, altitude held
   land      descent_rate_m_s            descend until landed, then disarm
   flip      method altitude_m settle_s timeout_s baseline_climb_m   a 360-degree roll flip
@@ -45,7 +46,7 @@ ITEM_KEYS: dict[str, dict] = {
     "arm": {"wait_s": 0.5},
     "takeoff": {"altitude_m": 1.0, "climb_rate_m_s": 0.5, "tolerance_m": 0.05},
     "hold": {"duration_s": 10.0, "settle_s": 1.0},
-    "goto": {"position_m": None, "yaw_deg": 0.0, "settle_s": 4.0, "hold_s": 2.0},
+    "goto": {"position_m": None, "yaw_deg": 0.0, "settle_s": 4.0, "hold_s": 2.0, "acceptance_m": 0.0},
     "attitude": {"roll_deg": 0.0, "pitch_deg": 0.0, "yaw_deg": 0.0, "duration_s": 1.0},
     "land": {"descent_rate_m_s": 0.5},
     "flip": {"method": "ilqr-project", "altitude_m": 5.0, "settle_s": 1.0, "timeout_s": 15.0,
@@ -164,6 +165,7 @@ class MissionRunner:
         self.ref = np.zeros(3)
         self.yaw = 0.0
         self.landed_since: float | None = None
+        self.reached_since: float | None = None  # goto with acceptance_m: first time within it
         self.ramp_from = 0.0
 
     def update(self, t: float, position, velocity) -> Setpoint:
@@ -182,7 +184,7 @@ class MissionRunner:
         if self.item_start_t is None:
             self.item_start_t = t
             self.ramp_from = float(self.ref[2])
-            self.landed_since = None
+            self.landed_since = self.reached_since = None
             if sp.mode == "attitude" and item["type"] != "attitude":
                 self.ref[:2] = position[:2]  # attitude steps drift: hold where they ended
         dt = t - self.item_start_t
@@ -224,6 +226,11 @@ class MissionRunner:
         sp.mode, sp.armed = "position", True
         self.ref = np.array(item["position_m"], dtype=float)
         self.yaw = math.radians(item["yaw_deg"])
+        if item["acceptance_m"] > 0.0:  # a waypoint: reached, then held hold_s
+            if self.reached_since is None and float(np.linalg.norm(pos - self.ref)) < item["acceptance_m"]:
+                self.reached_since = t
+            sp.phase, sp.measure = ("goto", False) if self.reached_since is None else ("hold", False)
+            return self.reached_since is not None and t - self.reached_since >= item["hold_s"]
         settled = dt >= item["settle_s"]
         sp.phase, sp.measure = ("hold", True) if settled else ("goto", False)
         return dt >= item["settle_s"] + item["hold_s"]
@@ -296,6 +303,26 @@ def command_items(command: str, altitude_m: float = 0.0, position_m=(0.0, 0.0, 0
     raise MissionError(f"command {command!r} not supported by this planner")
 
 
+def mission_items(msg: dict) -> list[dict]:
+    """planner/mission's parallel arrays -> mission items (see schemas PLANNER_MISSION)."""
+    items = []
+    for i, kind in enumerate(msg["types"]):
+        pos = [float(v) for v in msg["position_m"][3 * i:3 * i + 3]]
+        hold = float(msg["hold_s"][i])
+        if kind == "takeoff":
+            items.append({"type": "takeoff", "altitude_m": pos[2]})
+        elif kind == "goto":
+            items.append({"type": "goto", "position_m": pos, "yaw_deg": math.degrees(msg["yaw_rad"][i]),
+                          "settle_s": 0.0, "hold_s": hold, "acceptance_m": float(msg["acceptance_m"][i])})
+        elif kind == "hold":
+            items.append({"type": "hold", "settle_s": 0.0, "duration_s": hold})
+        elif kind == "land":
+            items.append({"type": "land"})
+        else:
+            items.append({"type": kind})
+    return items
+
+
 class Planner:
     """A mission file (or none: idle, waiting for commands) plus commands from
     outside (MAVLink) that replace whatever is being flown."""
@@ -326,6 +353,30 @@ class Planner:
                 runner.sp.armed = self.sp.armed
             self.runner, self.sp = runner, runner.sp
         self.last_command = command
+
+    def fly(self, items: list[dict], name: str = "uploaded") -> None:
+        """Fly a list of mission items (e.g. a MAVLink mission) from the next update; the
+        setpoint's `item` indexes this list. Raises MissionError for an item it cannot fly."""
+        checked = []
+        for i, raw in enumerate(items):
+            kind = raw.get("type")
+            if kind not in ITEM_KEYS:
+                raise MissionError(f"{name}: item {i}: type {kind!r} not one of {', '.join(ITEM_KEYS)}")
+            if kind == "flip" and self.flip is None:
+                raise MissionError(f"{name}: item {i}: this planner has no flip controller")
+            unknown = set(raw) - set(ITEM_KEYS[kind]) - {"type"}
+            if unknown:
+                raise MissionError(f"{name}: item {i}: unknown keys {sorted(unknown)} for {kind}")
+            checked.append({"type": kind, **ITEM_KEYS[kind], **raw})
+        if not checked:
+            raise MissionError(f"{name}: no items")
+        prev = self.runner
+        runner = MissionRunner(Mission(name, "", "", math.inf, tuple(checked)), self.flip)
+        if prev is not None:
+            runner.yaw = prev.yaw
+        runner.sp.mode, runner.sp.armed = self.sp.mode, self.sp.armed
+        self.runner, self.sp = runner, runner.sp
+        self.last_command = "mission"
 
     def update(self, t: float, position, velocity) -> Setpoint:
         if self.runner is None:

@@ -263,6 +263,38 @@ FLIP_METHODS = ("ilqr-project", "ilqr-thesis", "baseline")
 FLIP_PHASES = ("takeoff", "flip", "recovery", "settle")
 
 
+MISSION_ITEM_TYPES = ("takeoff", "goto", "hold", "land", "flip")
+
+
+def _mission_lengths(doc: dict) -> str | None:
+    n = len(doc["types"])
+    if n == 0:
+        return "no items"
+    for key, per in (("position_m", 3), ("yaw_rad", 1), ("hold_s", 1), ("acceptance_m", 1)):
+        if len(doc[key]) != per * n:
+            return f"{key} has {len(doc[key])} values for {n} items ({per} each)"
+    return None
+
+
+PLANNER_MISSION = Message(
+    "planner_mission", "planner/mission", 1,
+    "A mission for the planner to fly now (the MAVLink bridge's uploaded mission, from the "
+    "current item): it replaces whatever the planner is flying, and planner/setpoint's `item` "
+    "indexes these items. Per item: `takeoff` climbs to position_m[2]; `goto` flies to "
+    "position_m with yaw_rad, done hold_s after coming within acceptance_m; `hold` holds "
+    "hold_s (1e9: until the next command); `land` descends and disarms; `flip` flips (the "
+    "planner's flip controller).",
+    (
+        F("types", "str[]", "item types", choices=MISSION_ITEM_TYPES),
+        F("position_m", "float[]", "3 per item: target, world ENU", "m", min=-1e4, max=1e4),
+        F("yaw_rad", "float[]", "1 per item: yaw reference (ENU, 0 = east)", "rad", min=-7.0, max=7.0),
+        F("hold_s", "float[]", "1 per item: hold time", "s", min=0.0, max=1e9),
+        F("acceptance_m", "float[]", "1 per item: goto acceptance radius", "m", min=0.01, max=1e3),
+        F("origin", "str", "who sent it, for logs (e.g. 'mavlink:255/190')"),
+    ),
+    check=_mission_lengths,
+)
+
 def _plan_lengths(doc: dict) -> str | None:
     h, n = doc["horizon"], doc["state_dim"]
     for name, expected in (("states", (h + 1) * n), ("controls_rad_s", 4 * h), ("gains", 4 * h * n),
@@ -321,7 +353,7 @@ PARAM_SET = Message(
 ALL = (
     CLOCK, SYNC_DONE, IMU, BARO, MAG, CAMERA, TRUTH, VISION_POSE, PLANNER_SETPOINT,
     POSITION_SETPOINT, POSITION_STATE, ATTITUDE_COMMAND, ATTITUDE_STATE, MOTOR_PWM, HEALTH,
-    BATTERY, PLANNER_COMMAND, PARAM_SET, PLANNER_PLAN,
+    BATTERY, PLANNER_COMMAND, PARAM_SET, PLANNER_PLAN, PLANNER_MISSION,
 )
 
 BY_NAME = {m.name: m for m in ALL}

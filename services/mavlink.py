@@ -4,7 +4,8 @@ Like an autopilot it sends to the GCS port (`udpout:127.0.0.1:14550` by
 default) and answers whoever talks to it on that socket. Telemetry comes from
 the stack's messages (attitude and position state, IMU/baro/mag, battery,
 health of every service, planner setpoint); commands go to the planner as
-planner/command and parameter changes to the services as param/set. The
+planner/command, missions as planner/mission and parameter changes to the
+services as param/set. The
 logic lives in services/mavlink_logic.py; this shell owns the socket.
 
 It is a real-time service: it never takes part in lockstep (a GCS lives on
@@ -26,6 +27,7 @@ import zenoh
 import schemas
 from deploy.stack import SERVICE_MODULES
 from services.mavlink_logic import (
+    BRIDGE_PARAM_DEFAULTS,
     STREAMS,
     TUNABLE,
     Bridge,
@@ -50,6 +52,12 @@ PARAMS = {
     "signing_key_file": "",
     "rates_hz": {},  # per stream overrides, e.g. {ATTITUDE = 50.0}
     "max_messages_per_step": 200,  # bounded work per loop under a flood
+    # estimates converged (SYS_STATUS AHRS/GPS healthy, arming allowed): each axis' std below these
+    "converged_position_std_m": 0.1,
+    "converged_attitude_std_deg": 3.0,
+    # the bridge's own parameters, also over MAVLink with PX4's names (MIS_TAKEOFF_ALT, RTL_RETURN_ALT,
+    # NAV_ACC_RAD, COM_OF_LOSS_T): takeoff_alt_m, return_alt_m, acceptance_radius_m, offboard_timeout_s
+    **BRIDGE_PARAM_DEFAULTS,
 }
 INPUTS = {  # bridge input name -> (message, upstream)
     "att": (schemas.ATTITUDE_STATE, "attitude"), "pos": (schemas.POSITION_STATE, "position"),
@@ -86,6 +94,9 @@ def current_params(rt: Runtime) -> dict:
     """The stack's values of the tunable parameters (the stack file over each service's defaults)."""
     out = {}
     for service, key, *_ in TUNABLE:
+        if service == NAME:  # the bridge's own: its parameters as this run has them
+            out[(service, key)] = rt.params[key]
+            continue
         if service not in rt.stack.services:
             continue
         spec = rt.stack.services[service].params
@@ -108,7 +119,9 @@ def run(args) -> None:
     p = rt.params
     config = BridgeConfig(p["system_id"], p["component_id"], p["home_lat_deg"], p["home_lon_deg"], p["home_alt_m"],
                           p["gcs_timeout_s"], p["failsafe_hold_s"], p["health_timeout_s"],
-                          rates_hz=rates(p["rates_hz"], rt.where()))
+                          rates_hz=rates(p["rates_hz"], rt.where()),
+                          converged_position_std_m=p["converged_position_std_m"],
+                          converged_attitude_std_deg=p["converged_attitude_std_deg"])
     try:
         conn = mavutil.mavlink_connection(p["endpoint"], source_system=p["system_id"],
                                           source_component=p["component_id"], autoreconnect=True)
@@ -129,6 +142,7 @@ def run(args) -> None:
     subs: dict = {}
     command_out = rt.publisher(schemas.PLANNER_COMMAND)
     param_out = rt.publisher(schemas.PARAM_SET)
+    mission_out = rt.publisher(schemas.PLANNER_MISSION)
     bridge = Bridge(conn.mav, config, ParamTable(current_params(rt)), tuple(rt.stack.services), rt.rejected,
                     t_origin_s=0.0 if lockstep else time.time(), problem=rt.problem)
 
@@ -146,6 +160,8 @@ def run(args) -> None:
         for kind, fields in actions:
             if kind == "command":
                 command_out.put(fields)
+            elif kind == "mission":
+                mission_out.put(fields)
             else:
                 param_out.put(fields)
 

@@ -3,7 +3,9 @@
 Publishes planner/setpoint at its rate from the phase machine in
 flight/mission.py, fed by the position level's state. It also follows
 planner/command (from the MAVLink bridge): a command replaces whatever is
-being flown. Mission "none" (or ""): idle on the ground, waiting for commands.
+being flown, and planner/mission (the bridge's uploaded MAVLink mission): a list
+of items flown from the next tick. Mission "none" (or ""): idle on the ground,
+waiting for commands.
 
 Flip items (document 001): when the mission has one, the flip controller of each
 method it names is built at start-up (the iLQR compiled and warmed up before the
@@ -28,7 +30,7 @@ from dataclasses import replace
 import numpy as np
 
 import schemas
-from flight.mission import FLIP_METHODS, MissionError, Planner, load_mission
+from flight.mission import FLIP_METHODS, MissionError, Planner, load_mission, mission_items
 from flight.plan import body_state, motor_forces_update, scale_collective
 from services.runtime import Runtime, main_guard, service_parser
 
@@ -92,6 +94,7 @@ def run(args) -> None:
     controllers = flip_controllers(rt, mission)   # at normal scheduling: the runtime raises it for the loop
     state = rt.inbox(schemas.POSITION_STATE, "position")
     commands = rt.inbox(schemas.PLANNER_COMMAND, "mavlink", keep=16)
+    missions = rt.inbox(schemas.PLANNER_MISSION, "mavlink", keep=4)
     out = rt.publisher(schemas.PLANNER_SETPOINT)
     reported = {"state": None}
     flip = {"t": 0.0, "x": None, "plan": None, "steps": 0, "active": None}
@@ -147,6 +150,14 @@ def run(args) -> None:
                 rt.problem(f"command {c['command']} from {c['origin']} refused: {exc}")
                 continue
             print(f"zenpilot-planner: command {c['command']} from {c['origin']}", flush=True)
+        for m in missions.take():  # after the commands: a mission and a command in one tick -> the mission
+            try:
+                planner.fly(mission_items(m), f"mission from {m['origin']}")
+            except MissionError as exc:
+                rt.rejected["mission_refused"] = rt.rejected.get("mission_refused", 0) + 1
+                rt.problem(f"mission from {m['origin']} refused: {exc}")
+                continue
+            print(f"zenpilot-planner: mission of {len(m['types'])} items from {m['origin']}", flush=True)
 
     def step(t: float) -> None:
         follow_commands()

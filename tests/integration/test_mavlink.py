@@ -147,6 +147,9 @@ def takeoff(gcs, altitude_m):
     assert ack.result == mavlink.MAV_RESULT_ACCEPTED, ack
     gcs.wait("HEARTBEAT", lambda m: m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
     ack = gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, altitude_m)
+    assert ack.result == mavlink.MAV_RESULT_IN_PROGRESS, ack   # a long command: progress, then the result
+    ack = gcs.wait("COMMAND_ACK", lambda m: m.command == mavlink.MAV_CMD_NAV_TAKEOFF
+                   and m.result != mavlink.MAV_RESULT_IN_PROGRESS, timeout=40.0)
     assert ack.result == mavlink.MAV_RESULT_ACCEPTED, ack
     gcs.wait("LOCAL_POSITION_NED", lambda m: abs(m.z + altitude_m) < 0.08, timeout=40.0)
 
@@ -163,11 +166,12 @@ def test_gcs_arms_takes_off_holds_lands(stack):
     gcs, truth, health, run_dir = stack
     hb = gcs.wait("HEARTBEAT", timeout=20.0)
     assert hb.type == mavlink.MAV_TYPE_QUADROTOR and hb.get_srcComponent() == 1
+    assert hb.autopilot == mavlink.MAV_AUTOPILOT_PX4
     assert not hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
     assert gcs.command(31000).result == mavlink.MAV_RESULT_UNSUPPORTED
     gcs.wait("LOCAL_POSITION_NED")
     takeoff(gcs, 2.0)
-    ack = gcs.command(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 3)  # HOLD
+    ack = gcs.command(mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 4, 3)  # PX4 hold
     assert ack.result == mavlink.MAV_RESULT_ACCEPTED
     gcs.wait("EXTENDED_SYS_STATE", lambda m: m.landed_state == mavlink.MAV_LANDED_STATE_IN_AIR)
     # telemetry matches the truth within the estimation error (truth-state ablation: within what

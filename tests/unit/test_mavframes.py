@@ -81,6 +81,9 @@ def test_geodetic_offsets():
     assert lat == pytest.approx(47.001, abs=1e-5) and lon == pytest.approx(8.0) and alt == pytest.approx(410.0)
     _, lon2, _ = mf.ned_to_geodetic([0.0, 100.0, 0.0], 47.0, 8.0, 400.0)
     assert lon2 > 8.0
+    ned = [12.5, -30.25, -7.0]
+    back = mf.geodetic_to_ned(*mf.ned_to_geodetic(ned, 47.0, 8.0, 400.0), 47.0, 8.0, 400.0)
+    assert back == pytest.approx(ned, abs=1e-9)
 
 
 def test_actuator_controls_normalise_in_frd():

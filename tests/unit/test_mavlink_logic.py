@@ -7,9 +7,10 @@ import pytest
 
 from flight.quat import quat_from_euler
 from services.mavlink_logic import (
-    MODE_NUMBERS,
+    MODES,
     STREAMS,
     Bridge,
+    BRIDGE_PARAM_DEFAULTS,
     BridgeConfig,
     LinkFailsafe,
     ParamTable,
@@ -34,7 +35,7 @@ def header(t=NOW):
 def setpoint(armed=False, phase="waiting", z=0.0):
     return {"header": header(), "mode": "position" if armed else "idle", "armed": armed,
             "position_m": [0.0, 0.0, z], "attitude_rad": [0.0, 0.0, 0.3], "item": 0, "phase": phase,
-            "measure": False, "mission_state": "running"}
+            "measure": False, "mission_state": "waiting" if phase == "waiting" else "running"}
 
 
 def healthy(bridge, services=("sim", "attitude", "position", "motors", "planner", "vision")):
@@ -111,8 +112,9 @@ def test_streams_carry_ned_frd_telemetry(link):
     bridge.tick(NOW, NOW)
     got = {m.get_type(): m for m in received()}
     hb = got["HEARTBEAT"]
-    assert hb.type == mavlink.MAV_TYPE_QUADROTOR and hb.autopilot == mavlink.MAV_AUTOPILOT_GENERIC
-    assert not hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED and hb.custom_mode == MODE_NUMBERS["IDLE"]
+    assert hb.type == mavlink.MAV_TYPE_QUADROTOR and hb.autopilot == mavlink.MAV_AUTOPILOT_PX4
+    assert not hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED and hb.custom_mode == MODES["hold"]
+    assert hb.custom_mode == (4 << 16) | (3 << 24)  # PX4's AUTO.LOITER: MAVSDK's "Hold"
     att = got["ATTITUDE"]
     assert att.roll == pytest.approx(0.1) and att.pitch == pytest.approx(0.2)  # nose-up: + in FRD
     assert att.yaw == pytest.approx(math.pi / 2)  # ENU yaw 0 = east = 90 deg in NED
@@ -148,26 +150,52 @@ def test_arm_takeoff_land_disarm_commands(link):
     # takeoff before arming: rejected
     send(long(gcs, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0))
     assert acks(received())[0].result == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-    actions = send(long(gcs, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0))
+    # MAVSDK's arm: NaN in the unused param2 ("no value", the command protocol)
+    actions = send(long(gcs, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0, math.nan, math.nan))
     assert acks(received())[0].result == mavlink.MAV_RESULT_ACCEPTED
     assert actions == [("command", {"command": "arm", "altitude_m": 0.0, "position_m": [0.0, 0.0, 0.0],
                                     "yaw_rad": 0.0, "origin": "mavlink:255/190"})]
+    send(long(gcs, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, math.nan))  # the used param1: no default
+    assert acks(received())[0].result == mavlink.MAV_RESULT_DENIED
     bridge.inputs["setpoint"] = setpoint(armed=True, phase="arm")
-    actions = send(long(gcs, mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0))
-    assert acks(received())[0].result == mavlink.MAV_RESULT_ACCEPTED
+    # NaN altitude (MAVSDK with PX4): MIS_TAKEOFF_ALT; IN_PROGRESS until the planner's takeoff is done
+    actions = send(long(gcs, mavlink.MAV_CMD_NAV_TAKEOFF, *[math.nan] * 7))
+    ack = acks(received())[0]
+    assert ack.result == mavlink.MAV_RESULT_IN_PROGRESS and ack.progress == 0
     assert actions[0][1]["command"] == "takeoff" and actions[0][1]["altitude_m"] == 2.0
+    bridge.inputs["setpoint"] = setpoint(armed=True, phase="takeoff", z=1.0)
+    bridge.inputs["pos"]["position_m"] = [0.0, 0.0, 1.0]
+    assert send(long(gcs, mavlink.MAV_CMD_NAV_TAKEOFF, *[math.nan] * 7)) == []  # a repeat: still climbing
+    ack = acks(received())[0]
+    assert ack.result == mavlink.MAV_RESULT_IN_PROGRESS and ack.progress == 50
+    hb = [m for m in (bridge.send_stream("HEARTBEAT", NOW, NOW), received())[1] if m.get_type() == "HEARTBEAT"][-1]
+    assert hb.custom_mode == MODES["takeoff"]
     bridge.inputs["setpoint"] = setpoint(armed=True, phase="hold", z=2.0)
     bridge.inputs["pos"]["position_m"] = [0.0, 0.0, 2.0]
+    bridge.tick(NOW + 1.0, NOW + 1.0)
+    final = [a for a in acks(received()) if a.command == mavlink.MAV_CMD_NAV_TAKEOFF]
+    assert [a.result for a in final] == [mavlink.MAV_RESULT_ACCEPTED] and final[0].target_system == 255
     # disarm in the air: denied unless forced
     send(long(gcs, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0.0))
     assert acks(received())[0].result == mavlink.MAV_RESULT_DENIED
     assert send(long(gcs, mavlink.MAV_CMD_NAV_LOITER_UNLIM))[0][1]["command"] == "hold"
     assert send(long(gcs, mavlink.MAV_CMD_NAV_LAND))[0][1]["command"] == "land"
+    bridge.mode = "hold"
+    # DO_SET_MODE as MAVSDK sends it for PX4: param2 main mode (AUTO), param3 sub mode (LAND)
     assert send(long(gcs, mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
-                     MODE_NUMBERS["LAND"]))[0][1]["command"] == "land"
+                     4, 6, math.nan))[0][1]["command"] == "land"
     received()
-    send(long(gcs, mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 99))
-    assert acks(received())[0].result == mavlink.MAV_RESULT_DENIED
+    send(long(gcs, mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 1))  # MANUAL
+    msgs = received()
+    assert acks(msgs)[0].result == mavlink.MAV_RESULT_DENIED
+    assert any(m.get_type() == "STATUSTEXT" and "not flown" in m.text for m in msgs)
+    send(long(gcs, mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 4, 4))  # MISSION
+    msgs = received()
+    assert acks(msgs)[0].result == mavlink.MAV_RESULT_DENIED
+    assert any(m.get_type() == "STATUSTEXT" and "no mission" in m.text for m in msgs)
+    rtl = send(long(gcs, mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH))
+    assert rtl[0][0] == "mission" and rtl[0][1]["types"] == ["goto", "land"]
+    assert rtl[0][1]["position_m"][:3] == [0.0, 0.0, 2.0] and bridge.mode_name() == "return"
     forced = send(long(gcs, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0.0, 21196.0))
     assert forced[0][1]["command"] == "disarm"
 
@@ -220,26 +248,190 @@ def test_parameter_protocol(link):
     assert actions == [("param", {"service": "attitude", "key": "k", "value": [16.0, 12.0, 16.0]})]
     v = received()[0]
     assert v.param_id == "ATT_K_P" and v.param_value == 12.0
-    # out of bounds: refused, the old value echoed
+    # out of bounds: refused (PARAM_ERROR), the old value echoed
     assert send(gcs.param_set_encode(1, 1, b"ATT_K_P", -5.0, mavlink.MAV_PARAM_TYPE_REAL32)) == []
-    assert [m.param_value for m in received() if m.get_type() == "PARAM_VALUE"] == [12.0]
+    msgs = received()
+    assert [m.param_value for m in msgs if m.get_type() == "PARAM_VALUE"] == [12.0]
+    assert [m.error for m in msgs if m.get_type() == "PARAM_ERROR"] == [mavlink.MAV_PARAM_ERROR_VALUE_OUT_OF_RANGE]
     assert send(gcs.param_set_encode(1, 1, b"NO_SUCH", 1.0, mavlink.MAV_PARAM_TYPE_REAL32)) == []
-    assert counts["mavlink_unknown_param"] == 1 and counts["mavlink_bad_value"] == 1
+    # an unknown name is answered at once: PARAM_ERROR (DOES_NOT_EXIST), to the asker
+    send(gcs.param_request_read_encode(1, 1, b"NOT_THERE", -1))
+    errors = [m for m in received() if m.get_type() == "PARAM_ERROR"]
+    assert errors[-1].param_id == "NOT_THERE" and errors[-1].error == mavlink.MAV_PARAM_ERROR_DOES_NOT_EXIST
+    assert errors[-1].target_system == 255
+    send(gcs.param_request_read_encode(1, 1, b"", 99))  # by index, past the end
+    assert [m.get_type() for m in received()] == ["PARAM_ERROR"]
+    assert counts["mavlink_unknown_param"] == 3 and counts["mavlink_bad_value"] == 1
 
 
-def test_offboard_position_target(link):
+def test_bridge_parameters_come_from_the_one_table():
+    from services.mavlink import PARAMS
+    table = ParamTable({("mavlink", k): PARAMS[k] for k in BRIDGE_PARAM_DEFAULTS})
+    assert [r["name"] for r in table.rows] == ["MIS_TAKEOFF_ALT", "RTL_RETURN_ALT", "NAV_ACC_RAD", "COM_OF_LOSS_T"]
+    assert table.own("takeoff_alt_m") == PARAMS["takeoff_alt_m"]
+
+
+def test_offboard_position_and_velocity_targets_with_timeout(link):
     bridge, gcs, send, received, counts = link
-    target = gcs.set_position_target_local_ned_encode(0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, 0b110111111000,
+    position = 0b110111111000   # MAVSDK's set_position_ned: position and yaw
+    target = gcs.set_position_target_local_ned_encode(0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, position,
                                                       1.0, 2.0, -3.0, 0, 0, 0, 0, 0, 0, 0, 0)
-    assert send(target) == [] and counts["mavlink_target_not_flying"] == 1
+    offboard = long(gcs, mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 6)
+    send(offboard)  # no setpoint streamed yet: refused, as PX4 does
+    assert acks(received())[0].result == mavlink.MAV_RESULT_DENIED
     bridge.inputs["setpoint"] = setpoint(armed=True, phase="hold", z=2.0)
     bridge.inputs["pos"]["position_m"] = [0.0, 0.0, 2.0]
-    (kind, cmd), = send(target)
+    assert send(target) == []                  # kept, not flown: not in offboard mode
+    assert bridge.tick(NOW, NOW) == []
+    send(offboard)
+    assert acks(received())[0].result == mavlink.MAV_RESULT_ACCEPTED
+    (kind, cmd), = bridge.tick(NOW + 0.02, NOW + 0.02)
     assert kind == "command" and cmd["command"] == "goto"
     assert cmd["position_m"] == pytest.approx([2.0, 1.0, 3.0]) and cmd["yaw_rad"] == pytest.approx(0.3)
+    send(target)
+    assert bridge.tick(NOW + 0.04, NOW + 0.04) == []  # the same target again: nothing new
+    hb = [m for m in (bridge.send_stream("HEARTBEAT", NOW, NOW), received())[1] if m.get_type() == "HEARTBEAT"][-1]
+    assert hb.custom_mode == MODES["offboard"]
+    # velocity (MAVSDK's set_velocity_ned): the target moves at it on the stack's clock
+    velocity = 0b110111000111
+    bridge.inputs["pos"]["position_m"] = [2.0, 1.0, 3.0]
+    send(gcs.set_position_target_local_ned_encode(0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, velocity,
+                                                  0, 0, 0, 1.0, 0.0, 0.0, 0, 0, 0, 0, 0))  # north 1 m/s
+    (_, cmd), = bridge.tick(NOW + 0.14, NOW + 0.14)
+    assert cmd["position_m"] == pytest.approx([2.0, 1.1, 3.0])
+    # setpoints stop: after COM_OF_LOSS_T the vehicle holds
+    actions = bridge.tick(NOW + 1.5, NOW + 1.5)
+    assert actions[-1][1]["command"] == "hold" and bridge.mode_name() == "hold"
     nan = gcs.set_position_target_local_ned_encode(0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, 0, math.nan, 0, 0,
                                                    0, 0, 0, 0, 0, 0, 0, 0)
     assert send(nan) == [] and counts["mavlink_bad_value"] == 1
+
+
+def upload(send, received, gcs, items):
+    """The GCS side of a mission upload; returns the final MISSION_ACK."""
+    send(gcs.mission_count_encode(1, 1, len(items), 0))
+    while True:
+        msgs = received()
+        ack = [m for m in msgs if m.get_type() == "MISSION_ACK"]
+        if ack:
+            return ack[0]
+        req = [m for m in msgs if m.get_type() == "MISSION_REQUEST_INT"]
+        assert req, [m.get_type() for m in msgs]
+        send(items[req[0].seq])
+
+
+def waypoint(gcs, seq, north, east, up, command=16, frame=6, p1=0.0):
+    from flight.mavframes import ned_to_geodetic
+    lat, lon, _ = ned_to_geodetic([north, east, -up], 47.397742, 8.545594, 488.0)
+    return gcs.mission_item_int_encode(1, 1, seq, frame, command, 0, 1, p1, math.nan, math.nan, math.nan,
+                                       int(round(lat * 1e7)), int(round(lon * 1e7)), up, 0)
+
+
+def test_mission_upload_download_fly_reached_clear(link):
+    bridge, gcs, send, received, counts = link
+    healthy(bridge)
+    items = [waypoint(gcs, 0, 0.0, 0.0, 2.0), waypoint(gcs, 1, 2.0, 0.0, 2.0, p1=1.0),
+             waypoint(gcs, 2, 2.0, 2.0, 2.0), gcs.mission_item_int_encode(1, 1, 3, 2, 178, 0, 1, 1, 1.5, -1, 0, 0, 0, 0, 0),
+             gcs.mission_item_int_encode(1, 1, 4, 2, mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH, 0, 1, 0, 0, 0, 0, 0, 0, 0, 0)]
+    assert upload(send, received, gcs, items).type == mavlink.MAV_MISSION_ACCEPTED
+    # downloaded as uploaded
+    send(gcs.mission_request_list_encode(1, 1, 0))
+    assert [m.count for m in received() if m.get_type() == "MISSION_COUNT"] == [5]
+    send(gcs.mission_request_int_encode(1, 1, 1, 0))
+    item = [m for m in received() if m.get_type() == "MISSION_ITEM_INT"][0]
+    assert (item.seq, item.x, item.y, item.z, item.param1) == (1, items[1].x, items[1].y, 2.0, 1.0)
+    # start on the ground, armed: the planner gets a takeoff first, then the waypoints (ENU), RTL as goto + land
+    bridge.inputs["setpoint"] = setpoint(armed=True, phase="arm")
+    bridge.inputs["pos"]["position_m"] = [0.0, 0.0, 0.0]
+    (kind, m), = send(long(gcs, mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 4, 4))
+    assert acks(received())[0].result == mavlink.MAV_RESULT_ACCEPTED
+    assert kind == "mission" and m["types"] == ["takeoff", "goto", "goto", "goto", "goto", "land"]
+    # lat/lon in 1e-7 degrees: ~1 cm
+    assert m["position_m"][3:6] == pytest.approx([0.0, 0.0, 2.0], abs=0.01)
+    assert m["position_m"][6:9] == pytest.approx([0.0, 2.0, 2.0], abs=0.01)    # 2 m north = ENU y
+    assert m["hold_s"][2] == 1.0 and m["acceptance_m"][1] == 0.3
+    assert bridge.flying_seq == [0, 0, 1, 2, 4, 4]
+
+    def at(item, state="running", phase="goto"):
+        sp = setpoint(armed=True, phase=phase, z=2.0)
+        sp["item"], sp["mission_state"] = item, state
+        bridge.inputs["setpoint"] = sp
+        bridge.tick(NOW, NOW)
+        return received()
+    at(0, phase="arm")              # the planner has not taken it yet: nothing
+    assert not bridge.mission_live
+    msgs = at(0, phase="takeoff")
+    assert bridge.mission_live and not [m for m in msgs if m.get_type() == "MISSION_ITEM_REACHED"]
+    msgs = at(2)
+    assert [m.seq for m in msgs if m.get_type() == "MISSION_ITEM_REACHED"] == [0]
+    assert [m.seq for m in msgs if m.get_type() == "MISSION_CURRENT"][-1] == 1
+    msgs = at(4)
+    assert [m.seq for m in msgs if m.get_type() == "MISSION_ITEM_REACHED"] == [1, 2, 3]
+    msgs = at(5, state="completed", phase="landed")
+    assert [m.seq for m in msgs if m.get_type() == "MISSION_ITEM_REACHED"] == [4]
+    current = [m for m in msgs if m.get_type() == "MISSION_CURRENT"][-1]
+    assert current.seq == 5 and current.total == 5 and current.mission_state == mavlink.MISSION_STATE_COMPLETE
+    # set current and clear
+    send(gcs.mission_set_current_encode(1, 1, 2))
+    assert [m.seq for m in received() if m.get_type() == "MISSION_CURRENT"] == [2]
+    send(gcs.mission_clear_all_encode(1, 1, 0))
+    assert [m.type for m in received() if m.get_type() == "MISSION_ACK"] == [mavlink.MAV_MISSION_ACCEPTED]
+    send(gcs.mission_request_list_encode(1, 1, 0))
+    assert [m.count for m in received() if m.get_type() == "MISSION_COUNT"] == [0]
+
+
+def test_mission_upload_refuses_what_it_cannot_fly(link):
+    bridge, gcs, send, received, _ = link
+    bad = [waypoint(gcs, 0, 1.0, 0.0, 2.0), waypoint(gcs, 1, 0.0, 0.0, 2.0, command=mavlink.MAV_CMD_DO_DIGICAM_CONTROL)]
+    assert upload(send, received, gcs, bad).type == mavlink.MAV_MISSION_UNSUPPORTED
+    frame = [waypoint(gcs, 0, 1.0, 0.0, 2.0, frame=mavlink.MAV_FRAME_BODY_FRD)]
+    assert upload(send, received, gcs, frame).type == mavlink.MAV_MISSION_UNSUPPORTED_FRAME
+    send(gcs.mission_count_encode(1, 1, 1, mavlink.MAV_MISSION_TYPE_FENCE))  # fences: not supported
+    assert [m.type for m in received() if m.get_type() == "MISSION_ACK"] == [mavlink.MAV_MISSION_UNSUPPORTED]
+    # local NED items (MISSION_ITEM_INT: metres * 1e4)
+    local = [gcs.mission_item_int_encode(1, 1, 0, mavlink.MAV_FRAME_LOCAL_NED, 16, 0, 1, 0, 0, 0, math.nan,
+                                         10000, 20000, -3.0, 0)]
+    assert upload(send, received, gcs, local).type == mavlink.MAV_MISSION_ACCEPTED
+    assert bridge.item_to_enu(bridge.mission.items[0]) == pytest.approx([2.0, 1.0, 3.0])
+    # an upload that stops: asked again, then cancelled
+    send(gcs.mission_count_encode(1, 1, 3, 0))
+    received()
+    for k in range(1, 7):
+        bridge.retry_upload(NOW + 1.01 * k)
+    msgs = received()
+    assert len([m for m in msgs if m.get_type() == "MISSION_REQUEST_INT"]) == 5
+    assert [m.type for m in msgs if m.get_type() == "MISSION_ACK"] == [mavlink.MAV_MISSION_OPERATION_CANCELLED]
+    assert len(bridge.mission.items) == 1  # the mission before the failed upload is kept
+
+
+def test_is_armable_follows_estimates_and_checks(link):
+    """SYS_STATUS's PREARM_CHECK bit (MAVSDK's health.is_armable): services healthy, estimates fresh and
+    converged; a failure is said in STATUSTEXT."""
+    bridge, gcs, send, received, _ = link
+
+    def status():
+        bridge.send_stream("SYS_STATUS", NOW, NOW)
+        st = [m for m in received() if m.get_type() == "SYS_STATUS"][0]
+        bit = mavlink.MAV_SYS_STATUS_PREARM_CHECK
+        assert st.onboard_control_sensors_present & bit and st.onboard_control_sensors_enabled & bit
+        return st
+    assert not status().onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK
+    bridge.tick(NOW, NOW)
+    assert any(m.get_type() == "STATUSTEXT" and m.text.startswith("Preflight Fail") for m in received())
+    healthy(bridge)
+    st = status()
+    assert st.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK
+    assert st.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_SENSOR_GPS
+    bridge.inputs["pos"]["position_cov_m2"] = [0.25, 0, 0, 0, 0.25, 0, 0, 0, 0.25]  # 0.5 m std: not converged
+    bridge.inputs["pos"]["velocity_m_s"] = [0.0, 0.0, 0.0]
+    st = status()   # at rest on the ground, vision running: armable, the estimate not yet converged
+    assert st.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK
+    assert not st.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_SENSOR_GPS
+    bridge.health["vision"] = (NOW - 10.0, {"state": "running"})   # and without vision: not armable
+    st = status()
+    assert not st.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK
+    assert not st.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_SENSOR_GPS
+    assert bridge.arming_blocker(NOW, NOW) == "position estimate not converged"
 
 
 def test_link_failsafe_holds_then_lands():
@@ -322,3 +514,34 @@ def test_highres_imu_and_battery_in_frd_and_si(link):
     assert imu.zacc == pytest.approx(-9.81) and imu.ygyro == pytest.approx(-0.2) and imu.abs_pressure == 1000.0
     assert imu.time_usec == 99998000
     assert bat.voltages[:4] == [3700, 3700, 3700, 65535] and bat.current_battery == 800 and bat.battery_remaining == 90
+
+
+def test_arm_then_mission_start_at_once_with_mavsdk_items(link):
+    """MAVSDK's mission example: arm, then start at once (the planner has not shown the arm yet);
+    its items carry DO_CHANGE_SPEED and NAV_DELAY (loiter_time_s)."""
+    bridge, gcs, send, received, _ = link
+    healthy(bridge)
+    items = [waypoint(gcs, 0, 0.0, 0.0, 2.0),
+             gcs.mission_item_int_encode(1, 1, 1, 2, mavlink.MAV_CMD_DO_CHANGE_SPEED, 0, 1, 1, 1.0, -1, 0, 0, 0, 0, 0),
+             gcs.mission_item_int_encode(1, 1, 2, 2, mavlink.MAV_CMD_NAV_DELAY, 0, 1, 0.5, -1, -1, -1, 0, 0, 0, 0),
+             waypoint(gcs, 3, 2.0, 0.0, 2.0)]
+    assert upload(send, received, gcs, items).type == mavlink.MAV_MISSION_ACCEPTED
+    assert send(long(gcs, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0, math.nan))[0][1]["command"] == "arm"
+    assert bridge.inputs["setpoint"]["armed"] is False        # not shown by the planner yet
+    (kind, m), = send(long(gcs, mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 4, 4))
+    assert acks(received())[-1].result == mavlink.MAV_RESULT_ACCEPTED
+    assert m["types"] == ["takeoff", "goto", "hold", "goto"] and m["hold_s"][2] == 0.5
+    assert bridge.flying_seq == [0, 0, 2, 3] and bridge.mode_name() == "mission"
+    # set current while flying it: the planner flies from there; the new mission is followed, not timed out
+    sp = setpoint(armed=True, phase="goto", z=2.0)
+    sp["item"] = 1
+    bridge.inputs["setpoint"] = sp
+    bridge.inputs["pos"]["position_m"] = [0.0, 0.0, 2.0]
+    bridge.mission_sent_wall = NOW - 100.0   # the first start, long ago
+    (kind, m), = send(gcs.mission_set_current_encode(1, 1, 3))
+    assert kind == "mission" and m["types"] == ["goto"] and bridge.flying_seq == [3]
+    bridge.tick(NOW + 1.0, NOW + 1.0)
+    assert bridge.mode_name() == "mission"
+    # SET_MODE (the older message) to PX4's hold: accepted on the ground
+    send(gcs.set_mode_encode(1, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, MODES["hold"]))
+    assert bridge.mode_name() == "hold"

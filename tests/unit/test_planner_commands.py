@@ -44,3 +44,31 @@ def test_disarm_and_refused_commands():
     assert not sp.armed and sp.mode == "idle" and sp.phase == "disarmed"
     with pytest.raises(MissionError):
         p.command("takeoff", altitude_m=0.0)
+
+
+def test_uploaded_mission_flies_waypoints_by_acceptance_then_lands():
+    from flight.mission import mission_items
+    msg = {"types": ["takeoff", "goto", "goto", "land"],
+           "position_m": [0, 0, 2.0, 1.0, 0, 2.0, 1.0, 1.0, 2.0, 0, 0, 0], "yaw_rad": [0.0, 0.0, 0.5, 0.0],
+           "hold_s": [0.0, 1.0, 0.0, 0.0], "acceptance_m": [0.3] * 4, "origin": "test"}
+    p = Planner(None)
+    p.command("arm")
+    fly(p, 0.0, 0.5, lambda sp: 0.0)
+    p.fly(mission_items(msg))
+    pos = [0.0, 0.0, 0.0]
+    items_seen, t = [], 0.5
+    while t < 40.0 and p.sp.mission_state != "completed":
+        # a vehicle that moves towards its reference at 1 m/s
+        ref = p.sp.position_m
+        pos = [x + max(-0.02, min(0.02, r - x)) for x, r in zip(pos, ref)]
+        pos[2] = max(pos[2], 0.0)
+        sp = p.update(t, pos, [0.0, 0.0, 0.0])
+        if not items_seen or items_seen[-1] != sp.item:
+            items_seen.append(sp.item)
+        t += 0.02
+    assert items_seen == [0, 1, 2, 3]
+    assert p.sp.phase == "landed" and not p.sp.armed and p.sp.mission_state == "completed"
+    with pytest.raises(MissionError):
+        p.fly([{"type": "flip"}])   # no flip controller
+    with pytest.raises(MissionError):
+        p.fly([])

@@ -130,6 +130,8 @@ def valid_values(m):
         h, n = 2, 13
         out.update(horizon=h, state_dim=n, states=[0.0] * ((h + 1) * n), controls_rad_s=[1.0] * (4 * h), gains=[0.0] * (4 * h * n),
                    target_roll_rad=[0.0] * h)
+    if m is schemas.PLANNER_MISSION:  # two items: 3 positions each
+        out.update(position_m=[1.0] * 6)
     return out
 
 
