@@ -131,6 +131,11 @@ class Launcher:
         return argv
 
     def start_services(self, names: list[str]) -> None:
+        if self.stack.security is not None:   # another machine's login would have no way to its peers
+            elsewhere = [n for n in names if self.stack.service(n).machine != self.machine]
+            if elsewhere:
+                raise StackError(f"{self.stack.path}: with [security] a machine starts only its own services "
+                                 f"(`zenpilot up --machine NAME`); not here: {', '.join(elsewhere)}")
         # the recorder first so it sees everything; the simulator last, it drives the clock
         order = sorted(names, key=lambda n: (n != "recorder", n == "sim"))
         for name in order:
