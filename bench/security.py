@@ -82,10 +82,11 @@ def session(stack_path: Path | None, machine: str, connect: list[str], listen: l
 
 
 class Procs(list):
-    def start(self, argv: list[str]) -> None:
+    def start(self, argv: list[str]) -> subprocess.Popen:
         env = dict(os.environ, ZENOH_RUNTIME=ZENOH_RUNTIME)
         self.append(subprocess.Popen([sys.executable, *argv], cwd=ROOT, env=env,
                                      stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT))
+        return self[-1]
 
     def stop(self) -> None:
         for p in self:
@@ -94,19 +95,21 @@ class Procs(list):
             p.wait(10)
 
 
-def router(procs: Procs, stack: Path, machine: str, no_acl: bool = False) -> None:
+def router(procs: Procs, stack: Path, machine: str, no_acl: bool = False) -> subprocess.Popen:
     argv = ["-m", "deploy.router", "--stack", str(stack), "--machine", machine]
     if no_acl:
         argv = [str(Path(__file__)), "--router-without-acl", str(stack), machine]
-    procs.start(argv)
+    proc = procs.start(argv)
     m = load_stack(stack).machines[machine]
     for e in (m.router, *m.listen):
         if not wait_port(e, 15):
             raise SystemExit(f"security bench: router {machine} did not open {e}")
+    return proc
 
 
-def build(folder: Path, procs: Procs) -> dict[str, tuple[zenoh.Session, zenoh.Session, str, str]]:
-    """Every path's (A, B, key B sends on, key A answers on)."""
+def build(folder: Path, procs: Procs, routers: dict[str, int]) -> dict[str, tuple[zenoh.Session, zenoh.Session, str, str]]:
+    """Every path's (A, B, key B sends on, key A answers on); `routers` gets each split's
+    vehicle router's pid."""
     keys = ("zp/0/planner/setpoint", "zp/0/att/state")
     stacks = {"local": write_stack(folder, "local", None, False),
               "local-secure": write_stack(folder, "local-secure", None, True)}
@@ -123,12 +126,45 @@ def build(folder: Path, procs: Procs) -> dict[str, tuple[zenoh.Session, zenoh.Se
     a = session(None, "vehicle", [], [f"tcp/127.0.0.1:{port}"])
     out["split-open"] = (a, session(None, "ground", [f"tcp/127.0.0.1:{port}"]), *keys)
     for name in ("split-tcp", "split-tls", "split-secure"):
-        router(procs, stacks[name], "vehicle", no_acl=name == "split-tls")
+        routers[name] = router(procs, stacks[name], "vehicle", no_acl=name == "split-tls").pid
         router(procs, stacks[name], "ground")
         ms = load_stack(stacks[name]).machines
         out[name] = (session(stacks[name], "vehicle", [ms["vehicle"].router]),
                      session(stacks[name], "ground", [ms["ground"].router]), *keys)
     return out
+
+
+def cpu_s(pid: int) -> float:
+    f = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+
+
+class Burst:
+    """B sends `n` messages as fast as the link takes them (congestion control: block, so none
+    is lost); the vehicle router's CPU time over the burst, per message A received."""
+
+    def __init__(self, a: zenoh.Session, b: zenoh.Session, key: str = "zp/0/planner/plan"):
+        self.received = 0
+        self.done = threading.Event()
+        self.expected = 0
+
+        def count(_sample) -> None:
+            self.received += 1
+            if self.received >= self.expected:
+                self.done.set()
+        a.declare_subscriber(key, zenoh.handlers.Callback(count, indirect=False))
+        self.pub = b.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+        self.body = bytes(100)
+
+    def run(self, n: int, router_pid: int) -> float:
+        self.received, self.expected = 0, n
+        self.done.clear()
+        c0 = cpu_s(router_pid)
+        for _ in range(n):
+            self.pub.put(self.body)
+        if not self.done.wait(60.0):
+            raise SystemExit(f"security bench: burst: {self.received} of {n} received")
+        return (cpu_s(router_pid) - c0) / n
 
 
 class Pinger:
@@ -154,6 +190,7 @@ def main(argv=None) -> None:
     p.add_argument("--rounds", type=int, default=5)
     p.add_argument("--pings", type=int, default=500)
     p.add_argument("--warm", type=int, default=100)
+    p.add_argument("--burst", type=int, default=20000, help="messages per burst (router CPU per message)")
     p.add_argument("--out", help="write the figures as JSON")
     p.add_argument("--router-without-acl", nargs=2, metavar=("STACK", "MACHINE"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
@@ -168,7 +205,8 @@ def main(argv=None) -> None:
     procs = Procs()
     with tempfile.TemporaryDirectory() as tmp:
         try:
-            paths = build(Path(tmp), procs)
+            routers: dict[str, int] = {}
+            paths = build(Path(tmp), procs, routers)
             time.sleep(2.0)   # gossip and the routers' links settle
             pingers = {name: Pinger(*v) for name, v in paths.items()}
             links = {}
@@ -187,6 +225,11 @@ def main(argv=None) -> None:
                     block = [x for x in (pingers[name].round_trip() for _ in range(args.pings)) if x is not None]
                     rtts[name] += block
                     medians[name].append(statistics.median(block))
+            bursts = {name: Burst(*paths[name][:2]) for name in routers}
+            cpu: dict[str, list[float]] = {n: [] for n in routers}
+            for rnd in range(args.rounds):
+                for name in list(routers)[rnd % 3:] + list(routers)[:rnd % 3]:
+                    cpu[name].append(bursts[name].run(args.burst, routers[name]))
         finally:
             procs.stop()
     result = {"load_average": os.getloadavg()[0], "pings": args.pings, "rounds": args.rounds, "paths": {},
@@ -208,6 +251,12 @@ def main(argv=None) -> None:
         diffs[label] = round(d, 1)
         print(f"{label:<55} {d:+8.1f} us per round trip (median of per-round p50 differences)")
     result["differences_us"] = diffs
+    print(f"vehicle router CPU per message, bursts of {args.burst} (median of {args.rounds}):")
+    result["router_cpu_us_per_message"] = {}
+    for name in cpu:
+        v = 1e6 * statistics.median(cpu[name])
+        result["router_cpu_us_per_message"][name] = round(v, 2)
+        print(f"  {name:<14} {v:6.2f} us  (rounds: {', '.join(f'{1e6 * x:.1f}' for x in cpu[name])})")
     if args.out:
         Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
 
