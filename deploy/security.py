@@ -132,10 +132,13 @@ def is_loopback(endpoint: str) -> bool:
 
 # ---------------------------------------------------------------- Zenoh configuration
 def machine_of(stack: "Stack", endpoint: str) -> str:
-    """The machine a tool connecting to `endpoint` acts as: the one whose router it is."""
-    for m in stack.machines.values():
-        if m.router == endpoint:
-            return m.name
+    """The machine a tool connecting to `endpoint` acts as: the one whose router it is (on two
+    hosts both routers may be tcp/127.0.0.1:7447: the one whose login is on this host)."""
+    mine = [m.name for m in stack.machines.values() if m.router == endpoint]
+    sec = stack.security
+    here = [m for m in mine if sec is not None and sec.login_file(m).is_file()]
+    if here or mine:
+        return (here or mine)[0]
     raise SecurityError(f"{stack.path}: no machine has router {endpoint!r}: with [security] a tool "
                         f"connects to its own machine's router")
 

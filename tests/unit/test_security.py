@@ -118,3 +118,15 @@ def test_missing_keys_say_how_to_make_them(tmp_path):
     stack = load_stack(stack_file(tmp_path, SECURE))
     with pytest.raises(security.SecurityError, match="zenpilot certs"):
         stack.security.login("vehicle")
+
+
+def test_a_tool_acts_as_the_machine_whose_login_is_here(tmp_path):
+    """On two hosts both routers are tcp/127.0.0.1:7447: `zenpilot status` on the ground uses the
+    ground's login, the only one copied there."""
+    stack = load_stack(stack_file(tmp_path, SECURE))
+    assert security.machine_of(stack, "tcp/127.0.0.1:7447") == "vehicle"
+    security.make_keys(tmp_path / "keys", stack)
+    (tmp_path / "keys" / "vehicle.login").unlink()
+    assert security.machine_of(stack, "tcp/127.0.0.1:7447") == "ground"
+    with pytest.raises(security.SecurityError, match="no machine has router"):
+        security.machine_of(stack, "tcp/127.0.0.1:1")
