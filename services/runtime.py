@@ -81,6 +81,10 @@ def zenoh_config(args: argparse.Namespace, stack: Stack | None = None, machine: 
         conf.insert_json5("connect/endpoints", json.dumps(args.connect))
     m = stack.machines.get(machine) if stack and machine else None
     listen = args.listen or (list(m.services_listen) if m else list(SERVICES_LISTEN))
+    if args.config and not args.listen:   # a configuration file that names its listeners has the word
+        given = json.loads(str(conf))["listen"]["endpoints"]
+        if given != json.loads(str(zenoh.Config()))["listen"]["endpoints"]:
+            listen = given
     if args.mode != "client":   # a client listens nowhere
         conf.insert_json5("listen/endpoints", json.dumps(listen))
     if stack is not None and stack.security is not None:
