@@ -7,6 +7,7 @@
   zenpilot report DIR                    redraw a flight's plots, print its metrics, write report.html
   zenpilot log info|recover RUN_OR_FILE  what a flight log holds; recover a cut one
   zenpilot missions                      list the shipped missions
+  zenpilot certs DIR [--stack FILE]      make the TLS certificates and logins of a stack's machines
   zenpilot train-gyrovertical [--seed N] train the adaptive gyro-vertical (004) on simulator flights
 """
 
@@ -273,7 +274,7 @@ def cmd_status(args) -> int:
     stack = load_stack(args.stack)
     up = [st for st in _stacks() if st.live]
     router = args.router or (up[0].router if len(up) == 1 else None) or next(iter(stack.machines.values())).router
-    session = client_session(router)
+    session = client_session(router, stack)
     try:
         print("\n".join(_status_lines(session, stack)))
     finally:
@@ -331,7 +332,7 @@ def cmd_up(args) -> int:
     # the airframe the mission names, as `fly` flies it (without a mission: the stack's)
     vehicle = load_mission(args.mission).vehicle if args.mission not in (None, "", "none") else None
     launcher = Launcher(stack, run_dir, router, lockstep=args.lockstep, seed=args.seed,
-                        vehicle=vehicle, mission=args.mission, params=params)
+                        vehicle=vehicle, mission=args.mission, params=params, machine=machine)
     try:
         if runs_router:
             launcher.start_router()
@@ -353,7 +354,7 @@ def cmd_up(args) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    session = client_session(router)
+    session = client_session(router, stack, machine)
     try:
         while not stop.is_set():
             lines = _status_lines(session, stack)
@@ -450,6 +451,16 @@ def cmd_down(args) -> int:
     return 0
 
 
+def cmd_certs(args) -> int:
+    from deploy.security import make_keys
+    stack = load_stack(args.stack)
+    made = make_keys(Path(args.dir), stack, days=args.days)
+    print(f"zenpilot: keys for machines {', '.join(stack.machines)} in {args.dir} ({len(made)} files; "
+          f"*.key, *.login, *.users are secret). Copy ca.pem and NAME.* to each machine NAME; keep ca.key "
+          f"off the vehicle. Point the stack's [security] dir at the folder (docs/security.md).")
+    return 0
+
+
 def cmd_missions(args) -> int:
     for name in available_missions():
         m = load_mission(name)
@@ -510,6 +521,12 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("log", help="a flight's directory or an .mcap file")
     rec.add_argument("-o", "--output", help="write here (default: in place; the cut file is kept as <name>.cut.mcap)")
     rec.set_defaults(func=cmd_log_recover)
+
+    certs = sub.add_parser("certs", help="make the TLS certificates and logins of a stack's machines")
+    certs.add_argument("dir", help="folder to write them to (the stack's [security] dir)")
+    certs.add_argument("--stack", help="stack file whose machines get keys (default: deploy/stacks/default.toml)")
+    certs.add_argument("--days", type=int, default=825, help="certificate validity (default 825 days)")
+    certs.set_defaults(func=cmd_certs)
 
     mis = sub.add_parser("missions", help="list the shipped missions")
     mis.set_defaults(func=cmd_missions)

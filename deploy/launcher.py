@@ -21,6 +21,7 @@ from pathlib import Path
 import zenoh
 
 from deploy.flightlog import LOG_NAME
+from deploy import security
 from deploy.stack import SERVICE_MODULES, Stack, StackError
 
 ROUTER_START_TIMEOUT_S = 10.0
@@ -69,11 +70,15 @@ def wait_port(endpoint: str, timeout_s: float) -> bool:
     return False
 
 
-def client_session(endpoint: str) -> zenoh.Session:
+def client_session(endpoint: str, stack: Stack | None = None, machine: str | None = None) -> zenoh.Session:
+    """A tool's session (status, start-up checks); with a [security] stack it presents the
+    machine's login (default: the machine whose router is `endpoint`)."""
     conf = zenoh.Config()
     conf.insert_json5("mode", '"client"')
     conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
     conf.insert_json5("scouting/multicast/enabled", "false")
+    if stack is not None and stack.security is not None:
+        security.apply_session(conf, stack.security, machine or security.machine_of(stack, endpoint))
     return zenoh.open(conf)
 
 
@@ -108,6 +113,7 @@ class Launcher:
     mission: str | None = None
     params: dict[str, list[str]] = field(default_factory=dict)  # service -> ["k=v", ...]
     procs: dict[str, subprocess.Popen] = field(default_factory=dict)
+    machine: str | None = None  # the stack's machine whose router this starts (None: a bare router)
 
     def __post_init__(self):
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
@@ -124,7 +130,11 @@ class Launcher:
         return proc
 
     def start_router(self) -> None:
-        self._spawn("router", [sys.executable, "-m", "deploy.router", "--listen", self.router])
+        if self.stack.security is not None and self.machine is None:
+            raise StackError(f"{self.stack.path}: a stack with [security] starts machine by machine "
+                             f"(`zenpilot up --machine NAME`), each router as its machine says")
+        machine = ["--stack", str(self.stack.path), "--machine", self.machine] if self.machine else []
+        self._spawn("router", [sys.executable, "-m", "deploy.router", "--listen", self.router, *machine])
         if not wait_port(self.router, ROUTER_START_TIMEOUT_S):
             raise StackError(f"the Zenoh router did not open {self.router} "
                              f"(see {self.run_dir / 'logs' / 'router.log'})")
@@ -145,6 +155,11 @@ class Launcher:
         return argv
 
     def start_services(self, names: list[str]) -> None:
+        if self.stack.security is not None:   # another machine's login would have no way to its peers
+            elsewhere = [n for n in names if self.stack.service(n).machine != self.machine]
+            if elsewhere:
+                raise StackError(f"{self.stack.path}: with [security] a machine starts only its own services "
+                                 f"(`zenpilot up --machine NAME`); not here: {', '.join(elsewhere)}")
         # the recorder first so it sees everything; the simulator last, it drives the clock
         order = sorted(names, key=lambda n: (n != "recorder", n == "sim"))
         for name in order:
@@ -157,7 +172,7 @@ class Launcher:
 
     def wait_alive(self, names: list[str], timeout_s: float = 30.0) -> set[str]:
         """Wait for every service's liveliness token; returns the ones still missing."""
-        session = client_session(self.router)
+        session = client_session(self.router, self.stack, self.machine)
         try:
             deadline = time.monotonic() + timeout_s
             missing = set(names)

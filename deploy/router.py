@@ -1,4 +1,13 @@
-"""zenpilot-router: a Zenoh router from the Python package (no zenohd binary needed)."""
+"""zenpilot-router: a Zenoh router from the Python package (no zenohd binary needed).
+
+    zenpilot-router --listen tcp/127.0.0.1:7447                  # a bare router (tests, benches)
+    zenpilot-router --stack FILE --machine NAME                   # a machine's router, as the stack says
+
+With --machine it listens exactly where the stack file says (the machine's `router`
+endpoint and its `listen` endpoints), links to its `connect` routers and, with a [security]
+table, requires TLS client certificates and the machine's users, and enforces the access
+control of deploy/security.py.
+"""
 
 from __future__ import annotations
 
@@ -10,25 +19,55 @@ import threading
 
 import zenoh
 
+from deploy import security
+from deploy.stack import StackError, load_stack
 
-def main(argv=None) -> None:
-    p = argparse.ArgumentParser(prog="zenpilot-router", description=__doc__)
-    p.add_argument("-l", "--listen", action="append", default=[], metavar="ENDPOINT",
-                   help="endpoint to listen on (default tcp/127.0.0.1:7447; repeatable)")
-    args = p.parse_args(argv)
+DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
+
+
+def router_config(listen: list[str], stack_file: str | None = None, machine: str | None = None) -> tuple[zenoh.Config, list[str]]:
+    """The router's configuration and the endpoints it listens on."""
     conf = zenoh.Config()
     conf.insert_json5("mode", '"router"')
-    conf.insert_json5("listen/endpoints", json.dumps(args.listen or ["tcp/127.0.0.1:7447"]))
     conf.insert_json5("scouting/multicast/enabled", "false")
+    connect: list[str] = []
+    if machine:
+        stack = load_stack(stack_file)
+        if machine not in stack.machines:
+            raise StackError(f"{stack.path}: no [machines.{machine}] (machines: {', '.join(stack.machines)})")
+        m = stack.machines[machine]
+        listen = list(dict.fromkeys([*(listen or [m.router]), *m.listen]))  # --listen stands for `router`
+        connect = list(m.connect)
+        if stack.security is not None:
+            security.apply_router(conf, stack, machine)
+    listen = listen or [DEFAULT_LISTEN]
+    conf.insert_json5("listen/endpoints", json.dumps(listen))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(connect))
+    return conf, listen
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(prog="zenpilot-router", description=__doc__.splitlines()[0])
+    p.add_argument("-l", "--listen", action="append", default=[], metavar="ENDPOINT",
+                   help=f"endpoint to listen on (default: the machine's, else {DEFAULT_LISTEN}; repeatable)")
+    p.add_argument("--stack", help="stack file (default: deploy/stacks/default.toml)")
+    p.add_argument("--machine", help="run this machine's router as the stack file describes it")
+    args = p.parse_args(argv)
     try:
+        conf, listen = router_config(args.listen, args.stack, args.machine)
         session = zenoh.open(conf)
+    except (StackError, ValueError) as exc:
+        print(f"zenpilot-router: error: {exc}", file=sys.stderr)
+        raise SystemExit(2)
     except zenoh.ZError as exc:
-        print(f"zenpilot-router: error: cannot listen on {args.listen}: {exc}", file=sys.stderr)
+        print(f"zenpilot-router: error: cannot open the router on {args.listen or args.machine}: {exc}",
+              file=sys.stderr)
         raise SystemExit(2)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    print(f"zenpilot-router: listening on {', '.join(args.listen or ['tcp/127.0.0.1:7447'])}", flush=True)
+    print(f"zenpilot-router: listening on {', '.join(listen)}", flush=True)
     stop.wait()
     session.close()
 

@@ -8,8 +8,14 @@ A stack file is TOML:
     tick_rate_hz = 400        # simulator tick; every service rate must divide it
 
     [machines.vehicle]        # one table per machine
-    router = "tcp/127.0.0.1:7447"   # the Zenoh router its services connect to
+    router = "tcp/127.0.0.1:7447"   # the Zenoh router its services connect to (the router listens there)
     runs_router = true        # `zenpilot up --machine vehicle` starts that router
+    listen = ["tls/10.0.0.2:7448"]  # more endpoints its router listens on: a link to other hosts
+    connect = []              # routers of other hosts its router links to
+    services_listen = ["tcp/127.0.0.1:0"]  # where its services listen (default: loopback only)
+
+    [security]                # optional: TLS, passwords and access control (deploy/security.py)
+    dir = "keys"              # made by `zenpilot certs keys --stack FILE`; relative to this file
 
     [services.attitude]
     machine = "vehicle"
@@ -30,6 +36,8 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from deploy.security import Security, endpoint_host, is_loopback, parse_security
 
 STACKS_DIR = Path(__file__).parent / "stacks"
 DEFAULT_STACK = STACKS_DIR / "default.toml"
@@ -73,11 +81,19 @@ class ServiceSpec:
     cpu: tuple[int, ...] = ()  # CPU affinity the service asks for; (): any CPU
 
 
+# Where a service listens unless its machine says otherwise: its own host only. A peer that
+# listened on every interface could be reached from the network, past the router.
+SERVICES_LISTEN = ("tcp/127.0.0.1:0",)
+
+
 @dataclass(frozen=True)
 class Machine:
     name: str
     router: str
     runs_router: bool
+    listen: tuple[str, ...] = ()      # more endpoints its router listens on (a link to other hosts)
+    connect: tuple[str, ...] = ()     # other hosts' routers its router links to
+    services_listen: tuple[str, ...] = SERVICES_LISTEN
 
 
 @dataclass(frozen=True)
@@ -88,6 +104,7 @@ class Stack:
     tick_rate_hz: float
     machines: dict[str, Machine]
     services: dict[str, ServiceSpec]
+    security: Security | None = None
 
     def service(self, name: str) -> ServiceSpec:
         if name not in self.services:
@@ -115,7 +132,7 @@ def load_stack(path: str | Path | None = None) -> Stack:
         raise StackError(f"{path}: stack file not found") from None
     except tomllib.TOMLDecodeError as exc:
         raise StackError(f"{path}: not valid TOML: {exc}") from None
-    unknown = set(doc) - {"stack", "machines", "services"}
+    unknown = set(doc) - {"stack", "machines", "services", "security"}
     if unknown:
         raise StackError(f"{path}: unknown top-level table(s) {sorted(unknown)}")
     head = doc.get("stack", {})
@@ -128,16 +145,22 @@ def load_stack(path: str | Path | None = None) -> Stack:
     machines = {}
     for name, m in doc.get("machines", {}).items():
         where = f"{path}: [machines.{name}]"
-        unknown = set(m) - {"router", "runs_router", "description"}
+        unknown = set(m) - {"router", "runs_router", "description", "listen", "connect", "services_listen"}
         if unknown:
             raise StackError(f"{where}: unknown key(s) {sorted(unknown)}")
         machines[name] = Machine(
             name,
-            _expect(m.get("router", "tcp/127.0.0.1:7447"), str, f"{where} router"),
+            _endpoint(m.get("router", "tcp/127.0.0.1:7447"), f"{where} router"),
             _expect(m.get("runs_router", False), bool, f"{where} runs_router"),
+            _endpoints(m.get("listen", []), f"{where} listen"),
+            _endpoints(m.get("connect", []), f"{where} connect"),
+            _endpoints(m.get("services_listen", list(SERVICES_LISTEN)), f"{where} services_listen", empty=False),
         )
     if not machines:
         raise StackError(f"{path}: no [machines.*] table")
+    security = parse_security(doc["security"], path) if "security" in doc else None
+    if security:
+        _check_secure_links(path, machines)
     services = {}
     for name, s in doc.get("services", {}).items():
         where = f"{path}: [services.{name}]"
@@ -173,7 +196,47 @@ def load_stack(path: str | Path | None = None) -> Stack:
         tick_rate_hz=tick_rate,
         machines=machines,
         services=services,
+        security=security,
     )
+
+
+def _endpoint(value: Any, where: str) -> str:
+    value = _expect(value, str, where)
+    try:
+        endpoint_host(value)
+    except ValueError as exc:
+        raise StackError(f"{where}: {exc}") from None
+    return value
+
+
+def _endpoints(value: Any, where: str, empty: bool = True) -> tuple[str, ...]:
+    if isinstance(value, str):
+        value = [value]
+    value = _expect(value, list, where)
+    if not value and not empty:
+        raise StackError(f"{where}: at least one endpoint (default: {list(SERVICES_LISTEN)})")
+    return tuple(_endpoint(v, f"{where}[{i}]") for i, v in enumerate(value))
+
+
+def _check_secure_links(path: Path, machines: dict[str, "Machine"]) -> None:
+    """With [security], the only door from another host is a router's TLS endpoint: anything
+    else reachable from the network would pass without a certificate or the access control."""
+    for m in machines.values():
+        where = f"{path}: [machines.{m.name}]"
+        if not is_loopback(m.router):
+            raise StackError(f"{where} router {m.router!r}: with [security] the services' router endpoint must "
+                             f"be on loopback (tcp/127.0.0.1:PORT); other hosts link through `listen` (tls/...)")
+        for key, endpoints in (("listen", m.listen), ("connect", m.connect)):
+            for e in endpoints:
+                if endpoint_host(e)[0] != "tls":
+                    raise StackError(f"{where} {key} {e!r}: with [security] a link between hosts must be tls/HOST:PORT")
+        for e in m.services_listen:
+            if not is_loopback(e):
+                raise StackError(f"{where} services_listen {e!r}: with [security] services listen on loopback only "
+                                 f"(other hosts reach them through the router, where access control is enforced)")
+        if m.listen and m.connect:
+            raise StackError(f"{where}: with [security] a router either accepts links (listen) or makes them "
+                             f"(connect), not both: the accepting router is where access control is enforced")
 
 
 def parse_overrides(items: list[str] | None) -> dict[str, Any]:

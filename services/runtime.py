@@ -40,7 +40,9 @@ from typing import Any, Callable
 import zenoh
 
 import schemas
-from deploy.stack import LOCKSTEP_PARTICIPANTS, Stack, StackError, load_stack, parse_overrides, resolve_params
+from deploy import security
+from deploy.stack import (LOCKSTEP_PARTICIPANTS, SERVICES_LISTEN, Stack, StackError, load_stack, parse_overrides,
+                          resolve_params)
 
 HEALTH_PERIOD_S = 1.0
 READY_RESEND_S = 0.2
@@ -73,13 +75,27 @@ def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
                    help="Zenoh config entry, VALUE in JSON5, e.g. --cfg 'transport/shared_memory/enabled:false'")
 
 
-def zenoh_config(args: argparse.Namespace) -> zenoh.Config:
+def zenoh_config(args: argparse.Namespace, stack: Stack | None = None, machine: str | None = None) -> zenoh.Config:
+    """The session's configuration: the flags, then the stack file's word on where the
+    service listens (its machine's services_listen: loopback unless the stack says otherwise;
+    Zenoh's own default would be every interface) and, with a [security] table, the machine's
+    login and certificates (deploy/security.py)."""
     conf = zenoh.Config.from_file(args.config) if args.config else zenoh.Config()
     conf.insert_json5("mode", json.dumps(args.mode))
     if args.connect:
         conf.insert_json5("connect/endpoints", json.dumps(args.connect))
-    if args.listen:
-        conf.insert_json5("listen/endpoints", json.dumps(args.listen))
+    m = stack.machines.get(machine) if stack and machine else None
+    listen = args.listen or (list(m.services_listen) if m else list(SERVICES_LISTEN))
+    if args.config and not args.listen:   # a configuration file that names its listeners has the word
+        given = json.loads(str(conf))["listen"]["endpoints"]
+        if given != json.loads(str(zenoh.Config()))["listen"]["endpoints"]:
+            listen = given
+    if args.mode != "client":   # a client listens nowhere
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+    if stack is not None and stack.security is not None:
+        if m is None:
+            raise StackError(f"{stack.path}: [security] is set but this session's machine is unknown")
+        security.apply_session(conf, stack.security, m.name)
     conf.insert_json5("scouting/multicast/enabled", "false")
     # No Zenoh shared memory unless asked for (--cfg): the first message over its size threshold
     # (a flip's plan, 26 KB; camera frames at altitude) creates the pool, 16 MB and three threads,
@@ -260,7 +276,7 @@ class Runtime:
             given = dict(spec.params) if spec else {}
             given.update(parse_overrides(getattr(args, "param", None)))
             self.params = resolve_params(param_defaults or {}, given, f"{self.stack.path}: [services.{name}.params]")
-            self.conf = zenoh_config(args)
+            self.conf = zenoh_config(args, self.stack, spec.machine if spec else next(iter(self.stack.machines)))
         except (StackError, zenoh.ZError, ValueError) as exc:
             fail(name, str(exc))
         self.spec = spec

@@ -1,0 +1,322 @@
+"""Security between hosts (docs/security.md), on loopback: the "link" is the vehicle router's
+TLS endpoint on 127.0.0.1, the ground router links to it as a ground host's would.
+
+- every service and router listens only where the stack file says (loopback by default);
+- a session with a wrong credential (no certificate, wrong password, a certificate of another
+  CA, a password without a certificate) is refused;
+- a session with the ground's valid credentials, which has no right to the motor key, has its
+  motor commands never reach the motor driver (the real motor driver process: what it outputs),
+  while its allowed key (the planner's setpoint) does reach it; the same commands from a vehicle
+  session do move the motors, so the check can fail.
+About 30 s.
+"""
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import zenoh
+
+import schemas
+from deploy import security
+from deploy.launcher import ZENOH_RUNTIME, alive_services, client_session, free_port, wait_port
+from deploy.stack import DEFAULT_STACK, SERVICE_MODULES, load_stack
+from services.runtime import service_parser, zenoh_config
+
+from .conftest import ROOT
+
+pytestmark = pytest.mark.integration
+
+SERVICES = "\n".join(f'[services.{name}]\nmachine = "{machine}"\nrate_hz = {rate}\n' for name, machine, rate in (
+    ("sim", "vehicle", 400.0), ("motors", "vehicle", 400.0), ("attitude", "vehicle", 200.0),
+    ("position", "vehicle", 100.0), ("planner", "ground", 50.0), ("recorder", "ground", 10.0),
+    ("mavlink", "ground", 50.0)))
+
+
+def secure_stack(folder: Path) -> tuple[Path, dict[str, str]]:
+    ports = {k: free_port() for k in ("vehicle", "link", "ground")}
+    ends = {"vehicle": f"tcp/127.0.0.1:{ports['vehicle']}", "link": f"tls/127.0.0.1:{ports['link']}",
+            "ground": f"tcp/127.0.0.1:{ports['ground']}"}
+    path = folder / "secure.toml"
+    path.write_text(f"""
+[stack]
+vehicle_id = 0
+[security]
+dir = "keys"
+[machines.vehicle]
+router = "{ends['vehicle']}"
+runs_router = true
+listen = ["{ends['link']}"]
+[machines.ground]
+router = "{ends['ground']}"
+runs_router = true
+connect = ["{ends['link']}"]
+{SERVICES}""")
+    security.make_keys(folder / "keys", load_stack(path))
+    return path, ends
+
+
+def listening(pid: int) -> list[str]:
+    """The addresses (host:port, hex as in /proc) of the TCP sockets process `pid` listens on
+    and of its bound UDP sockets."""
+    inodes = set()
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        try:
+            link = os.readlink(f"/proc/{pid}/fd/{fd}")
+        except OSError:
+            continue
+        if link.startswith("socket:["):
+            inodes.add(link[8:-1])
+    out = []
+    for table in ("tcp", "tcp6", "udp", "udp6"):
+        for line in Path(f"/proc/{pid}/net/{table}").read_text().splitlines()[1:]:
+            f = line.split()
+            listens = f[3] == "0A" if table.startswith("tcp") else f[3] == "07"
+            if f[9] in inodes and listens:
+                out.append(f"{table} {_addr(f[1])}")
+    return out
+
+
+def _addr(hex_addr: str) -> str:
+    host, port = hex_addr.split(":")
+    raw = bytes.fromhex(host)
+    if len(raw) == 4:
+        ip = ".".join(str(b) for b in raw[::-1])
+    else:   # IPv6 in /proc: four 32-bit words, each little endian
+        words = [raw[i:i + 4][::-1] for i in range(0, 16, 4)]
+        ip = ":".join(b"".join(words)[i:i + 2].hex() for i in range(0, 16, 2))
+    return f"{ip}:{int(port, 16)}"
+
+
+def _loopback(entry: str) -> bool:
+    ip = entry.split(" ", 1)[1].rsplit(":", 1)[0]
+    return ip.startswith("127.") or ip == "0000:0000:0000:0000:0000:0000:0000:0001"
+
+
+class Procs:
+    def __init__(self):
+        self.procs: list[subprocess.Popen] = []
+        self.env = dict(os.environ, PYTHONUNBUFFERED="1", ZENOH_RUNTIME=ZENOH_RUNTIME)
+
+    def start(self, *argv: str, log: Path | None = None) -> subprocess.Popen:
+        p = subprocess.Popen([sys.executable, "-m", *argv], cwd=ROOT, env=self.env,
+                             stdout=open(log, "w") if log else subprocess.DEVNULL, stderr=subprocess.STDOUT)
+        self.procs.append(p)
+        return p
+
+    def stop(self):
+        for p in self.procs:
+            if p.poll() is None:
+                p.send_signal(2)
+        for p in self.procs:
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+
+@pytest.fixture
+def procs():
+    p = Procs()
+    yield p
+    p.stop()
+
+
+def test_default_stack_services_listen_on_loopback_only(tmp_path, procs):
+    stack = load_stack(DEFAULT_STACK)
+    for name, spec in stack.services.items():   # what every service's session is told
+        args = service_parser(name, "").parse_args(["-e", "tcp/127.0.0.1:7447"])
+        conf = json.loads(str(zenoh_config(args, stack, spec.machine)))
+        assert conf["listen"]["endpoints"] == ["tcp/127.0.0.1:0"], (name, conf["listen"])
+    # and what real processes do: the router and two services, their sockets
+    router = f"tcp/127.0.0.1:{free_port()}"
+    r = procs.start("deploy.router", "--listen", router)
+    assert wait_port(router, 10)
+    started = {name: procs.start(SERVICE_MODULES[name], "-e", router, *extra, log=tmp_path / f"{name}.log")
+               for name, extra in (("recorder", ("--out", str(tmp_path))), ("motors", ()))}
+    session = client_session(router)
+    try:
+        deadline = time.monotonic() + 30
+        while set(started) - alive_services(session, 0) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not set(started) - alive_services(session, 0), "services did not come up"
+    finally:
+        session.close()
+    assert listening(r.pid) == [f"tcp 127.0.0.1:{router.rsplit(':', 1)[1]}"]
+    for name, p in started.items():
+        sockets = listening(p.pid)
+        assert sockets and all(_loopback(s) for s in sockets), (name, sockets)
+
+
+def _session(endpoint: str, sec: security.Security | None = None, machine: str | None = None,
+             login: tuple[str, str] | None = None, certificate: bool = True, mode: str = "client") -> zenoh.Session:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    if mode == "peer":
+        conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
+    if sec is not None and machine is not None:
+        security.apply_session(conf, sec, machine)
+        if not certificate:
+            conf.insert_json5("transport/link/tls", json.dumps({"root_ca_certificate": str(sec.ca())}))
+    if login:
+        conf.insert_json5("transport/auth/usrpwd", json.dumps({"user": login[0], "password": login[1]}))
+    return zenoh.open(conf)
+
+
+def test_wrong_credentials_are_refused(tmp_path, procs):
+    path, ends = secure_stack(tmp_path)
+    sec = load_stack(path).security
+    procs.start("deploy.router", "--stack", str(path), "--machine", "vehicle", log=tmp_path / "router.log")
+    assert wait_port(ends["vehicle"], 10) and wait_port(ends["link"], 10)
+    other = tmp_path / "other"   # a second, unrelated set of keys: same names, another CA
+    other.mkdir()
+    (other / "secure.toml").write_text(path.read_text())
+    security.make_keys(other / "keys", load_stack(other / "secure.toml"))
+    other_sec = load_stack(other / "secure.toml").security
+    user, password = sec.login("ground")
+    refused = {
+        "no certificate, no password": dict(),
+        "wrong password": dict(sec=sec, machine="ground", login=(user, password + "x")),
+        "unknown user": dict(sec=sec, machine="ground", login=("intruder", password)),
+        "password without a certificate": dict(sec=sec, machine="ground", certificate=False),
+        "certificate of another CA": dict(sec=other_sec, machine="ground", login=(user, password)),
+    }
+    for what, kw in refused.items():
+        with pytest.raises(zenoh.ZError):
+            _session(ends["link"], **kw).close()
+            pytest.fail(f"{what}: the session was accepted")
+    # on the router's loopback endpoint, without a password: refused too
+    with pytest.raises(zenoh.ZError):
+        _session(ends["vehicle"]).close()
+    _session(ends["link"], sec, "ground").close()   # the right ones are accepted
+
+
+def test_unauthorised_motor_commands_never_reach_the_motor_driver(tmp_path, procs):
+    path, ends = secure_stack(tmp_path)
+    sec = load_stack(path).security
+    procs.start("deploy.router", "--stack", str(path), "--machine", "vehicle", log=tmp_path / "vehicle-router.log")
+    procs.start("deploy.router", "--stack", str(path), "--machine", "ground", log=tmp_path / "ground-router.log")
+    assert wait_port(ends["vehicle"], 10) and wait_port(ends["ground"], 10)
+    procs.start("services.motors", "--stack", str(path), "-e", ends["vehicle"], log=tmp_path / "motors.log")
+    vehicle = client_session(ends["vehicle"], load_stack(path), "vehicle")   # the vehicle's own tool
+    pwm: list[dict] = []
+    health: list[dict] = []
+    vehicle.declare_subscriber(schemas.MOTOR_PWM.key(0), lambda s: pwm.append(schemas.MOTOR_PWM.decode(s.payload.to_bytes())))
+    vehicle.declare_subscriber(schemas.HEALTH.key(0, "motors"),
+                               lambda s: health.append(schemas.HEALTH.decode(s.payload.to_bytes())))
+    # the intruder: the ground's valid certificate and password on the link, as a client (the
+    # router routes all it sends) and as a peer (it also tries the motor driver's own listener,
+    # which it learns of through the router: refused, the driver accepts only vehicle sessions)
+    intruder = _session(ends["link"], sec, "ground")
+    intruder_peer = _session(ends["link"], sec, "ground", mode="peer")
+    try:
+        deadline = time.monotonic() + 30
+        while "motors" not in alive_services(vehicle, 0) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert "motors" in alive_services(vehicle, 0), (tmp_path / "motors.log").read_text()
+
+        def send(session: zenoh.Session, seconds: float) -> None:
+            setpoint, command = session.declare_publisher(schemas.PLANNER_SETPOINT.key(0)), \
+                session.declare_publisher(schemas.ATTITUDE_COMMAND.key(0))
+            end, seq = time.time() + seconds, 0
+            while time.time() < end:
+                t = time.time()
+                setpoint.put(schemas.PLANNER_SETPOINT.encode(t, seq, "planner", {
+                    "mode": "position", "armed": True, "position_m": [0.0, 0.0, 1.0], "attitude_rad": [0.0, 0.0, 0.0],
+                    "item": 0, "phase": "hold", "measure": False, "mission_state": "running"}))
+                command.put(schemas.ATTITUDE_COMMAND.encode(t, seq, "attitude", {
+                    "thrust_n": 6.0, "torque_nm": [0.05, 0.0, 0.0], "imu_t_s": t}))
+                seq += 1
+                time.sleep(0.005)
+
+        time.sleep(1.0)
+        pwm.clear()
+        send(intruder, 2.0)
+        send(intruder_peer, 1.0)
+        time.sleep(0.3)
+        during = list(pwm)
+        pwm_min = min(min(m["pwm_us"]) for m in during)
+        armed = [m for m in during if m["armed"]]
+        assert len(during) > 300, f"{len(during)} motor outputs in 3 s"
+        assert armed, "the ground's setpoint (a key it may publish) did not reach the motor driver"
+        assert all(max(m["pwm_us"]) == pwm_min and m["thrust_n"] == [0.0] * 4 for m in during), \
+            "a forged motor command reached the motor driver"
+        assert "command_timeout" not in (health[-1]["rejected"] if health else {}), "a command arrived and went stale"
+
+        pwm.clear()   # the same from a session with the right to the key: the motors follow it
+        send(vehicle, 1.0)
+        time.sleep(0.3)
+        assert any(max(m["pwm_us"]) > pwm_min for m in pwm), "the control case moved nothing: the test cannot fail"
+    finally:
+        intruder.close()
+        intruder_peer.close()
+        vehicle.close()
+
+
+def test_secured_split_flies_a_hover(tmp_path):
+    """The access control lets the split do all it needs: planner and recorder on the ground
+    host's router, the flight services on the vehicle's, linked over TLS, a lockstep hover
+    (keys made with `zenpilot certs`, each machine started with `zenpilot up -d --machine`). ~60 s."""
+    text = DEFAULT_STACK.read_text()
+    services = text[text.index("[services.sim]"):].replace('[services.planner]\nmachine = "vehicle"',
+                                                           '[services.planner]\nmachine = "ground"')
+    assert '[services.planner]\nmachine = "ground"' in services
+    ends = {k: f"127.0.0.1:{free_port()}" for k in ("vehicle", "link", "ground")}
+    stack = tmp_path / "split.toml"
+    stack.write_text(f"""[stack]
+vehicle_id = 0
+[security]
+dir = "keys"
+[machines.vehicle]
+router = "tcp/{ends['vehicle']}"
+runs_router = true
+listen = ["tls/{ends['link']}"]
+[machines.ground]
+router = "tcp/{ends['ground']}"
+runs_router = true
+connect = ["tls/{ends['link']}"]
+{services}""")
+
+    def zenpilot(machine: str, *args: str, timeout: float = 120) -> str:
+        env = dict(os.environ, ZENPILOT_STATE_DIR=str(tmp_path / f"state-{machine}"))
+        proc = subprocess.run([sys.executable, "-m", "deploy.cli", *args], cwd=ROOT, env=env,
+                              capture_output=True, text=True, timeout=timeout)
+        assert proc.returncode == 0, proc.stdout + proc.stderr
+        return proc.stdout
+
+    zenpilot("vehicle", "certs", str(tmp_path / "keys"), "--stack", str(stack))
+    refused = subprocess.run([sys.executable, "-m", "deploy.cli", "fly", "--stack", str(stack), "--lockstep",
+                              "--out", str(tmp_path / "fly")], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert refused.returncode == 2 and "machine by machine" in refused.stderr, refused.stderr
+    common = ("--stack", str(stack), "--lockstep", "--mission", "hover")
+    try:
+        zenpilot("vehicle", "up", "-d", *common, "--machine", "vehicle", "--set", "sim.stop_after_mission=true",
+                 "--out", str(tmp_path / "vehicle"))
+        zenpilot("ground", "up", "-d", *common, "--machine", "ground", "--out", str(tmp_path / "ground"))
+        sim = json.loads((tmp_path / "state-vehicle" / "up-vehicle.json").read_text())["pids"]["sim"]
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline and _running(sim):
+            time.sleep(1.0)
+        assert not _running(sim), "the hover did not end in 300 s"
+    finally:
+        for machine in ("vehicle", "ground"):
+            if (tmp_path / f"state-{machine}").exists():
+                zenpilot(machine, "down")
+    zenpilot("ground", "report", str(tmp_path / "ground"))
+    metrics = json.loads((tmp_path / "ground" / "metrics.json").read_text())
+    assert metrics["completed"] and not metrics["crashed"], metrics
+    assert metrics["position_rms_m"] < 0.05, metrics
+
+
+def _running(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False

@@ -1,0 +1,132 @@
+"""deploy/security.py and the stack file's [security] table, machine endpoints (no Zenoh session)."""
+
+import re
+from pathlib import Path
+
+import pytest
+
+import schemas
+from deploy import security
+from deploy.stack import DEFAULT_STACK, StackError, load_stack
+
+ROOT = Path(__file__).resolve().parents[2]
+
+SERVICES = "\n".join(f'[services.{n}]\nmachine = "{m}"\nrate_hz = {r}\n' for n, m, r in (
+    ("sim", "vehicle", 400.0), ("motors", "vehicle", 400.0), ("attitude", "vehicle", 200.0),
+    ("position", "vehicle", 100.0), ("planner", "ground", 50.0), ("recorder", "ground", 10.0),
+    ("mavlink", "ground", 50.0)))
+
+SECURE = """
+[security]
+dir = "keys"
+[machines.vehicle]
+router = "tcp/127.0.0.1:7447"
+runs_router = true
+listen = ["tls/10.0.0.2:7448"]
+[machines.ground]
+router = "tcp/127.0.0.1:7447"
+runs_router = true
+connect = ["tls/10.0.0.2:7448"]
+"""
+
+
+def stack_file(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "stack.toml"
+    path.write_text(text + SERVICES)
+    return path
+
+
+def test_publishes_matches_the_services_code():
+    """PUBLISHES (what the access control lets a machine's services put) is what the code publishes."""
+    for name, topics in security.PUBLISHES.items():
+        code = (ROOT / "services" / f"{name}.py").read_text()
+        used = {getattr(schemas, m).topic.replace("{service}", "*") for m in re.findall(r"rt\.publisher\(schemas\.(\w+)", code)}
+        if name == "sim":
+            used |= {m.topic for m in schemas.SIM_TOPICS.values()}
+            assert "rt.publisher(schemas.CLOCK" in code and "rt.publisher(msg)" in code
+        assert used == set(topics), name
+
+
+def test_default_stack_listens_on_loopback_and_has_no_security():
+    stack = load_stack(DEFAULT_STACK)
+    assert stack.security is None
+    for m in stack.machines.values():
+        assert m.services_listen == ("tcp/127.0.0.1:0",) and not m.listen and not m.connect
+        assert security.is_loopback(m.router)
+
+
+def test_security_table_and_links(tmp_path):
+    stack = load_stack(stack_file(tmp_path, SECURE))
+    assert stack.security.dir == tmp_path / "keys"   # relative to the stack file
+    assert stack.machines["vehicle"].listen == ("tls/10.0.0.2:7448",)
+    assert stack.machines["ground"].connect == ("tls/10.0.0.2:7448",)
+
+
+@pytest.mark.parametrize("change, message", [
+    (('dir = "keys"', ''), "dir"),
+    (('dir = "keys"', 'dir = "keys"\npassword = "x"'), "unknown key"),
+    (('listen = ["tls/10.0.0.2:7448"]', 'listen = ["tcp/10.0.0.2:7448"]'), "must be tls"),
+    (('connect = ["tls/10.0.0.2:7448"]', 'connect = ["tcp/10.0.0.2:7448"]'), "must be tls"),
+    (('runs_router = true\nlisten', 'services_listen = ["tcp/0.0.0.0:0"]\nruns_router = true\nlisten'), "loopback only"),
+    (('router = "tcp/127.0.0.1:7447"\nruns_router = true\nlisten', 'router = "tcp/10.0.0.2:7447"\nruns_router = true\nlisten'),
+     "must be on loopback"),
+    (('connect = ["tls/10.0.0.2:7448"]', 'connect = ["tls/10.0.0.2:7448"]\nlisten = ["tls/10.0.0.3:7448"]'), "not both"),
+    (('listen = ["tls/10.0.0.2:7448"]', 'listen = ["10.0.0.2:7448"]'), "PROTOCOL/HOST:PORT"),
+])
+def test_bad_security_settings_are_refused_with_where(tmp_path, change, message):
+    old, new = change
+    assert old in SECURE
+    with pytest.raises(StackError, match=message) as err:
+        load_stack(stack_file(tmp_path, SECURE.replace(old, new, 1)))
+    assert "stack.toml" in str(err.value)
+
+
+def test_router_acl_lets_the_ground_publish_only_its_services_keys(tmp_path):
+    stack = load_stack(stack_file(tmp_path, SECURE))
+    acl = security.router_acl(stack, "vehicle")
+    assert acl["enabled"] and acl["default_permission"] == "deny"
+    rules = {r["id"]: r for r in acl["rules"]}
+    ground = rules["publish-ground"]
+    assert ground["messages"] == ["put"] and ground["flows"] == ["ingress"]
+    keys = set(ground["key_exprs"])
+    assert {"zp/0/planner/setpoint", "zp/0/planner/plan", "zp/0/planner/command", "zp/0/param/set",
+            "zp/0/planner/health", "zp/0/sync/planner"} <= keys
+    for forbidden in ("zp/0/att/command", "zp/0/motors/pwm", "zp/0/pos/setpoint", "zp/0/sim/imu", "zp/0/**"):
+        assert forbidden not in keys
+    policies = {p["id"]: p for p in acl["policies"]}
+    assert policies["own-vehicle"]["rules"] == ["everything"]
+    assert "everything" not in policies["from-ground"]["rules"]
+
+
+def test_make_keys_writes_secret_files_private_and_never_overwrites(tmp_path):
+    stack = load_stack(stack_file(tmp_path, SECURE))
+    made = security.make_keys(tmp_path / "keys", stack)
+    assert {p.name for p in made} >= {"ca.pem", "ca.key", "vehicle.pem", "vehicle.key", "ground.login", "ground.users"}
+    for p in made:
+        private = p.suffix in (".key", ".login", ".users")
+        assert (p.stat().st_mode & 0o077 == 0) == private, p
+    sec = stack.security
+    assert sec.login("ground")[0] == "ground"
+    # the vehicle's router accepts links: it knows every machine; the ground's only itself
+    assert [line.split(":")[0] for line in sec.users_file("vehicle").read_text().split()] == ["vehicle", "ground"]
+    assert [line.split(":")[0] for line in sec.users_file("ground").read_text().split()] == ["ground"]
+    with pytest.raises(security.SecurityError, match="already exists"):
+        security.make_keys(tmp_path / "keys", stack)
+
+
+def test_missing_keys_say_how_to_make_them(tmp_path):
+    stack = load_stack(stack_file(tmp_path, SECURE))
+    with pytest.raises(security.SecurityError, match="zenpilot certs"):
+        stack.security.login("vehicle")
+
+
+def test_a_tool_acts_as_the_machine_whose_login_is_here(tmp_path):
+    """On two hosts both routers are tcp/127.0.0.1:7447: `zenpilot status` on the ground uses the
+    ground's login, the only one copied there."""
+    stack = load_stack(stack_file(tmp_path, SECURE))
+    assert security.machine_of(stack, "tcp/127.0.0.1:7447") == "vehicle"
+    security.make_keys(tmp_path / "keys", stack)
+    (tmp_path / "keys" / "vehicle.login").unlink()
+    assert security.machine_of(stack, "tcp/127.0.0.1:7447") == "ground"
+    with pytest.raises(security.SecurityError, match="no machine has router"):
+        security.machine_of(stack, "tcp/127.0.0.1:1")
