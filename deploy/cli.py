@@ -5,6 +5,7 @@
   zenpilot status                        liveliness and health of a running stack
   zenpilot down                          stop what `zenpilot up -d` started
   zenpilot report DIR                    redraw a flight's plots and print its metrics
+  zenpilot view [--port 8765]            live Foxglove view of a running stack (WebSocket)
   zenpilot missions                      list the shipped missions
   zenpilot train-gyrovertical [--seed N] train the adaptive gyro-vertical (004) on simulator flights
 """
@@ -26,7 +27,7 @@ import zenoh
 import schemas
 from deploy import gyrovertical_training
 from deploy.flightlog import LOG_NAME, read_log
-from deploy.launcher import Launcher, alive_services, client_session, free_port
+from deploy.launcher import Launcher, alive_services, client_session, free_port, wait_port
 from deploy.stack import StackError, load_stack, lockstep_services
 from flight.mission import MissionError, available_missions, load_mission
 
@@ -51,6 +52,8 @@ def cmd_fly(args) -> int:
     out = Path(args.out or f"runs/{mission.name}-{'lockstep' if args.lockstep else 'realtime'}-seed{args.seed}")
     out.mkdir(parents=True, exist_ok=True)
     router = f"tcp/127.0.0.1:{args.port or free_port()}"
+    if args.foxglove is not None and not 0 < args.foxglove < 65536:
+        raise StackError(f"--foxglove {args.foxglove}: expected a port number 1..65535")
     launcher = Launcher(stack, out, router, lockstep=args.lockstep, seed=args.seed,
                         vehicle=mission.vehicle, mission=mission.path, params=_param_overrides(args.set))
     names = lockstep_services(stack.services) if args.lockstep else list(stack.services)
@@ -61,6 +64,8 @@ def cmd_fly(args) -> int:
     completed_run = False
     try:
         launcher.start_router()
+        if args.foxglove is not None:   # the live view, ground side: it only listens
+            start_view(launcher, router, args.foxglove, mission.vehicle, out)
         launcher.start_services(names)
         missing = launcher.wait_alive(names)
         if missing:
@@ -79,7 +84,7 @@ def cmd_fly(args) -> int:
         completed_run = launcher.procs["sim"].returncode == 0
     finally:
         # services first, then the recorder (it writes the log on exit), then the router
-        launcher.stop([n for n in names if n != "recorder"])
+        launcher.stop([n for n in names if n != "recorder"] + ["view"])
         time.sleep(0.3)
         launcher.stop(["recorder"], grace_s=60.0)
         launcher.stop(["router"])
@@ -94,6 +99,22 @@ def cmd_fly(args) -> int:
     if metrics.get("crashed"):
         print("zenpilot: the vehicle crashed (truth on the ground mid-mission, or tilted past 60 deg)", file=sys.stderr)
     return 0 if metrics.get("completed") and not metrics.get("crashed") else 1
+
+
+VIEW_NICE = 10   # the live view yields the CPU to the flight's loops (as the MAVLink bridge does)
+
+
+def start_view(launcher: Launcher, router: str, port: int, vehicle: str, out: Path) -> None:
+    argv = [sys.executable, "-m", "deploy.cli", "view", "--router", router, "--port", str(port),
+            "--stack", str(launcher.stack.path), "--vehicle", vehicle]
+    proc = launcher._spawn("view", argv)
+    try:
+        os.setpriority(os.PRIO_PROCESS, proc.pid, VIEW_NICE)
+    except OSError:
+        pass   # it runs at the default priority, on the ground side of the link
+    if not wait_port(f"tcp/127.0.0.1:{port}", 15.0) or proc.poll() is not None:
+        raise StackError(f"--foxglove {port}: the live view did not start (see {out / 'logs' / 'view.log'})")
+    print(f"zenpilot: live Foxglove view on ws://127.0.0.1:{port}", flush=True)
 
 
 def report_startup(out: Path, started: float) -> None:
@@ -286,6 +307,22 @@ def cmd_down(args) -> int:
     return 0
 
 
+def cmd_view(args) -> int:
+    from deploy.view import marker_grid_for, serve
+    from flight.vehicle import load_vehicle
+
+    stack = load_stack(args.stack)
+    if not 0 <= args.port < 65536:
+        raise StackError(f"--port {args.port}: expected a port number 0..65535 (0: any free one)")
+    router = args.router or _state().get("router") or next(iter(stack.machines.values())).router
+    vehicle = load_vehicle(args.vehicle or stack.vehicle)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    serve(router, stack.vehicle_id, vehicle.motor_positions_m, marker_grid_for(stack), args.host, args.port, stop)
+    return 0
+
+
 def cmd_missions(args) -> int:
     for name in available_missions():
         m = load_mission(name)
@@ -312,6 +349,8 @@ def build_parser() -> argparse.ArgumentParser:
     fly.add_argument("--port", type=int, help="router port (default: a free one)")
     fly.add_argument("--no-plots", action="store_true",
                      help="metrics only (sweeps, tests); `zenpilot report DIR` draws the plots later")
+    fly.add_argument("--foxglove", type=int, nargs="?", const=8765, metavar="PORT",
+                     help="serve a live Foxglove view of the flight on ws://127.0.0.1:PORT (default 8765)")
     fly.set_defaults(func=cmd_fly)
 
     up = sub.add_parser("up", help="start the router and a machine's services; show live status")
@@ -334,6 +373,14 @@ def build_parser() -> argparse.ArgumentParser:
     rep = sub.add_parser("report", help="redraw a flight's plots and print its metrics")
     rep.add_argument("dir", help="a flight's output directory")
     rep.set_defaults(func=cmd_report)
+
+    view = sub.add_parser("view", help="live Foxglove view of a running stack (Foxglove WebSocket protocol)")
+    view.add_argument("--stack")
+    view.add_argument("--router", help="router endpoint (default: the one `up -d` started, else the stack's)")
+    view.add_argument("--vehicle", help="airframe drawn in the 3D scene (default: the stack's)")
+    view.add_argument("--host", default="127.0.0.1", help="address to serve on (default: loopback only)")
+    view.add_argument("--port", type=int, default=8765, help="WebSocket port (default 8765; 0: any free one)")
+    view.set_defaults(func=cmd_view)
 
     mis = sub.add_parser("missions", help="list the shipped missions")
     mis.set_defaults(func=cmd_missions)

@@ -133,3 +133,25 @@ def test_timestamp_rounds_to_the_nanosecond():
     assert (t.sec, t.nsec) == (2, 0)
     t = timestamp(1712345678.25)
     assert (t.sec, t.nsec) == (1712345678, 250_000_000)
+
+
+def test_shipped_layout_is_the_generated_one_and_its_plots_name_real_fields():
+    import json
+    import re
+
+    import schemas
+    from deploy.foxglove_layout import LAYOUT_PATH, layout_json
+
+    assert LAYOUT_PATH.read_text() == layout_json(0), "regenerate: python -m deploy.foxglove_layout"
+    values = re.findall(r'"value": "([^"]+)"', LAYOUT_PATH.read_text())
+    assert len(values) >= 20
+    for value in values:
+        m = re.fullmatch(r"(zp/0/[a-z_/]+)\.([a-z_0-9]+)(?:\[(\d)\])?", value)
+        assert m, value
+        definition = schemas.message_for_key(m.group(1))
+        assert definition is not None, value
+        f = {f.name: f for f in definition.fields}.get(m.group(2))
+        assert f is not None, value
+        assert (m.group(3) is None) == (f.length is None) and (f.length is None or int(m.group(3)) < f.length), value
+    topics = json.loads(LAYOUT_PATH.read_text())["content"]["items"][0]["content"]["config"]["topics"]
+    assert set(topics) <= {f"foxglove/0/{name}" for name in CHANNELS}
