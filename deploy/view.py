@@ -148,11 +148,12 @@ def serve(router: str, vehicle_id: int, motor_positions_m, markers: MarkerGrid, 
 
     context = foxglove.Context()
     view = LiveView(FoxgloveMap(motor_positions_m, vehicle_id, markers), context)
+    session = client_session(router)
     try:
         server = foxglove.start_server(name=f"zenpilot vehicle {vehicle_id}", host=host, port=port, context=context)
     except RuntimeError as exc:   # e.g. the port is taken
+        session.close()
         raise ValueError(f"--host {host} --port {port}: cannot serve the Foxglove WebSocket: {exc}") from None
-    session = client_session(router)
     try:
         view.start()
         session.declare_subscriber(f"zp/{vehicle_id}/**", view.on_sample)
