@@ -308,7 +308,8 @@ def cmd_down(args) -> int:
 
 
 def cmd_view(args) -> int:
-    from deploy.view import marker_grid_for, serve
+    from deploy.foxglove_map import MarkerGrid
+    from deploy.view import serve
     from flight.vehicle import load_vehicle
 
     stack = load_stack(args.stack)
@@ -319,7 +320,7 @@ def cmd_view(args) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    serve(router, stack.vehicle_id, vehicle.motor_positions_m, marker_grid_for(stack), args.host, args.port, stop)
+    serve(router, stack.vehicle_id, vehicle.motor_positions_m, MarkerGrid.for_stack(stack), args.host, args.port, stop)
     return 0
 
 

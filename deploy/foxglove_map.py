@@ -72,6 +72,18 @@ def timestamp(t_s: float) -> Timestamp:
     return Timestamp(sec=int(sec), nsec=nsec)
 
 
+_SCHEMAS: dict[type, tuple[str, bytes]] = {}
+
+
+def schema_of(cls) -> tuple[str, bytes]:
+    """(name, data) of a well-known message class's protobuf schema, e.g. foxglove.FrameTransform."""
+    found = _SCHEMAS.get(cls)
+    if found is None:
+        schema = cls.get_schema()
+        found = _SCHEMAS[cls] = (schema.name, bytes(schema.data))
+    return found
+
+
 def _quaternion(q_wxyz) -> Quaternion:
     """[w, x, y, z] (zenpilot) -> Foxglove's (x, y, z, w)."""
     return Quaternion(x=q_wxyz[1], y=q_wxyz[2], z=q_wxyz[3], w=q_wxyz[0])
@@ -96,6 +108,16 @@ class MarkerGrid:
     @property
     def per_row(self) -> int:
         return int(math.floor(2 * self.half_extent_m / self.spacing_m + 1e-9)) + 1
+
+    @classmethod
+    def for_stack(cls, stack) -> "MarkerGrid":
+        """The grid a stack's vision service uses: its parameters over the simulator's defaults."""
+        from simulator.config import SimConfig
+
+        defaults, spec = SimConfig(), stack.services.get("vision")
+        params = spec.params if spec else {}
+        return cls(*(float(params.get(k, getattr(defaults, k)))
+                     for k in ("marker_size_m", "marker_spacing_m", "marker_grid_half_extent_m")))
 
     def centre(self, marker_id: int) -> tuple[float, float] | None:
         n = self.per_row
@@ -146,6 +168,17 @@ class FoxgloveMap:
         if handler is not None:
             handler(t, msg, out)
         return out
+
+    def wants(self, key: str, t_s: float) -> bool:
+        """Whether convert(key, msg) at sample time t_s can make anything: a reader of stored
+        messages decodes only those."""
+        return self._static_second != int(t_s) or (
+            key.startswith(self.prefix) and key[len(self.prefix):] in self._handlers)
+
+    def encoded(self, key: str, msg: dict) -> list[tuple[str, str, bytes, bytes]]:
+        """convert(), encoded for a log: (topic, schema name, schema data, message bytes), the
+        schema a protobuf FileDescriptorSet as the SDK ships it (message encoding `protobuf`)."""
+        return [(topic_, *schema_of(type(m)), m.encode()) for topic_, m in self.convert(key, msg)]
 
     # -- per message -----------------------------------------------------------
     def _truth(self, t, msg, out):

@@ -130,17 +130,6 @@ class LiveView:
         return channel
 
 
-def marker_grid_for(stack) -> MarkerGrid:
-    """The marker grid the stack's vision service uses (its parameters over the simulator's defaults)."""
-    from simulator.config import SimConfig
-
-    defaults = SimConfig()
-    spec = stack.services.get("vision")
-    params = spec.params if spec else {}
-    return MarkerGrid(*(float(params.get(k, getattr(defaults, k)))
-                        for k in ("marker_size_m", "marker_spacing_m", "marker_grid_half_extent_m")))
-
-
 def serve(router: str, vehicle_id: int, motor_positions_m, markers: MarkerGrid, host: str, port: int,
           stop: threading.Event, out=sys.stdout) -> ViewStats:
     """Serve the live view until `stop` is set; returns what it did."""

@@ -155,3 +155,21 @@ def test_shipped_layout_is_the_generated_one_and_its_plots_name_real_fields():
         assert (m.group(3) is None) == (f.length is None) and (f.length is None or int(m.group(3)) < f.length), value
     topics = json.loads(LAYOUT_PATH.read_text())["content"]["items"][0]["content"]["config"]["topics"]
     assert set(topics) <= {f"foxglove/0/{name}" for name in CHANNELS}
+
+
+def test_wants_says_which_stored_messages_to_decode(fmap):
+    assert fmap.wants("zp/0/motors/pwm", 0.0)          # nothing sent yet: the static scene is due
+    fmap.convert("zp/0/sim/imu", {"header": header(0.0)})
+    assert not fmap.wants("zp/0/motors/pwm", 0.5) and not fmap.wants("zp/0/sim/imu", 0.9)
+    assert fmap.wants("zp/0/sim/truth", 0.5) and fmap.wants("zp/0/att/state", 0.5)
+    assert fmap.wants("zp/0/motors/pwm", 1.0)          # a new second: the static scene again
+
+
+def test_marker_grid_follows_the_stack_vision_parameters():
+    from deploy.stack import load_stack
+    from simulator.config import SimConfig
+
+    grid = MarkerGrid.for_stack(load_stack())
+    c = SimConfig()
+    assert (grid.size_m, grid.spacing_m, grid.half_extent_m) == (
+        c.marker_size_m, c.marker_spacing_m, c.marker_grid_half_extent_m)
