@@ -3,9 +3,10 @@
   zenpilot fly [--mission M] [--lockstep] [--seed N] [--out DIR]   fly a whole mission, then report
   zenpilot up [--machine NAME] [-d]     start the router and a machine's services, show live status
   zenpilot status                        liveliness and health of a running stack
-  zenpilot down                          stop what `zenpilot up -d` started
+  zenpilot down [--router R | --all]     stop what `zenpilot up -d` started
   zenpilot report DIR                    redraw a flight's plots and print its metrics
   zenpilot view [--port 8765]            live Foxglove view of a running stack (WebSocket)
+  zenpilot log info|recover RUN_OR_FILE  what a flight log holds; recover a cut one
   zenpilot missions                      list the shipped missions
   zenpilot train-gyrovertical [--seed N] train the adaptive gyro-vertical (004) on simulator flights
 """
@@ -20,14 +21,15 @@ import signal
 import sys
 import threading
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import zenoh
 
 import schemas
 from deploy import gyrovertical_training
-from deploy.flightlog import LOG_NAME, read_log
-from deploy.launcher import Launcher, alive_services, client_session, free_port, wait_port
+from deploy.flightlog import LOG_NAME, LogError, LogScan, log_is_complete, read_log, recover, scan
+from deploy.launcher import DELIVERY_S, Launcher, alive_services, client_session, free_port, stop_groups, wait_port
 from deploy.stack import StackError, load_stack, lockstep_services
 from flight.mission import MissionError, available_missions, load_mission
 
@@ -77,17 +79,15 @@ def cmd_fly(args) -> int:
             bad = {n: c for n, c in launcher.failed().items() if n != "sim"}
             if bad:
                 raise StackError("service(s) failed during the flight: " + ", ".join(
-                    f"{n} (status {c}, see {out / 'logs' / (n + '.log')})" for n, c in bad.items()))
+                    f"{n} (status {c}, see {out / 'logs' / (n + '.log')})" for n, c in bad.items())
+                    + (f"; the flight log holds the chunks the recorder wrote before: `zenpilot log recover {out}`"
+                       if "recorder" in bad else ""))
             if time.monotonic() > deadline:
                 raise StackError(f"the flight did not finish within {limit:.0f} s of wall time")
             time.sleep(0.1)
         completed_run = launcher.procs["sim"].returncode == 0
     finally:
-        # services first, then the recorder (it writes the log on exit), then the router
-        launcher.stop([n for n in names if n != "recorder"] + ["view"])
-        time.sleep(0.3)
-        launcher.stop(["recorder"], grace_s=60.0)
-        launcher.stop(["router"])
+        launcher.stop_all()
     wall = time.monotonic() - wall0
     report_startup(out, started)
     if not completed_run:
@@ -139,8 +139,21 @@ def _read(path: Path) -> str:
 def analyse(out: Path, info: dict, plots: bool = True) -> dict:
     from deploy.metrics import compute_metrics, format_table
 
-    log = read_log(out / LOG_NAME)
-    metrics = compute_metrics(log, info)
+    found = LogScan(out / LOG_NAME)
+    try:
+        log = read_log(out / LOG_NAME, found)
+    except (LogError, OSError) as exc:
+        raise StackError(f"cannot read the flight log: {exc}") from None
+    if not found.complete:
+        print(f"zenpilot: {found.describe()}; the report covers what it holds "
+              f"(`zenpilot log recover {out}` makes it a complete file)", file=sys.stderr)
+    if not log:
+        raise StackError(f"{out / LOG_NAME}: no message to report on")
+    try:
+        metrics = compute_metrics(log, info)
+    except Exception as exc:  # a log cut early lacks what a metric needs: say so, not a traceback
+        raise StackError(f"{out / LOG_NAME}: the metrics cannot be computed from this log "
+                         f"({type(exc).__name__}: {exc})") from None
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
     if plots:
         from deploy.plots import make_plots
@@ -154,10 +167,64 @@ def cmd_report(args) -> int:
     if not (out / LOG_NAME).exists():
         raise StackError(f"{out}: no {LOG_NAME} here (give the --out directory of a flight)")
     info = {}
-    if (out / "metrics.json").exists():
+    try:
         old = json.loads((out / "metrics.json").read_text())
         info = {k: old.get(k) for k in ("mission", "mode", "seed", "vehicle")}
+    except (OSError, ValueError, AttributeError):
+        pass   # none yet (a flight stopped early), or unreadable: the report makes a new one
     analyse(out, info)
+    return 0
+
+
+# ---------------------------------------------------------------- log
+def _log_path(given: str) -> Path:
+    path = Path(given)
+    if path.is_dir():
+        path = path / LOG_NAME
+    if not path.is_file():
+        raise StackError(f"{given}: no flight log there (give a flight's directory or an .mcap file)")
+    return path
+
+
+def cmd_log_info(args) -> int:
+    path = _log_path(args.log)
+    found = LogScan(path)
+    counts: dict[str, int] = {}
+    try:
+        for channel, _message in scan(path, found):
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+    except LogError as exc:
+        raise StackError(str(exc)) from None
+    print(found.describe())
+    for topic in sorted(counts):
+        print(f"  {counts[topic]:>8}  {topic}")
+    return 0 if found.complete else 1
+
+
+def cmd_log_recover(args) -> int:
+    src = _log_path(args.log)
+    if args.output:
+        dst = Path(args.output)
+        if dst.resolve() == src.resolve():
+            raise StackError(f"--output {dst}: the log itself; give another file")
+    else:
+        if log_is_complete(src):
+            print(f"zenpilot: {src} is complete and indexed; nothing to recover")
+            return 0
+        dst = src   # the run's flight.mcap becomes whole again; the cut file is kept beside it
+    try:
+        found = recover(src, Path(str(dst) + ".recovered"))
+    except LogError as exc:
+        raise StackError(str(exc)) from None
+    if dst == src:
+        kept = src.with_name(src.stem + ".cut" + src.suffix)
+        os.replace(src, kept)
+        os.replace(Path(str(dst) + ".recovered"), dst)
+        print(f"zenpilot: the cut file is kept as {kept}")
+    else:
+        os.replace(Path(str(dst) + ".recovered"), dst)
+    print(f"zenpilot: {found.describe()}")
+    print(f"zenpilot: wrote {dst}: {found.messages} messages, complete and indexed")
     return 0
 
 
@@ -203,7 +270,8 @@ def _status_lines(session, stack) -> list[str]:
 
 def cmd_status(args) -> int:
     stack = load_stack(args.stack)
-    router = args.router or _state().get("router") or next(iter(stack.machines.values())).router
+    up = [st for st in _stacks() if st.live]
+    router = args.router or (up[0].router if len(up) == 1 else None) or next(iter(stack.machines.values())).router
     session = client_session(router)
     try:
         print("\n".join(_status_lines(session, stack)))
@@ -212,14 +280,39 @@ def cmd_status(args) -> int:
     return 0
 
 
-def _state() -> dict:
-    """What `up -d` started, all machines merged (one up-<machine>.json each)."""
-    merged: dict = {"pids": {}}
-    for f in sorted(STATE_DIR.glob("up-*.json")):
-        state = json.loads(f.read_text())
-        merged.setdefault("router", state["router"])
-        merged["pids"].update(state["pids"])
-    return merged if merged["pids"] else {}
+# `up -d` keeps what it started in STATE_DIR/<stack>/up-<machine>.json, one folder per stack
+# (a stack: the router its services meet on), so `down` stops one stack and no other.
+def _stack_dir(router: str) -> Path:
+    return STATE_DIR / re.sub(r"[^A-Za-z0-9.]+", "-", router).strip("-")
+
+
+@dataclass
+class _UpStack:
+    router: str
+    folder: Path
+    pids: dict[str, int] = field(default_factory=dict)
+    run_dirs: list[str] = field(default_factory=list)
+
+    @property
+    def live(self) -> dict[str, int]:
+        """Its processes still running: the pid alive and its command line naming this stack's
+        router (a pid reused by another process since is not ours)."""
+        return {n: pid for n, pid in self.pids.items() if _running(pid) and _names_router(pid, self.router)}
+
+
+def _stacks() -> list[_UpStack]:
+    """What `up -d` started, per stack (its machines merged)."""
+    found: dict[Path, _UpStack] = {}
+    for f in sorted(STATE_DIR.glob("*/up-*.json")):
+        try:
+            state = json.loads(f.read_text())
+            st = found.setdefault(f.parent, _UpStack(state["router"], f.parent))
+            st.pids.update({n: int(p) for n, p in state["pids"].items()})
+            if state.get("run_dir"):
+                st.run_dirs.append(state["run_dir"])
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            print(f"zenpilot: {f}: unreadable state file, ignored ({exc})", file=sys.stderr)
+    return list(found.values())
 
 
 def cmd_up(args) -> int:
@@ -228,7 +321,7 @@ def cmd_up(args) -> int:
     if args.lockstep:
         names = lockstep_services(names)
     router = args.router or stack.machines[machine].router
-    run_dir = Path(args.out or STATE_DIR / f"run-{machine}")
+    run_dir = Path(args.out or _stack_dir(router) / f"run-{machine}")
     params = _param_overrides(args.set)
     # `up` runs until `down`, unless `--set sim.stop_after_mission=true` (given later, it wins)
     params["sim"] = ["stop_after_mission=false", *params.get("sim", [])]
@@ -236,18 +329,23 @@ def cmd_up(args) -> int:
     vehicle = load_mission(args.mission).vehicle if args.mission not in (None, "", "none") else None
     launcher = Launcher(stack, run_dir, router, lockstep=args.lockstep, seed=args.seed,
                         vehicle=vehicle, mission=args.mission, params=params)
-    if runs_router:
-        launcher.start_router()
-    launcher.start_services(names)
-    missing = launcher.wait_alive(names)
-    if missing:
-        launcher.stop()
-        raise StackError(f"no liveliness token from {', '.join(sorted(missing))} (logs in {run_dir / 'logs'})")
+    try:
+        if runs_router:
+            launcher.start_router()
+        launcher.start_services(names)
+        missing = launcher.wait_alive(names)
+        if missing:
+            raise StackError(f"no liveliness token from {', '.join(sorted(missing))} (logs in {run_dir / 'logs'})")
+    except BaseException:
+        launcher.stop_all()   # what did start stops again, the recorder's log complete
+        raise
     print(f"zenpilot: machine {machine!r} up: router {router}, services {', '.join(names)}; logs in {run_dir / 'logs'}")
     if args.detach:
-        STATE_DIR.mkdir(parents=True, exist_ok=True)
-        (STATE_DIR / f"up-{machine}.json").write_text(json.dumps(
-            {"router": router, "stack": str(stack.path), "pids": {n: p.pid for n, p in launcher.procs.items()}}))
+        folder = _stack_dir(router)
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / f"up-{machine}.json").write_text(json.dumps(
+            {"router": router, "stack": str(stack.path), "run_dir": str(run_dir),
+             "pids": {n: p.pid for n, p in launcher.procs.items()}}))
         return 0
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -262,9 +360,8 @@ def cmd_up(args) -> int:
             stop.wait(1.0)
     finally:
         session.close()
-        launcher.stop([n for n in launcher.procs if n not in ("recorder", "router")])
-        launcher.stop(["recorder"], grace_s=60.0)
-        launcher.stop(["router"])
+        launcher.stop_all()
+    _say_log(run_dir / LOG_NAME)
     return 0
 
 
@@ -282,28 +379,68 @@ def _running(pid: int) -> bool:
         return True
 
 
+def _names_router(pid: int, router: str) -> bool:
+    """The process's command line names `router` (every process `up` starts has it: -e or
+    --listen); True where /proc cannot tell."""
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as fh:
+            return router.encode() in fh.read().split(b"\0")
+    except FileNotFoundError:
+        return False
+    except OSError:
+        return True
+
+
+def _say_log(path: Path) -> None:
+    if path.exists():
+        print(f"zenpilot: flight log {path}: "
+              + ("complete" if log_is_complete(path) else "NOT complete (`zenpilot log recover` reads what it holds)"))
+
+
 def cmd_down(args) -> int:
-    state = _state()
-    if not state:
-        print("zenpilot: nothing to stop (no stack started with `zenpilot up -d`)")
-        return 0
-    pids = state["pids"]
-    order = [n for n in pids if n not in ("recorder", "router")] + [n for n in ("recorder", "router") if n in pids]
-    for name in order:
-        try:
-            os.kill(pids[name], signal.SIGINT)
-        except ProcessLookupError:
+    stacks = _stacks()
+    if args.router:
+        chosen = [st for st in stacks if st.router == args.router]
+        if not chosen:
+            print(f"zenpilot: nothing to stop on {args.router} (no stack started there with `zenpilot up -d`)")
+            return 0
+    else:
+        live = [st for st in stacks if st.live]
+        if len(live) > 1 and not args.all:
+            raise StackError("several stacks are up: " + "; ".join(
+                f"{st.router} ({', '.join(sorted(st.live))})" for st in live)
+                + ". Say which: `zenpilot down --router ENDPOINT`, or `zenpilot down --all`")
+        chosen = stacks   # the live one(s), and the state of stacks already gone
+    if not any(st.live for st in chosen):
+        print("zenpilot: nothing to stop (no stack started with `zenpilot up -d` is running)")
+    for st in chosen:
+        pids = st.live
+        if not pids:   # a stack gone already (stopped otherwise, the machine restarted): forget it
+            for f in st.folder.glob("up-*.json"):
+                f.unlink()
             continue
-        grace_s = 60.0 if name == "recorder" else 5.0  # the recorder writes the flight log on exit, as in `fly`
-        for _ in range(int(grace_s / 0.05)):
-            if not _running(pids[name]):
-                break
-            time.sleep(0.05)
-        else:
-            os.kill(pids[name], signal.SIGKILL)
-    for f in STATE_DIR.glob("up-*.json"):
-        f.unlink()
-    print(f"zenpilot: stopped {', '.join(order)}")
+        stopped = []
+        for names, grace_s in stop_groups(list(pids), [Path(d) / LOG_NAME for d in st.run_dirs]):
+            if names == ["recorder"]:
+                time.sleep(DELIVERY_S)
+            stopped += names
+            for n in names:
+                try:
+                    os.kill(pids[n], signal.SIGTERM)
+                except ProcessLookupError:
+                    pass
+            deadline = time.monotonic() + grace_s
+            while time.monotonic() < deadline and any(_running(pids[n]) for n in names):
+                time.sleep(0.05)
+            for n in names:
+                if _running(pids[n]):
+                    os.kill(pids[n], signal.SIGKILL)
+                    print(f"zenpilot: {n} did not stop within {grace_s:.0f} s of SIGTERM; killed", file=sys.stderr)
+        for f in st.folder.glob("up-*.json"):
+            f.unlink()
+        print(f"zenpilot: stopped {', '.join(stopped)} ({st.router})")
+        for run_dir in st.run_dirs:
+            _say_log(Path(run_dir) / LOG_NAME)
     return 0
 
 
@@ -315,7 +452,8 @@ def cmd_view(args) -> int:
     stack = load_stack(args.stack)
     if not 0 <= args.port < 65536:
         raise StackError(f"--port {args.port}: expected a port number 0..65535 (0: any free one)")
-    router = args.router or _state().get("router") or next(iter(stack.machines.values())).router
+    up = [st for st in _stacks() if st.live]
+    router = args.router or (up[0].router if len(up) == 1 else None) or next(iter(stack.machines.values())).router
     vehicle = load_vehicle(args.vehicle or stack.vehicle)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -368,7 +506,9 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--router", help="router endpoint (default: the one `up -d` started, else the stack's)")
     st.set_defaults(func=cmd_status)
 
-    down = sub.add_parser("down", help="stop what `zenpilot up -d` started")
+    down = sub.add_parser("down", help="stop what `zenpilot up -d` started (one stack: its router)")
+    down.add_argument("--router", help="the stack to stop, by its router endpoint (needed when several are up)")
+    down.add_argument("--all", action="store_true", help="stop every stack `up -d` started")
     down.set_defaults(func=cmd_down)
 
     rep = sub.add_parser("report", help="redraw a flight's plots and print its metrics")
@@ -382,6 +522,16 @@ def build_parser() -> argparse.ArgumentParser:
     view.add_argument("--host", default="127.0.0.1", help="address to serve on (default: loopback only)")
     view.add_argument("--port", type=int, default=8765, help="WebSocket port (default 8765; 0: any free one)")
     view.set_defaults(func=cmd_view)
+
+    log = sub.add_parser("log", help="flight logs: what a log holds, recover a cut one")
+    log_sub = log.add_subparsers(dest="log_command", required=True)
+    info = log_sub.add_parser("info", help="complete or cut, and the messages per key (exit 1 if cut)")
+    info.add_argument("log", help="a flight's directory or an .mcap file")
+    info.set_defaults(func=cmd_log_info)
+    rec = log_sub.add_parser("recover", help="copy the readable chunks of a cut log into a complete, indexed one")
+    rec.add_argument("log", help="a flight's directory or an .mcap file")
+    rec.add_argument("-o", "--output", help="write here (default: in place; the cut file is kept as <name>.cut.mcap)")
+    rec.set_defaults(func=cmd_log_recover)
 
     mis = sub.add_parser("missions", help="list the shipped missions")
     mis.set_defaults(func=cmd_missions)

@@ -19,9 +19,17 @@ from pathlib import Path
 
 import zenoh
 
+from deploy.flightlog import LOG_NAME
 from deploy.stack import SERVICE_MODULES, Stack, StackError
 
 ROUTER_START_TIMEOUT_S = 10.0
+STOP_GRACE_S = 5.0        # a service's time to finish after SIGTERM before SIGKILL
+# The recorder's: it writes what arrived last and the log's summary (the log is then complete),
+# and in lockstep rewrites the log in sample-time order, ~1.2 s per MB of log on 2 busy cores
+# (a 20 s hover: 4.5 MB, 5.4 s). Running out of time would cost that order, never the log.
+RECORDER_GRACE_S = 30.0
+RECORDER_GRACE_S_PER_MB = 3.0
+DELIVERY_S = 0.3   # after the services stop, for their last messages to reach the recorder
 # One thread per Zenoh runtime pool: a 400 Hz service needs no more, and on a
 # small computer (2 cores here, a Raspberry Pi on the vehicle) fewer threads
 # means fewer context switches (measured: lockstep 1.04x -> 1.25x real time).
@@ -71,6 +79,21 @@ def client_session(endpoint: str) -> zenoh.Session:
 def alive_services(session: zenoh.Session, vehicle_id: int, timeout_s: float = 0.5) -> set[str]:
     replies = session.liveliness().get(f"zp/{vehicle_id}/alive/*", timeout=timeout_s)
     return {str(r.ok.key_expr).rsplit("/", 1)[1] for r in replies if r.ok is not None}
+
+
+def recorder_grace_s(log_paths) -> float:
+    """The recorder's time to finish after SIGTERM, from the size of the log it writes."""
+    size = sum(Path(p).stat().st_size for p in log_paths if Path(p).exists())
+    return RECORDER_GRACE_S + RECORDER_GRACE_S_PER_MB * size / 1e6
+
+
+def stop_groups(names: list[str], log_paths=()) -> list[tuple[list[str], float]]:
+    """The order a stack stops in, as (names, grace in s): services that produce messages
+    first, then the recorder that logs them (to `log_paths`), then the router that carries them."""
+    services = [n for n in names if n not in ("recorder", "router")]
+    return [(g, grace) for g, grace in ((services, STOP_GRACE_S),
+                                        (["recorder"] if "recorder" in names else [], recorder_grace_s(log_paths)),
+                                        (["router"] if "router" in names else [], STOP_GRACE_S)) if g]
 
 
 @dataclass
@@ -149,18 +172,41 @@ class Launcher:
         finally:
             session.close()
 
-    def stop(self, names: list[str] | None = None, grace_s: float = 5.0) -> None:
+    def stop(self, names: list[str] | None = None, grace_s: float = STOP_GRACE_S) -> list[str]:
+        """SIGTERM to each service named (all by default), then up to `grace_s` for them to
+        finish; SIGKILL to those still running, reported. Returns the ones killed."""
         names = [n for n in (names or list(self.procs)) if n in self.procs]
         for n in names:
             if self.procs[n].poll() is None:
-                self.procs[n].send_signal(signal.SIGINT)
+                self.procs[n].send_signal(signal.SIGTERM)
         deadline = time.monotonic() + grace_s
+        killed = []
         for n in names:
             try:
                 self.procs[n].wait(max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
                 self.procs[n].kill()
                 self.procs[n].wait()
+                killed.append(n)
+                print(f"zenpilot: {n} did not stop within {grace_s:.0f} s of SIGTERM; killed "
+                      f"(see {self.run_dir / 'logs' / (n + '.log')})", file=sys.stderr, flush=True)
+        return killed
+
+    def stop_all(self) -> None:
+        """Stop everything started, in the order that keeps the flight log whole: the services,
+        then the recorder (it writes what they sent last, then the log's summary), then the
+        router. A second Ctrl-C or SIGTERM meanwhile is answered, not obeyed."""
+        def still_stopping(*_):
+            print("zenpilot: stopping; the recorder is finishing the flight log", file=sys.stderr, flush=True)
+        previous = {sig: signal.signal(sig, still_stopping) for sig in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            for group, grace_s in stop_groups(list(self.procs), [self.run_dir / LOG_NAME]):
+                if group == ["recorder"]:
+                    time.sleep(DELIVERY_S)
+                self.stop(group, grace_s)
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
 
     def failed(self) -> dict[str, int]:
         """Services that exited with an error status."""

@@ -1,25 +1,36 @@
 """zenpilot-recorder: writes every message of the vehicle to one MCAP flight log.
 
-Subscribes to zp/<vehicle>/** and decodes each message strictly (malformed
-ones are counted, not logged). In lockstep the log is sorted by sample time,
-key and sequence number before writing, so the same seed gives the same file.
+Subscribes to zp/<vehicle>/** and writes as the flight goes: the Zenoh callback only
+queues (key, payload); the recorder's loop (10 Hz) decodes each message strictly
+(malformed ones are counted, not logged) and adds it to the log, and at least every
+FLUSH_S of wall time hands the chunk in progress to the OS, so a recorder killed at any
+time leaves the chunks written before readable (`zenpilot log recover`). On a stop
+(SIGTERM/SIGINT) it writes the rest and the summary: a complete, indexed log.
+
+In lockstep the log is then rewritten in (sample time, key, sequence) order, each
+message once, so the same seed gives the same file: arrival order across senders
+depends on the machine. The rewrite goes to a temporary file that replaces the log
+when done, so the log is complete at every moment of it.
 """
 
 from __future__ import annotations
 
 import json
-import threading
+import os
+import time
+from collections import deque
 from pathlib import Path
 from typing import Callable
 
 import zenoh
 
 import schemas
-from deploy.flightlog import LOG_NAME, write_log
+from deploy.flightlog import LOG_NAME, FlightLogWriter, sort_log
 from services.runtime import Runtime, main_guard, service_parser
 
 NAME = "recorder"
 PARAMS: dict = {}
+FLUSH_S = 1.0  # at most this much wall time of messages is lost if the recorder is killed
 SKIP = object()  # a key the recorder does not log (its own health, liveliness)
 _UNSEEN = object()
 MAX_KEYS = 4096  # keys remembered by the per-key lookup; others are looked up per message
@@ -29,12 +40,15 @@ def run(args) -> None:
     rt = Runtime(NAME, args, PARAMS)
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / LOG_NAME
+    sorted_path = path.with_name(path.name + ".sorted")
+    sorted_path.unlink(missing_ok=True)   # a rewrite a previous recorder did not finish
+    log = FlightLogWriter(path)
     own_health = schemas.HEALTH.key(rt.vehicle_id, NAME)
-    records: list[tuple[str, dict]] = []
-    lock = threading.Lock()
+    arrived: deque[tuple[str, bytes]] = deque()   # append/popleft are thread safe
     # per key, what to do with its messages: the message's decode, SKIP, or None (no
     # message defined); looked up once per key, not per message
-    decoders: dict[str, Callable[[bytes], dict] | object | None] = {}  # thread safe: single dict ops
+    decoders: dict[str, Callable[[bytes], dict] | object | None] = {}
 
     def decoder_for(key: str):
         if key == own_health or "/alive/" in key:
@@ -47,39 +61,52 @@ def run(args) -> None:
         return found
 
     def on_sample(sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
-        decode = decoders.get(key, _UNSEEN)
-        if decode is _UNSEEN:
-            decode = decoder_for(key)
-        if decode is SKIP:
-            return
-        if decode is None:
-            rt.reject(key, schemas.SchemaError("malformed", "?", f"no message is defined for key {key}"))
-            return
-        try:
-            msg = decode(sample.payload.to_bytes())
-        except schemas.SchemaError as exc:
-            rt.reject(key, exc)
-            return
-        with lock:
-            records.append((key, msg))
+        arrived.append((str(sample.key_expr), sample.payload.to_bytes()))
+
+    def write_arrived() -> None:
+        for _ in range(len(arrived)):
+            key, payload = arrived.popleft()
+            decode = decoders.get(key, _UNSEEN)
+            if decode is _UNSEEN:
+                decode = decoder_for(key)
+            if decode is SKIP:
+                continue
+            if decode is None:
+                rt.reject(key, schemas.SchemaError("malformed", "?", f"no message is defined for key {key}"))
+                continue
+            try:
+                msg = decode(payload)
+            except schemas.SchemaError as exc:
+                rt.reject(key, exc)
+                continue
+            log.write(key, msg)
+
+    next_flush = time.monotonic() + FLUSH_S
+
+    def step(_t: float) -> None:
+        nonlocal next_flush
+        write_arrived()
+        if time.monotonic() >= next_flush:
+            log.flush()
+            next_flush = time.monotonic() + FLUSH_S
 
     rt.subscribe(rt.key("**"), on_sample)
     rt.lockstep = False  # the recorder only listens: it keeps wall time for its own health
     rt.rate_hz = 10.0
     try:
-        rt.run(lambda t: None)
+        rt.run(step)   # returns on SIGTERM/SIGINT, its session closed
     finally:
-        with lock:
-            rows = list(records)
-        if args.lockstep:  # arrival order across senders is not deterministic; sample time is
-            rows.sort(key=lambda r: (r[1]["header"]["t_s"], r[0], r[1]["header"]["seq"]))
-            # a message repeated until answered (the lockstep "ready") is logged once
-            rows = [r for i, r in enumerate(rows) if i == 0 or (r[0], r[1]["header"]["seq"])
-                    != (rows[i - 1][0], rows[i - 1][1]["header"]["seq"])]
-        n = write_log(out_dir / LOG_NAME, rows)
-        print(f"zenpilot-recorder: wrote {n} messages to {out_dir / LOG_NAME}; "
-              f"rejected {sum(rt.rejected.values())} {json.dumps(rt.rejected, sort_keys=True)}", flush=True)
+        write_arrived()
+        log.close()
+        summary = (f"wrote {log.count} messages to {path}; rejected {sum(rt.rejected.values())} "
+                   f"{json.dumps(rt.rejected, sort_keys=True)}")
+        print(f"zenpilot-recorder: {summary}", flush=True)
+    if args.lockstep:
+        t0 = time.monotonic()
+        n = sort_log(path, sorted_path)
+        os.replace(sorted_path, path)
+        print(f"zenpilot-recorder: sorted by sample time: {n} messages ({log.count - n} repeats dropped) "
+              f"in {time.monotonic() - t0:.1f} s", flush=True)
 
 
 def main(argv=None) -> None:
