@@ -16,6 +16,7 @@ pos/state, attitude from att/state), `base_link_truth` (the simulator's truth).
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass
 
@@ -179,6 +180,13 @@ class FoxgloveMap:
         """convert(), encoded for a log: (topic, schema name, schema data, message bytes), the
         schema a protobuf FileDescriptorSet as the SDK ships it (message encoding `protobuf`)."""
         return [(topic_, *schema_of(type(m)), m.encode()) for topic_, m in self.convert(key, msg)]
+
+    def encoded_stored(self, key: str, t_ns: int, data: bytes) -> list[tuple[str, str, bytes, bytes]]:
+        """encoded() for a message stored as JSON (a flight log's bus channel), decoding only
+        the messages the conversion uses (deploy.flightlog.sort_log's `derive`)."""
+        if not self.wants(key, t_ns * 1e-9):
+            return []
+        return self.encoded(key, json.loads(data))
 
     # -- per message -----------------------------------------------------------
     def _truth(self, t, msg, out):
