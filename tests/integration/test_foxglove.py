@@ -107,3 +107,47 @@ def test_live_view_during_a_lockstep_flight(tmp_path, hover_lockstep):
     # a viewer only listens: the flight's log is the same, byte for byte, as without it
     fixture_out, _ = hover_lockstep
     assert (tmp_path / "flight.mcap").read_bytes() == (fixture_out / "flight.mcap").read_bytes()
+
+
+WELL_KNOWN = {"tf/truth": "foxglove.FrameTransform", "tf/estimate": "foxglove.FrameTransform",
+              "pose/truth": "foxglove.PoseInFrame", "pose/estimate": "foxglove.PoseInFrame",
+              "pose/setpoint": "foxglove.PoseInFrame", "pose/vision": "foxglove.PoseInFrame",
+              "scene/markers": "foxglove.SceneUpdate", "scene/vehicle": "foxglove.SceneUpdate",
+              "scene/seen": "foxglove.SceneUpdate"}
+
+
+def check_log_for_foxglove(path, truth_hz):
+    """flight.mcap opens with the `mcap` reader; its Foxglove channels have the well-known schemas
+    and hold the flight (the truth's transform at the truth's times and positions)."""
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    from deploy.flightlog import read_log
+
+    with open(path, "rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        summary = reader.get_summary()
+        channels = {c.topic: c for c in summary.channels.values()}
+        for name, schema_name in WELL_KNOWN.items():
+            channel = channels[f"foxglove/0/{name}"]
+            schema = summary.schemas[channel.schema_id]
+            assert (schema.name, schema.encoding, channel.message_encoding) == (schema_name, "protobuf", "protobuf")
+            assert summary.statistics.channel_message_counts[channel.id] > 0, name
+        tfs = [(m.log_time, p) for _, _, m, p in reader.iter_decoded_messages(topics=["foxglove/0/tf/truth"])]
+    truth = read_log(path)["zp/0/sim/truth"]   # the JSON bus channels read as before
+    assert len(tfs) == len(truth) > 0
+    if truth_hz:   # lockstep: every tick's truth, on simulated time
+        assert (tfs[-1][0] - tfs[0][0]) * 1e-9 * truth_hz == pytest.approx(len(tfs) - 1, rel=0.01)
+    for (t_ns, tf), msg in zip(tfs, truth):
+        assert t_ns == round(msg["header"]["t_s"] * 1e9) and tf.translation.z == msg["position_m"][2]
+
+
+def test_lockstep_log_has_the_well_known_channels(hover_lockstep):
+    out, _ = hover_lockstep
+    check_log_for_foxglove(out / "flight.mcap", truth_hz=200)
+
+
+def test_real_time_log_has_the_well_known_channels(tmp_path):
+    proc, m = fly(tmp_path, "hover", *TRUTH_STATE, lockstep=False)
+    assert m["completed"], proc.stdout + proc.stderr
+    check_log_for_foxglove(tmp_path / "flight.mcap", truth_hz=None)   # wall clock: no rate asserted
