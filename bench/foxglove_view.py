@@ -11,7 +11,9 @@ Replays the messages of a flight log (LOG: a flight.mcap) through each step the 
   encode     .encode() of those well-known messages (protobuf, what the SDK sends)
 
 and prints microseconds per message (median over --repeat passes) with each kind's rate in
-the log, then the CPU share of one core the whole stream costs at those rates. Wall-clock
+the log, then the CPU share of one core the whole stream costs at those rates. Then the
+lockstep recorder's end-of-flight rewrite (deploy.flightlog.sort_log) of the log's bus
+channels, without and with the well-known channels made from them (FoxgloveMap.encoded_stored). Wall-clock
 figures depend on the machine and its load (other processes on a shared machine inflate them).
 """
 
@@ -21,6 +23,7 @@ import argparse
 import json
 import statistics
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -28,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import schemas  # noqa: E402
-from deploy.flightlog import read_log  # noqa: E402
+from deploy.flightlog import FlightLogWriter, LogScan, read_log, scan, sort_log  # noqa: E402
 from deploy.foxglove_map import FoxgloveMap, MarkerGrid  # noqa: E402
 from flight.vehicle import load_vehicle  # noqa: E402
 
@@ -91,6 +94,33 @@ def main() -> None:
         print(f"{k:<22} {rate:8.1f} {med['decode']:8.1f} {med['json']:8.1f} {med['convert']:8.1f} "
               f"{med['encode']:8.1f} {total:8.1f} {100 * rate * total * 1e-6:6.2f}")
     print(f"all messages: {100 * share:.1f} % of one core at the log's rates (target: ground side, < 25 %)")
+    sort_cost(args.log, motors, args.repeat)
+
+
+def sort_cost(log_path: str, motors, repeat: int) -> None:
+    """sort_log of the bus channels alone, without and with the derived well-known channels."""
+    with tempfile.TemporaryDirectory() as tmp:
+        bus = Path(tmp) / "bus.mcap"
+        found = LogScan(Path(log_path))
+        out = FlightLogWriter(bus)
+        for ch, m in scan(log_path, found):
+            if ch.message_encoding == "json":
+                s = found.schemas[ch.schema_id]
+                out.add(out.channel(ch.topic, s.name, s.data, ch.message_encoding, s.encoding, ch.metadata),
+                        m.log_time, m.data, m.sequence)
+        out.close()
+        times = {}
+        for name in ("bus only", "with well-known"):
+            runs = []
+            for _ in range(repeat):
+                derive = FoxgloveMap(motors, 0, MarkerGrid()).encoded_stored if name != "bus only" else None
+                t0 = time.perf_counter()
+                sort_log(bus, Path(tmp) / "sorted.mcap", derive=derive)
+                runs.append(time.perf_counter() - t0)
+            times[name] = statistics.median(runs)
+            size = (Path(tmp) / "sorted.mcap").stat().st_size
+            print(f"sort_log, {name:<16}: {times[name]:.2f} s, {size / 1e6:.2f} MB")
+        print(f"the well-known channels add {times['with well-known'] - times['bus only']:.2f} s to the rewrite")
 
 
 def _kind(key: str) -> str:

@@ -145,6 +145,7 @@ class FoxgloveMap:
         self._attitude: list[float] | None = None
         self._static_second: int | None = None
         self._motors = tuple((float(x), float(y)) for x, y in motor_positions_m)
+        self._handled: dict[str, bool] = {}   # per key: whether a handler converts it
         self._handlers = {
             "sim/truth": self._truth,
             "pos/state": self._position_state,
@@ -173,8 +174,12 @@ class FoxgloveMap:
     def wants(self, key: str, t_s: float) -> bool:
         """Whether convert(key, msg) at sample time t_s can make anything: a reader of stored
         messages decodes only those."""
-        return self._static_second != int(t_s) or (
-            key.startswith(self.prefix) and key[len(self.prefix):] in self._handlers)
+        handled = self._handled.get(key)
+        if handled is None:
+            handled = key.startswith(self.prefix) and key[len(self.prefix):] in self._handlers
+            if len(self._handled) < 4096:   # keys come from the network: bound what is remembered
+                self._handled[key] = handled
+        return handled or self._static_second != int(t_s)
 
     def encoded(self, key: str, msg: dict) -> list[tuple[str, str, bytes, bytes]]:
         """convert(), encoded for a log: (topic, schema name, schema data, message bytes), the
