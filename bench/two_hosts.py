@@ -229,7 +229,8 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
                                          timeout=300)
     pids = {}
     for host, machine in (("vehicle", "vehicle"), ("ground", "ground")):
-        pids.update(json.loads((out / host / "state" / f"up-{machine}.json").read_text())["pids"])
+        state, = (out / host / "state").glob(f"*/up-{machine}.json")   # one folder per stack (its router)
+        pids.update(json.loads(state.read_text())["pids"])
     limit = mission.timeout_s * 1.5 + 60.0
     deadline, sampled, status = time.monotonic() + limit, None, ""
     while _running(pids["sim"]):

@@ -562,6 +562,9 @@ def main(argv=None) -> None:
         code = 2
     except KeyboardInterrupt:
         code = 130
+    except BrokenPipeError:   # output piped into a reader that stopped early (`| head`)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        code = 0
     except Terminated:
         print("zenpilot: terminated; services stopped", file=sys.stderr)
         code = 143

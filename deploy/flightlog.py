@@ -212,9 +212,10 @@ class LogScan:
     def describe(self) -> str:
         if self.complete:
             return f"{self.path}: complete, {self.messages} messages in {self.chunks} chunks"
+        lost = self.size_bytes - self.readable_bytes
         return (f"{self.path}: cut (no summary: the writer did not finish it); {self.messages} messages "
-                f"in {self.chunks} readable chunks, {self.size_bytes - self.readable_bytes} bytes at the "
-                f"end unreadable" + (f" ({self.problem})" if self.problem else ""))
+                f"in {self.chunks} readable chunks, " + (f"{lost} bytes at the end unreadable ({self.problem})"
+                                                         if lost else "nothing after them"))
 
 
 def scan(path: str | Path, scan_result: LogScan | None = None) -> Iterator[tuple[Channel, Message]]:

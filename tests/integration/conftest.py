@@ -2,6 +2,7 @@
 every service as its own process; the tests read what the flight wrote."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -34,3 +35,17 @@ def fly(out: Path, mission: str, *extra: str, lockstep: bool = True, seed: int =
 def hover_lockstep(tmp_path_factory):
     out = tmp_path_factory.mktemp("hover-lockstep")
     return out, fly(out, "hover", *TRUTH_STATE, plots=True)
+
+
+def processes_mentioning(text: str) -> list[int]:
+    """The processes whose command line contains `text` (a run's router endpoint or folder)."""
+    pids = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/cmdline", "rb") as f:
+                    if text.encode() in f.read():
+                        pids.append(int(entry))
+            except OSError:
+                continue
+    return pids

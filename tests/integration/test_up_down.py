@@ -5,10 +5,13 @@ import subprocess
 import sys
 
 import pytest
+from mcap.reader import make_reader
 
 from deploy.launcher import free_port
 
-from .conftest import ROOT
+from .conftest import ROOT, processes_mentioning
+
+OTHER_STACK = ROOT / "tests" / "integration" / "stacks" / "recorder-only.toml"
 
 pytestmark = pytest.mark.integration
 
@@ -19,8 +22,11 @@ def zp(*args, env):
 
 
 def test_up_two_machines_status_down(tmp_path):
+    """`down` stops its own stack only (another one beside it keeps running), services first and
+    the recorder last, which leaves a complete, indexed flight log."""
     env = dict(os.environ, ZENPILOT_STATE_DIR=str(tmp_path))
     router = f"tcp/127.0.0.1:{free_port()}"
+    other = f"tcp/127.0.0.1:{free_port()}"
     try:
         vehicle = zp("up", "-d", "--machine", "vehicle", "--router", router, env=env)
         assert vehicle.returncode == 0, vehicle.stderr
@@ -32,24 +38,23 @@ def test_up_two_machines_status_down(tmp_path):
         for service in ("sim", "motors", "attitude", "position", "planner", "recorder"):
             assert rows[service][1] == "yes", status.stdout
             assert rows[service][2] in ("running", "degraded"), status.stdout
+        beside = zp("up", "-d", "--stack", str(OTHER_STACK), "--machine", "solo", "--router", other, env=env)
+        assert beside.returncode == 0, beside.stderr
+        which = zp("down", env=env)   # two stacks up: `down` must be told which
+        assert which.returncode == 2 and router in which.stderr and other in which.stderr, which.stderr
+        down = zp("down", "--router", router, env=env)
+        assert down.returncode == 0 and "stopped" in down.stdout, down.stdout + down.stderr
+        assert processes_mentioning(router) == []
+        assert len(processes_mentioning(other)) == 2   # the other stack's router and recorder
     finally:
-        down = zp("down", env=env)
-    assert down.returncode == 0 and "stopped" in down.stdout
-    assert (tmp_path / "run-ground" / "flight.mcap").exists()
-    assert "wrote" in (tmp_path / "run-ground" / "logs" / "recorder.log").read_text()
-
-
-def _processes_mentioning(text: str) -> list[int]:
-    pids = []
-    for entry in os.listdir("/proc"):
-        if entry.isdigit():
-            try:
-                with open(f"/proc/{entry}/cmdline", "rb") as f:
-                    if text.encode() in f.read():
-                        pids.append(int(entry))
-            except OSError:
-                continue
-    return pids
+        zp("down", "--all", env=env)
+    assert processes_mentioning(other) == []
+    run = next(tmp_path.glob("*/run-ground"))
+    assert "flight log" in down.stdout and "complete" in down.stdout, down.stdout
+    with open(run / "flight.mcap", "rb") as fh:
+        summary = make_reader(fh).get_summary()
+    assert summary is not None and summary.statistics.message_count > 1000
+    assert "wrote" in (run / "logs" / "recorder.log").read_text()
 
 
 def test_terminated_fly_stops_its_services(tmp_path):
@@ -64,9 +69,9 @@ def test_terminated_fly_stops_its_services(tmp_path):
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and len(_processes_mentioning(router)) < 4:
+        while time.monotonic() < deadline and len(processes_mentioning(router)) < 4:
             time.sleep(0.2)
-        started = _processes_mentioning(router)
+        started = processes_mentioning(router)
         assert len(started) >= 4, "the stack did not start"
         time.sleep(1.0)
         proc.send_signal(signal.SIGTERM)
@@ -74,11 +79,11 @@ def test_terminated_fly_stops_its_services(tmp_path):
         assert proc.returncode == 143, err
         assert "terminated" in err
         deadline = time.monotonic() + 10
-        while time.monotonic() < deadline and _processes_mentioning(router):
+        while time.monotonic() < deadline and processes_mentioning(router):
             time.sleep(0.2)
-        assert _processes_mentioning(router) == []
+        assert processes_mentioning(router) == []
     finally:
         if proc.poll() is None:
             proc.kill()
-        for pid in _processes_mentioning(router):
+        for pid in processes_mentioning(router):
             os.kill(pid, signal.SIGKILL)

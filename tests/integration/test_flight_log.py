@@ -1,0 +1,103 @@
+"""A stop never loses the flight log: Ctrl-C of `zenpilot fly` mid-flight leaves a complete,
+indexed log holding every message up to the stop; a recorder killed with -9 leaves the chunks
+it wrote, which `zenpilot log recover` makes a complete log and `zenpilot report` reads."""
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from deploy.flightlog import LogScan, read_log
+
+from .conftest import ROOT, TRUTH_STATE, fly, processes_mentioning
+
+pytestmark = pytest.mark.integration
+
+FLYING_S = 4.0   # wall time flown before the stop: a few of the recorder's 1 s chunks
+
+
+def zp(*args):
+    return subprocess.run([sys.executable, "-m", "deploy.cli", *args], cwd=ROOT, capture_output=True,
+                          text=True, timeout=120)
+
+
+def fly_until_flying(out):
+    proc = fly(out, "hover", *TRUTH_STATE, background=True)
+    deadline = time.monotonic() + 120
+    while "first tick" not in _read(out / "logs" / "sim.log"):
+        assert proc.poll() is None and time.monotonic() < deadline, proc.stdout.read() if proc.stdout else ""
+        time.sleep(0.2)
+    time.sleep(FLYING_S)
+    return proc
+
+
+def _read(path):
+    try:
+        return path.read_text()
+    except OSError:
+        return ""
+
+
+def contiguous(seqs):
+    """Each key's sequence numbers with no gap (a message repeated until answered counts once)."""
+    seqs = [s for i, s in enumerate(seqs) if i == 0 or s != seqs[i - 1]]
+    return seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+
+
+def test_ctrl_c_mid_flight_leaves_a_complete_log_of_every_message(tmp_path):
+    out = tmp_path / "run"
+    proc = fly_until_flying(out)
+    try:
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130
+    with open(out / "flight.mcap", "rb") as fh:
+        summary = make_reader(fh).get_summary()   # indexed
+    log = read_log(out / "flight.mcap")
+    assert summary is not None and summary.statistics.message_count == sum(map(len, log.values()))
+    for key, msgs in log.items():
+        assert contiguous([m["header"]["seq"] for m in msgs]), key
+    imu = [m["header"]["t_s"] for m in log["zp/0/sim/imu"]]
+    assert imu[-1] > 1.0   # stopped in flight, not before it
+    assert np.allclose(np.diff(imu), 1 / 400)   # every 400 Hz sample, in order
+    # ... up to the stop: every tick the simulator ran (and the one in progress) is in the log
+    ticks = int(re.search(r"stopping; .*?; (\d+) runs", _read(out / "logs" / "sim.log")).group(1))
+    assert len(imu) in (ticks, ticks + 1)
+
+
+def test_a_recorder_killed_leaves_its_chunks_and_recover_completes_them(tmp_path):
+    out = tmp_path / "run"
+    proc = fly_until_flying(out)
+    try:
+        recorder, = [p for p in processes_mentioning(str(out)) if b"services.recorder" in
+                     open(f"/proc/{p}/cmdline", "rb").read()]
+        os.kill(recorder, signal.SIGKILL)
+        said, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 2 and "zenpilot log recover" in said, said
+    cut = LogScan(out / "flight.mcap")
+    log = read_log(out / "flight.mcap", cut)
+    assert not cut.complete and cut.chunks >= 2, cut.describe()
+    for key, msgs in log.items():   # the readable part has no gap
+        assert contiguous([m["header"]["seq"] for m in msgs]), key
+    report = zp("report", str(out))   # on the cut log: a report of what it holds, and why
+    assert report.returncode == 0 and "cut" in report.stderr and "Traceback" not in report.stderr, report.stderr
+    recovered = zp("log", "recover", str(out))
+    assert recovered.returncode == 0, recovered.stderr
+    with open(out / "flight.mcap", "rb") as fh:
+        summary = make_reader(fh).get_summary()
+    assert summary is not None and summary.statistics.message_count == cut.messages
+    assert read_log(out / "flight.mcap") == log
+    assert (out / "flight.cut.mcap").stat().st_size == cut.size_bytes   # the cut file kept as it was
+    assert zp("log", "info", str(out)).returncode == 0
