@@ -32,6 +32,9 @@ from deploy.flightlog import json_schema
 from deploy.foxglove_map import FoxgloveMap, MarkerGrid
 
 QUEUE_MAX = 20000      # payloads waiting for the reader (~10 s of the whole stack's traffic)
+# messages the server holds per client before dropping its oldest (the SDK's default is 1024,
+# half a second of the stack's stream): a client stalled a second or two catches up instead
+CLIENT_BACKLOG = 8192
 # keys the view leaves out: lockstep's clock and handshake (thousands a second, no data)
 # and liveliness tokens
 SKIP_PARTS = ("/alive/", "/sim/clock/", "/sync/")
@@ -42,6 +45,7 @@ class ViewStats:
     received: int = 0
     forwarded: int = 0
     lost: int = 0        # queue full: the oldest payload dropped
+    gaps: int = 0        # messages that never reached the view (sequence gaps: dropped on the way)
     rejected: dict[str, int] = field(default_factory=dict)   # by reason (malformed, no schema)
 
 
@@ -56,6 +60,7 @@ class LiveView:
         self._raw: dict[str, foxglove.Channel | None] = {}   # per key: its channel, None to skip
         self._decoders: dict[str, object] = {}
         self._known: dict[str, object] = {}   # well-known channels by topic
+        self._next_seq: dict[str, int] = {}   # per key: the sequence number expected next
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._read, name="foxglove-view", daemon=True)
 
@@ -102,7 +107,12 @@ class LiveView:
         except schemas.SchemaError as exc:
             self.stats.rejected[exc.reason] = self.stats.rejected.get(exc.reason, 0) + 1
             return
-        t_ns = int(round(msg["header"]["t_s"] * 1e9))
+        header = msg["header"]
+        expected = self._next_seq.get(key)
+        if expected is not None and header["seq"] > expected:
+            self.stats.gaps += header["seq"] - expected
+        self._next_seq[key] = header["seq"] + 1
+        t_ns = int(round(header["t_s"] * 1e9))
         if channel.has_sinks():
             channel.log(json.dumps(msg, separators=(",", ":")).encode(), log_time=t_ns)
             self.stats.forwarded += 1
@@ -139,7 +149,8 @@ def serve(router: str, vehicle_id: int, motor_positions_m, markers: MarkerGrid, 
     view = LiveView(FoxgloveMap(motor_positions_m, vehicle_id, markers), context)
     session = client_session(router)
     try:
-        server = foxglove.start_server(name=f"zenpilot vehicle {vehicle_id}", host=host, port=port, context=context)
+        server = foxglove.start_server(name=f"zenpilot vehicle {vehicle_id}", host=host, port=port, context=context,
+                                       message_backlog_size=CLIENT_BACKLOG)
     except RuntimeError as exc:   # e.g. the port is taken
         session.close()
         raise ValueError(f"--host {host} --port {port}: cannot serve the Foxglove WebSocket: {exc}") from None
@@ -156,6 +167,6 @@ def serve(router: str, vehicle_id: int, motor_positions_m, markers: MarkerGrid, 
         server.stop()
         s = view.stats
         print(f"zenpilot view: stopped; {s.received} messages received, {s.forwarded} forwarded, "
-              f"{s.lost} lost (reader behind), rejected {json.dumps(s.rejected, sort_keys=True)}",
+              f"{s.lost} lost (reader behind), {s.gaps} never arrived (sequence gaps), rejected {json.dumps(s.rejected, sort_keys=True)}",
               file=out, flush=True)
     return view.stats
