@@ -4,9 +4,9 @@
 
 One layout for both the live view (`zenpilot view`) and flight.mcap: the same topics exist in
 both. A 3D scene (the marker grid, the airframe at the estimate in blue and at the truth in green,
-setpoint and camera fixes, following the true vehicle) beside tabs of plots: position and
-attitude against their references, body rates, motor outputs, each service's health. Plot series
-read the raw JSON channels (`zp/<vehicle>/...`, fields as in schemas/messages.py).
+setpoint and camera fixes; the view follows the estimate: a real vehicle has no truth) beside
+tabs of plots: position and attitude against their references, body rates, motor outputs,
+each service's health. Plot series read the raw JSON channels (`zp/<vehicle>/...`, fields as in schemas/messages.py).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from pathlib import Path
 
 import foxglove.layouts as fl
 
-from deploy.foxglove_map import BODY_TRUTH, WORLD, topic
+from deploy.foxglove_map import BODY, WORLD, topic
 
 LAYOUT_PATH = Path(__file__).resolve().parents[1] / "docs" / "foxglove-layout.json"
 HEALTH_OF = ("sim", "motors", "attitude", "position", "vision", "planner", "mavlink")
@@ -41,7 +41,7 @@ def _tab(title: str, *panels: fl.BasePanel) -> fl.TabItem:
 def build_layout(vehicle_id: int = 0) -> fl.Layout:
     zp = f"zp/{vehicle_id}"
     scene = fl.ThreeDeePanel(title="3D: estimate (blue), truth (green)", config=fl.ThreeDeeConfig(
-        follow_tf=BODY_TRUTH, fixed_frame=WORLD, follow_mode="follow-position",
+        follow_tf=BODY, fixed_frame=WORLD, follow_mode="follow-position",
         camera_state=fl.ThreeDeeCameraState(distance=4.0, phi=60.0, perspective=True),
         topics={
             topic(vehicle_id, "scene/markers"): fl.BaseRendererSceneUpdateTopicSettings(visible=True),
