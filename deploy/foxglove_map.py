@@ -45,7 +45,7 @@ BODY_TRUTH = "base_link_truth"
 CHANNELS = {
     "tf/truth": FrameTransform,       # world -> base_link_truth
     "tf/estimate": FrameTransform,    # world -> base_link
-    "pose/truth": PoseInFrame,
+    "pose/truth": PoseInFrame,        # live view only (poses=True): the transforms carry the same
     "pose/estimate": PoseInFrame,
     "pose/setpoint": PoseInFrame,     # the planner's position and attitude reference
     "pose/vision": PoseInFrame,       # each camera fix (vision/pose)
@@ -136,8 +136,13 @@ class FoxgloveMap:
     att/state) and the second the static scene was last sent in (markers and airframe go
     out once per second of message time, so a viewer that joins late or seeks sees them)."""
 
-    def __init__(self, motor_positions_m, vehicle_id: int | str = 0, markers: MarkerGrid = MarkerGrid()):
-        """motor_positions_m: the airframe's (flight.vehicle.Vehicle.motor_positions_m), to draw it."""
+    def __init__(self, motor_positions_m, vehicle_id: int | str = 0, markers: MarkerGrid = MarkerGrid(),
+                 poses: bool = True):
+        """motor_positions_m: the airframe's (flight.vehicle.Vehicle.motor_positions_m), to draw it.
+        poses: also PoseInFrame of the truth and the estimate, which repeat their transforms
+        (the live view serves them to whoever asks; the flight log leaves them out: a quarter
+        more messages for the recorder to write, for nothing the layout shows)."""
+        self.poses = poses
         self.vehicle_id = vehicle_id
         self.prefix = f"zp/{vehicle_id}/"
         self.topics = {name: topic(vehicle_id, name) for name in CHANNELS}
@@ -200,7 +205,8 @@ class FoxgloveMap:
         out.append((self.topics["tf/truth"], FrameTransform(
             timestamp=stamp, parent_frame_id=WORLD, child_frame_id=BODY_TRUTH,
             translation=_vector(p), rotation=_quaternion(q))))
-        out.append((self.topics["pose/truth"], PoseInFrame(timestamp=stamp, frame_id=WORLD, pose=_pose(p, q))))
+        if self.poses:
+            out.append((self.topics["pose/truth"], PoseInFrame(timestamp=stamp, frame_id=WORLD, pose=_pose(p, q))))
 
     def _attitude_state(self, t, msg, out):
         self._attitude = msg["quaternion_wxyz"]
@@ -213,7 +219,8 @@ class FoxgloveMap:
         out.append((self.topics["tf/estimate"], FrameTransform(
             timestamp=stamp, parent_frame_id=WORLD, child_frame_id=BODY,
             translation=_vector(p), rotation=_quaternion(q))))
-        out.append((self.topics["pose/estimate"], PoseInFrame(timestamp=stamp, frame_id=WORLD, pose=_pose(p, q))))
+        if self.poses:
+            out.append((self.topics["pose/estimate"], PoseInFrame(timestamp=stamp, frame_id=WORLD, pose=_pose(p, q))))
 
     def _setpoint(self, t, msg, out):
         roll, pitch, yaw = msg["attitude_rad"]

@@ -54,7 +54,7 @@ def run(args) -> None:
     log = FlightLogWriter(path)
     own_health = schemas.HEALTH.key(rt.vehicle_id, NAME)
     live_foxglove = FoxgloveMap(load_vehicle(rt.vehicle_name).motor_positions_m, rt.vehicle_id,
-                                MarkerGrid.for_stack(rt.stack))   # real time: converts as messages come
+                                MarkerGrid.for_stack(rt.stack), poses=False)   # real time: as messages come
     arrived: deque[tuple[str, bytes]] = deque()   # append/popleft are thread safe
     # per key, what to do with its messages: the message's decode, SKIP, or None (no
     # message defined); looked up once per key, not per message
@@ -118,7 +118,7 @@ def run(args) -> None:
     if args.lockstep:
         t0 = time.monotonic()
         sorted_foxglove = FoxgloveMap(load_vehicle(rt.vehicle_name).motor_positions_m, rt.vehicle_id,
-                                      MarkerGrid.for_stack(rt.stack))   # lockstep: from the sorted stream
+                                      MarkerGrid.for_stack(rt.stack), poses=False)   # lockstep: from the sorted stream
         n = sort_log(path, sorted_path, derive=sorted_foxglove.encoded_stored)
         os.replace(sorted_path, path)
         print(f"zenpilot-recorder: sorted by sample time: {n} messages ({log.count - n} repeats dropped) "

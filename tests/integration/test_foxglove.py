@@ -109,8 +109,8 @@ def test_live_view_during_a_lockstep_flight(tmp_path, hover_lockstep):
     assert (tmp_path / "flight.mcap").read_bytes() == (fixture_out / "flight.mcap").read_bytes()
 
 
+# the log's (the live view also serves pose/truth and pose/estimate, which repeat the transforms)
 WELL_KNOWN = {"tf/truth": "foxglove.FrameTransform", "tf/estimate": "foxglove.FrameTransform",
-              "pose/truth": "foxglove.PoseInFrame", "pose/estimate": "foxglove.PoseInFrame",
               "pose/setpoint": "foxglove.PoseInFrame", "pose/vision": "foxglove.PoseInFrame",
               "scene/markers": "foxglove.SceneUpdate", "scene/vehicle": "foxglove.SceneUpdate",
               "scene/seen": "foxglove.SceneUpdate"}

@@ -173,3 +173,10 @@ def test_marker_grid_follows_the_stack_vision_parameters():
     c = SimConfig()
     assert (grid.size_m, grid.spacing_m, grid.half_extent_m) == (
         c.marker_size_m, c.marker_spacing_m, c.marker_grid_half_extent_m)
+
+
+def test_poses_can_be_left_to_the_transforms():
+    fmap = FoxgloveMap(load_vehicle("x250").motor_positions_m, poses=False)
+    out = by_topic(fmap.convert("zp/0/sim/truth", {"header": header(0.5), "position_m": [0, 0, 1],
+                                                   "quaternion_wxyz": [1, 0, 0, 0]}))
+    assert "tf/truth" in out and "pose/truth" not in out
