@@ -5,6 +5,7 @@
   zenpilot status                        liveliness and health of a running stack
   zenpilot down [--router R | --all]     stop what `zenpilot up -d` started
   zenpilot report DIR                    redraw a flight's plots, print its metrics, write report.html
+  zenpilot view [--port 8765]            live Foxglove view of a running stack (WebSocket)
   zenpilot log info|recover RUN_OR_FILE  what a flight log holds; recover a cut one
   zenpilot missions                      list the shipped missions
   zenpilot certs DIR [--stack FILE]      make the TLS certificates and logins of a stack's machines
@@ -31,7 +32,7 @@ import zenoh
 import schemas
 from deploy import gyrovertical_training
 from deploy.flightlog import LOG_NAME, LogError, LogScan, log_is_complete, read_log, recover, scan
-from deploy.launcher import DELIVERY_S, Launcher, alive_services, client_session, free_port, stop_groups
+from deploy.launcher import DELIVERY_S, Launcher, alive_services, client_session, free_port, stop_groups, wait_port
 from deploy.progress import FlightProgress
 from deploy.report import REPORT_NAME, RUN_FILES, write_report
 from deploy.stack import StackError, load_stack, lockstep_services
@@ -65,6 +66,8 @@ def cmd_fly(args) -> int:
             pass
     (out / RUN_FILES["command"]).write_text("zenpilot " + shlex.join(sys.argv[1:]) + "\n")
     router = f"tcp/127.0.0.1:{args.port or free_port()}"
+    if args.foxglove is not None and not 0 < args.foxglove < 65536:
+        raise StackError(f"--foxglove {args.foxglove}: expected a port number 1..65535")
     launcher = Launcher(stack, out, router, lockstep=args.lockstep, seed=args.seed,
                         vehicle=mission.vehicle, mission=mission.path, params=_param_overrides(args.set))
     names = lockstep_services(stack.services) if args.lockstep else list(stack.services)
@@ -76,6 +79,8 @@ def cmd_fly(args) -> int:
     progress = session = None
     try:
         launcher.start_router()
+        if args.foxglove is not None:   # the live view, ground side: it only listens
+            start_view(launcher, router, args.foxglove, mission.vehicle, out)
         launcher.start_services(names)
         missing = launcher.wait_alive(names)
         if missing:
@@ -114,6 +119,22 @@ def cmd_fly(args) -> int:
     if metrics.get("crashed"):
         print("zenpilot: the vehicle crashed (truth on the ground mid-mission, or tilted past 60 deg)", file=sys.stderr)
     return 0 if metrics.get("completed") and not metrics.get("crashed") else 1
+
+
+VIEW_NICE = 10   # the live view yields the CPU to the flight's loops (as the MAVLink bridge does)
+
+
+def start_view(launcher: Launcher, router: str, port: int, vehicle: str, out: Path) -> None:
+    argv = [sys.executable, "-m", "deploy.cli", "view", "--router", router, "--port", str(port),
+            "--stack", str(launcher.stack.path), "--vehicle", vehicle]
+    proc = launcher._spawn("view", argv)
+    try:
+        os.setpriority(os.PRIO_PROCESS, proc.pid, VIEW_NICE)
+    except OSError:
+        pass   # it runs at the default priority, on the ground side of the link
+    if not wait_port(f"tcp/127.0.0.1:{port}", 15.0) or proc.poll() is not None:
+        raise StackError(f"--foxglove {port}: the live view did not start (see {out / 'logs' / 'view.log'})")
+    print(f"zenpilot: live Foxglove view on ws://127.0.0.1:{port}", flush=True)
 
 
 def report_startup(out: Path, started: float) -> None:
@@ -461,6 +482,24 @@ def cmd_certs(args) -> int:
     return 0
 
 
+def cmd_view(args) -> int:
+    from deploy.foxglove_map import MarkerGrid
+    from deploy.view import serve
+    from flight.vehicle import load_vehicle
+
+    stack = load_stack(args.stack)
+    if not 0 <= args.port < 65536:
+        raise StackError(f"--port {args.port}: expected a port number 0..65535 (0: any free one)")
+    up = [st for st in _stacks() if st.live]
+    router = args.router or (up[0].router if len(up) == 1 else None) or next(iter(stack.machines.values())).router
+    vehicle = load_vehicle(args.vehicle or stack.vehicle)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    serve(router, stack.vehicle_id, vehicle.motor_positions_m, MarkerGrid.for_stack(stack), args.host, args.port, stop)
+    return 0
+
+
 def cmd_missions(args) -> int:
     for name in available_missions():
         m = load_mission(name)
@@ -487,6 +526,8 @@ def build_parser() -> argparse.ArgumentParser:
     fly.add_argument("--port", type=int, help="router port (default: a free one)")
     fly.add_argument("--no-plots", action="store_true",
                      help="metrics only (sweeps, tests); `zenpilot report DIR` draws the plots later")
+    fly.add_argument("--foxglove", type=int, nargs="?", const=8765, metavar="PORT",
+                     help="serve a live Foxglove view of the flight on ws://127.0.0.1:PORT (default 8765)")
     fly.set_defaults(func=cmd_fly)
 
     up = sub.add_parser("up", help="start the router and a machine's services; show live status")
@@ -511,6 +552,14 @@ def build_parser() -> argparse.ArgumentParser:
     rep = sub.add_parser("report", help="redraw a flight's plots, print its metrics, write report.html")
     rep.add_argument("dir", help="a flight's output directory")
     rep.set_defaults(func=cmd_report)
+
+    view = sub.add_parser("view", help="live Foxglove view of a running stack (Foxglove WebSocket protocol)")
+    view.add_argument("--stack")
+    view.add_argument("--router", help="router endpoint (default: the one `up -d` started, else the stack's)")
+    view.add_argument("--vehicle", help="airframe drawn in the 3D scene (default: the stack's)")
+    view.add_argument("--host", default="127.0.0.1", help="address to serve on (default: loopback only)")
+    view.add_argument("--port", type=int, default=8765, help="WebSocket port (default 8765; 0: any free one)")
+    view.set_defaults(func=cmd_view)
 
     log = sub.add_parser("log", help="flight logs: what a log holds, recover a cut one")
     log_sub = log.add_subparsers(dest="log_command", required=True)

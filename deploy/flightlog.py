@@ -19,7 +19,7 @@ import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Iterator
+from typing import Callable, Iterable, Iterator
 
 from mcap.data_stream import ReadDataStream
 from mcap.reader import make_reader
@@ -130,8 +130,17 @@ def write_log(path: str | Path, records: Iterable[tuple[str, dict]]) -> int:
     return log.count
 
 
-def sort_log(src: str | Path, dst: str | Path) -> int:
-    """Copy a complete log in (sample time, key, sequence) order, each message once.
+Derive = Callable[[str, int, bytes], Iterable[tuple[str, str, bytes, bytes]]]
+
+
+def sort_log(src: str | Path, dst: str | Path, derive: Derive | None = None) -> int:
+    """Copy a complete log in (sample time, key, sequence) order, each message once; returns
+    how many were copied.
+
+    derive(topic, log_time_ns, data), if given, is called for each message copied, in that
+    order, and what it returns, (topic, schema name, schema data, message) as protobuf, is
+    written beside it at the same time (the recorder's Foxglove well-known channels: made
+    from the sorted stream, they are as deterministic as it is).
 
     The recorder's lockstep logs: arrival order across senders depends on the machine, sample
     time does not; a message sent again until answered (the lockstep "ready") is kept once.
@@ -160,6 +169,7 @@ def sort_log(src: str | Path, dst: str | Path) -> int:
         # (t, topic, seq, data, publish time, channel): a total order on what is written
         heap: list[tuple[int, str, int, bytes, int, int]] = []
         previous = None
+        copied = [0]
 
         def emit_before(t_ns: float) -> None:
             nonlocal previous
@@ -168,6 +178,10 @@ def sort_log(src: str | Path, dst: str | Path) -> int:
                 if row[:4] != previous:   # a repeat: same sample time, key, sequence and bytes
                     previous = row[:4]
                     out.add(out_channel(row[5]), row[0], row[3], row[2], row[4])
+                    copied[0] += 1
+                    if derive is not None:
+                        for topic, name, schema_data, data in derive(row[1], row[0], row[3]):
+                            out.add(out.channel(topic, name, schema_data, "protobuf", "protobuf"), row[0], data)
 
         for index in sorted(summary.chunk_indexes, key=lambda c: (c.message_start_time, c.chunk_start_offset)):
             emit_before(index.message_start_time)
@@ -179,7 +193,7 @@ def sort_log(src: str | Path, dst: str | Path) -> int:
                                           record.publish_time, record.channel_id))
         emit_before(float("inf"))
     out.close()
-    return out.count
+    return copied[0]
 
 
 # ---------------------------------------------------------------- reading, also cut files
@@ -250,11 +264,13 @@ def scan(path: str | Path, scan_result: LogScan | None = None) -> Iterator[tuple
 
 
 def read_log(path: str | Path, scan_result: LogScan | None = None) -> dict[str, list[dict]]:
-    """All messages by key expression, in file order. A cut file gives the messages of its
-    readable chunks (pass a LogScan to learn whether it was cut)."""
+    """All bus messages (the JSON channels) by key expression, in file order. A cut file gives
+    the messages of its readable chunks (pass a LogScan to learn whether it was cut). The
+    Foxglove well-known channels (protobuf, derived from these) are left out."""
     out: dict[str, list[dict]] = {}
     for channel, message in scan(path, scan_result):
-        out.setdefault(channel.topic, []).append(json.loads(message.data))
+        if channel.message_encoding == "json":
+            out.setdefault(channel.topic, []).append(json.loads(message.data))
     return out
 
 

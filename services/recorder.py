@@ -11,6 +11,12 @@ In lockstep the log is then rewritten in (sample time, key, sequence) order, eac
 message once, so the same seed gives the same file: arrival order across senders
 depends on the machine. The rewrite goes to a temporary file that replaces the log
 when done, so the log is complete at every moment of it.
+
+Beside the bus messages (JSON, one channel per key) the log holds Foxglove's well-known
+messages made from them (deploy/foxglove_map.py: transforms, poses, the 3D scene), so
+Foxglove shows the flight without configuration: written as the messages come in real time,
+made from the sorted stream in lockstep (the conversion keeps state, e.g. the newest
+attitude: it must see the messages in a deterministic order).
 """
 
 from __future__ import annotations
@@ -26,6 +32,8 @@ import zenoh
 
 import schemas
 from deploy.flightlog import LOG_NAME, FlightLogWriter, sort_log
+from deploy.foxglove_map import FoxgloveMap, MarkerGrid
+from flight.vehicle import load_vehicle
 from services.runtime import Runtime, main_guard, service_parser
 
 NAME = "recorder"
@@ -45,6 +53,8 @@ def run(args) -> None:
     sorted_path.unlink(missing_ok=True)   # a rewrite a previous recorder did not finish
     log = FlightLogWriter(path)
     own_health = schemas.HEALTH.key(rt.vehicle_id, NAME)
+    live_foxglove = FoxgloveMap(load_vehicle(rt.vehicle_name).motor_positions_m, rt.vehicle_id,
+                                MarkerGrid.for_stack(rt.stack), poses=False)   # real time: as messages come
     arrived: deque[tuple[str, bytes]] = deque()   # append/popleft are thread safe
     # per key, what to do with its messages: the message's decode, SKIP, or None (no
     # message defined); looked up once per key, not per message
@@ -80,6 +90,10 @@ def run(args) -> None:
                 rt.reject(key, exc)
                 continue
             log.write(key, msg)
+            if not args.lockstep and live_foxglove.wants(key, msg["header"]["t_s"]):
+                t_ns = int(round(msg["header"]["t_s"] * 1e9))
+                for topic, name, schema_data, data in live_foxglove.encoded(key, msg):
+                    log.add(log.channel(topic, name, schema_data, "protobuf", "protobuf"), t_ns, data)
 
     next_flush = time.monotonic() + FLUSH_S
 
@@ -103,7 +117,9 @@ def run(args) -> None:
         print(f"zenpilot-recorder: {summary}", flush=True)
     if args.lockstep:
         t0 = time.monotonic()
-        n = sort_log(path, sorted_path)
+        sorted_foxglove = FoxgloveMap(load_vehicle(rt.vehicle_name).motor_positions_m, rt.vehicle_id,
+                                      MarkerGrid.for_stack(rt.stack), poses=False)   # lockstep: from the sorted stream
+        n = sort_log(path, sorted_path, derive=sorted_foxglove.encoded_stored)
         os.replace(sorted_path, path)
         print(f"zenpilot-recorder: sorted by sample time: {n} messages ({log.count - n} repeats dropped) "
               f"in {time.monotonic() - t0:.1f} s", flush=True)
