@@ -404,7 +404,7 @@ def main(argv=None) -> int:
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         if hosts.created:
             for host in ("vehicle", "ground"):  # a graceful stop first: the recorder writes what it has
-                if (out / host / "state").is_dir() and any((out / host / "state").glob("up-*.json")):
+                if (out / host / "state").is_dir() and any((out / host / "state").glob("*/up-*.json")):
                     try:
                         zenpilot(hosts, host, out, "down", timeout=120)
                     except (BenchError, subprocess.TimeoutExpired) as exc:

@@ -4,7 +4,7 @@
   zenpilot up [--machine NAME] [-d]     start the router and a machine's services, show live status
   zenpilot status                        liveliness and health of a running stack
   zenpilot down [--router R | --all]     stop what `zenpilot up -d` started
-  zenpilot report DIR                    redraw a flight's plots and print its metrics
+  zenpilot report DIR                    redraw a flight's plots, print its metrics, write report.html
   zenpilot view [--port 8765]            live Foxglove view of a running stack (WebSocket)
   zenpilot log info|recover RUN_OR_FILE  what a flight log holds; recover a cut one
   zenpilot missions                      list the shipped missions
@@ -17,6 +17,8 @@ import argparse
 import json
 import os
 import re
+import shlex
+import shutil
 import signal
 import sys
 import threading
@@ -30,6 +32,8 @@ import schemas
 from deploy import gyrovertical_training
 from deploy.flightlog import LOG_NAME, LogError, LogScan, log_is_complete, read_log, recover, scan
 from deploy.launcher import DELIVERY_S, Launcher, alive_services, client_session, free_port, stop_groups, wait_port
+from deploy.progress import FlightProgress
+from deploy.report import REPORT_NAME, RUN_FILES, write_report
 from deploy.stack import StackError, load_stack, lockstep_services
 from flight.mission import MissionError, available_missions, load_mission
 
@@ -53,6 +57,13 @@ def cmd_fly(args) -> int:
     mission = load_mission(args.mission or DEFAULT_MISSION)
     out = Path(args.out or f"runs/{mission.name}-{'lockstep' if args.lockstep else 'realtime'}-seed{args.seed}")
     out.mkdir(parents=True, exist_ok=True)
+    # what flew, beside its log: report.html shows them
+    for source, name in ((mission.path, RUN_FILES["mission"]), (stack.path, RUN_FILES["stack"])):
+        try:
+            shutil.copyfile(source, out / name)
+        except shutil.SameFileError:   # flown from the copy itself
+            pass
+    (out / RUN_FILES["command"]).write_text("zenpilot " + shlex.join(sys.argv[1:]) + "\n")
     router = f"tcp/127.0.0.1:{args.port or free_port()}"
     if args.foxglove is not None and not 0 < args.foxglove < 65536:
         raise StackError(f"--foxglove {args.foxglove}: expected a port number 1..65535")
@@ -64,6 +75,7 @@ def cmd_fly(args) -> int:
     wall0 = time.monotonic()
     started = time.time()
     completed_run = False
+    progress = session = None
     try:
         launcher.start_router()
         if args.foxglove is not None:   # the live view, ground side: it only listens
@@ -75,7 +87,10 @@ def cmd_fly(args) -> int:
                              f"(logs in {out / 'logs'})")
         limit = mission.timeout_s * (20.0 if args.lockstep else 1.5) + 30.0
         deadline = time.monotonic() + limit
+        session = client_session(router)
+        progress = FlightProgress(session, stack.vehicle_id, mission.items)
         while launcher.procs["sim"].poll() is None:
+            progress.show()
             bad = {n: c for n, c in launcher.failed().items() if n != "sim"}
             if bad:
                 raise StackError("service(s) failed during the flight: " + ", ".join(
@@ -87,6 +102,10 @@ def cmd_fly(args) -> int:
             time.sleep(0.1)
         completed_run = launcher.procs["sim"].returncode == 0
     finally:
+        if progress is not None:
+            progress.close()
+        if session is not None:
+            session.close()
         launcher.stop_all()
     wall = time.monotonic() - wall0
     report_startup(out, started)
@@ -95,7 +114,7 @@ def cmd_fly(args) -> int:
     metrics = analyse(out, {"mission": mission.name, "mode": "lockstep" if args.lockstep else "realtime",
                             "seed": args.seed, "vehicle": mission.vehicle}, plots=not args.no_plots)
     print(f"zenpilot: {metrics['duration_s']:.1f} s flown in {wall:.1f} s of wall time; "
-          f"log{'' if args.no_plots else ', plots'} and metrics.json in {out}")
+          f"log{'' if args.no_plots else ', plots, report.html'} and metrics.json in {out}")
     if metrics.get("crashed"):
         print("zenpilot: the vehicle crashed (truth on the ground mid-mission, or tilted past 60 deg)", file=sys.stderr)
     return 0 if metrics.get("completed") and not metrics.get("crashed") else 1
@@ -155,10 +174,12 @@ def analyse(out: Path, info: dict, plots: bool = True) -> dict:
         raise StackError(f"{out / LOG_NAME}: the metrics cannot be computed from this log "
                          f"({type(exc).__name__}: {exc})") from None
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
+    table = format_table(metrics)
     if plots:
         from deploy.plots import make_plots
-        make_plots(log, out, vehicle=info.get("vehicle"))
-    print(format_table(metrics))
+        paths = make_plots(log, out, vehicle=info.get("vehicle"))
+        write_report(out, metrics, table, paths, "" if found.complete else found.describe())
+    print(table)
     return metrics
 
 
@@ -173,6 +194,7 @@ def cmd_report(args) -> int:
     except (OSError, ValueError, AttributeError):
         pass   # none yet (a flight stopped early), or unreadable: the report makes a new one
     analyse(out, info)
+    print(f"zenpilot: report in {out / REPORT_NAME}")
     return 0
 
 
@@ -289,9 +311,9 @@ def _stack_dir(router: str) -> Path:
 @dataclass
 class _UpStack:
     router: str
-    folder: Path
     pids: dict[str, int] = field(default_factory=dict)
     run_dirs: list[str] = field(default_factory=list)
+    files: list[Path] = field(default_factory=list)
 
     @property
     def live(self) -> dict[str, int]:
@@ -302,12 +324,14 @@ class _UpStack:
 
 def _stacks() -> list[_UpStack]:
     """What `up -d` started, per stack (its machines merged)."""
-    found: dict[Path, _UpStack] = {}
-    for f in sorted(STATE_DIR.glob("*/up-*.json")):
+    found: dict[tuple[Path, str], _UpStack] = {}
+    # STATE_DIR/up-*.json: left by a zenpilot before stacks had their own folders
+    for f in sorted([*STATE_DIR.glob("*/up-*.json"), *STATE_DIR.glob("up-*.json")]):
         try:
             state = json.loads(f.read_text())
-            st = found.setdefault(f.parent, _UpStack(state["router"], f.parent))
+            st = found.setdefault((f.parent, state["router"]), _UpStack(state["router"]))
             st.pids.update({n: int(p) for n, p in state["pids"].items()})
+            st.files.append(f)
             if state.get("run_dir"):
                 st.run_dirs.append(state["run_dir"])
         except (OSError, ValueError, KeyError, TypeError) as exc:
@@ -416,8 +440,8 @@ def cmd_down(args) -> int:
     for st in chosen:
         pids = st.live
         if not pids:   # a stack gone already (stopped otherwise, the machine restarted): forget it
-            for f in st.folder.glob("up-*.json"):
-                f.unlink()
+            for f in st.files:
+                f.unlink(missing_ok=True)
             continue
         stopped = []
         for names, grace_s in stop_groups(list(pids), [Path(d) / LOG_NAME for d in st.run_dirs]):
@@ -434,10 +458,13 @@ def cmd_down(args) -> int:
                 time.sleep(0.05)
             for n in names:
                 if _running(pids[n]):
-                    os.kill(pids[n], signal.SIGKILL)
+                    try:
+                        os.kill(pids[n], signal.SIGKILL)
+                    except ProcessLookupError:   # it ended just now
+                        continue
                     print(f"zenpilot: {n} did not stop within {grace_s:.0f} s of SIGTERM; killed", file=sys.stderr)
-        for f in st.folder.glob("up-*.json"):
-            f.unlink()
+        for f in st.files:
+            f.unlink(missing_ok=True)
         print(f"zenpilot: stopped {', '.join(stopped)} ({st.router})")
         for run_dir in st.run_dirs:
             _say_log(Path(run_dir) / LOG_NAME)
@@ -511,7 +538,7 @@ def build_parser() -> argparse.ArgumentParser:
     down.add_argument("--all", action="store_true", help="stop every stack `up -d` started")
     down.set_defaults(func=cmd_down)
 
-    rep = sub.add_parser("report", help="redraw a flight's plots and print its metrics")
+    rep = sub.add_parser("report", help="redraw a flight's plots, print its metrics, write report.html")
     rep.add_argument("dir", help="a flight's output directory")
     rep.set_defaults(func=cmd_report)
 

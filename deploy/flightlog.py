@@ -166,7 +166,8 @@ def sort_log(src: str | Path, dst: str | Path, derive: Derive | None = None) -> 
                                            schema.encoding if schema else "", channel.metadata)
             return out_ids[cid]
 
-        heap: list[tuple[int, str, int, bytes, int]] = []   # (t, topic, seq, data, channel): a total order
+        # (t, topic, seq, data, publish time, channel): a total order on what is written
+        heap: list[tuple[int, str, int, bytes, int, int]] = []
         previous = None
         copied = [0]
 
@@ -176,7 +177,7 @@ def sort_log(src: str | Path, dst: str | Path, derive: Derive | None = None) -> 
                 row = heapq.heappop(heap)
                 if row[:4] != previous:   # a repeat: same sample time, key, sequence and bytes
                     previous = row[:4]
-                    out.add(out_channel(row[4]), row[0], row[3], row[2])
+                    out.add(out_channel(row[5]), row[0], row[3], row[2], row[4])
                     copied[0] += 1
                     if derive is not None:
                         for topic, name, schema_data, data in derive(row[1], row[0], row[3]):
@@ -188,7 +189,8 @@ def sort_log(src: str | Path, dst: str | Path, derive: Derive | None = None) -> 
             for record in breakup_chunk(Chunk.read(ReadDataStream(fh)), validate_crc=True):
                 if isinstance(record, Message):
                     topic = summary.channels[record.channel_id].topic
-                    heapq.heappush(heap, (record.log_time, topic, record.sequence, record.data, record.channel_id))
+                    heapq.heappush(heap, (record.log_time, topic, record.sequence, record.data,
+                                          record.publish_time, record.channel_id))
         emit_before(float("inf"))
     out.close()
     return copied[0]

@@ -13,6 +13,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -198,7 +199,8 @@ class Launcher:
         router. A second Ctrl-C or SIGTERM meanwhile is answered, not obeyed."""
         def still_stopping(*_):
             print("zenpilot: stopping; the recorder is finishing the flight log", file=sys.stderr, flush=True)
-        previous = {sig: signal.signal(sig, still_stopping) for sig in (signal.SIGINT, signal.SIGTERM)}
+        main = threading.current_thread() is threading.main_thread()   # only it may set handlers
+        previous = {sig: signal.signal(sig, still_stopping) for sig in (signal.SIGINT, signal.SIGTERM)} if main else {}
         try:
             for group, grace_s in stop_groups(list(self.procs), [self.run_dir / LOG_NAME]):
                 if group == ["recorder"]:

@@ -23,6 +23,8 @@ def test_truth_state_hover_lockstep_holds_within_a_centimetre(hover_lockstep):
     assert all(not set(r) & set(REASONS) for r in m["rejected_messages"].values())
     for plot in ("position.png", "attitude.png", "motors.png"):
         assert (out / plot).stat().st_size > 10_000
+    page = (out / "report.html").read_text()   # one page: the plots inlined, the mission and stack files
+    assert page.count("data:image/png;base64,") >= 3 and "[mission]" in page and "[stack]" in page
 
 
 def test_lockstep_is_deterministic(hover_lockstep, tmp_path):
