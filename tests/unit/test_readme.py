@@ -140,6 +140,22 @@ def _check_path(token: str, problems: list[str]) -> None:
         problems.append(f"path {token!r}: not in the repository")
 
 
+def _resolves(dotted: str) -> bool:
+    parts = dotted.split(".")
+    for i in range(len(parts), 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:i]))
+        except ImportError:
+            continue
+        try:
+            for name in parts[i:]:
+                obj = getattr(obj, name)
+        except AttributeError:
+            return False
+        return True
+    return False
+
+
 def _check_param(service: str, key: str, where: str, problems: list[str]) -> None:
     if service not in _services():
         problems.append(f"{where}: {service!r} is not a service ({', '.join(_services())})")
@@ -252,9 +268,13 @@ def readme_problems(text: str) -> list[str]:
                     problems.append(f"{where}: no command has the flag {flag}")
             else:
                 _check_path(word, problems)
-        dotted = re.fullmatch(r"([a-z_]+)\.([A-Za-z_][\w*]*)(=.*)?", span)
+        dotted = re.fullmatch(r"([a-z_]+)((?:\.[A-Za-z_][\w*]*)+)(=.*)?", span)
         if dotted and not FILE_EXT_RE.search(span.split("=")[0]):
-            _check_param(dotted[1], dotted[2], where, problems)
+            if (ROOT / dotted[1] / "__init__.py").is_file():   # flight.quat, flight.control.stopping_rate
+                if not _resolves(dotted[1] + dotted[2]):
+                    problems.append(f"{where}: no such module or attribute in the repository")
+            else:
+                _check_param(dotted[1], dotted[2][1:], where, problems)
     for line in shell:
         _check_command(line, f"command `{line}`", problems)
     for block in toml:
@@ -277,7 +297,7 @@ def test_readme_is_a_map():
 def test_the_check_finds_what_does_not_exist():
     """Each kind of name the README could get wrong is reported (the stale one of issue 23 too)."""
     bad = """
-Set `flip.plan_rate_hz` or `attitude.no_such_gain`; the code is in `flight/no_such.py`, see
+Set `flip.plan_rate_hz` or `attitude.no_such_gain` (`flight.no_such_module`, `flight.quat.no_such`); the code is in `flight/no_such.py`, see
 [the notes](docs/no-such.md) and `nosuch/<name>.py`; the file `nothing.json`; `--no-such-flag`.
 
     zenpilot fly --lockstep --mission no-such-mission --set position.kk=[1,1,1]
@@ -295,7 +315,7 @@ no_such_key = 1
 ```
 """
     found = "\n".join(readme_problems(bad))
-    for expected in ("'flip' is not a service", "attitude has no parameter 'no_such_gain'",
+    for expected in ("'flip' is not a service", "`flight.no_such_module`: no such module", "`flight.quat.no_such`: no such module", "attitude has no parameter 'no_such_gain'",
                      "path 'flight/no_such.py'", "path 'docs/no-such.md'", "path 'nosuch/<name>.py'",
                      "file 'nothing.json'", "no command has the flag --no-such-flag",
                      "no mission 'no-such-mission'", "position has no parameter 'kk'",
@@ -306,7 +326,7 @@ no_such_key = 1
                      "services.attitude.params.no_such_key is not in deploy/stacks/default.toml"):
         assert expected in found, f"not reported: {expected}\n{found}"
     assert readme_problems("""
-`attitude.k`, `services/attitude.py`, `--lockstep`, [messages](docs/messages.md), `metrics.json`
+`attitude.k`, `flight.quat`, `flight.control.stopping_rate`, `services/attitude.py`, `--lockstep`, [messages](docs/messages.md), `metrics.json`
 
     zenpilot fly --lockstep --mission flip --set planner.mpc_rate_hz=200
     zenpilot-attitude -e tcp/127.0.0.1:7447 --param k=[12,12,12]
