@@ -42,12 +42,15 @@ DEFAULT_MISSION = "steps"
 STATE_DIR = Path(os.environ.get("ZENPILOT_STATE_DIR", Path.home() / ".zenpilot"))
 
 
-def _param_overrides(items: list[str] | None) -> dict[str, list[str]]:
+def _param_overrides(items: list[str] | None, stack) -> dict[str, list[str]]:
     out: dict[str, list[str]] = {}
     for item in items or []:
         service, sep, rest = item.partition(".")
         if not sep or "=" not in rest:
             raise StackError(f"--set {item!r}: expected SERVICE.KEY=VALUE, e.g. attitude.k=[12,12,12]")
+        if service not in stack.services:   # a typo must not be dropped without a word
+            raise StackError(f"--set {item!r}: no service {service!r} in {stack.path} "
+                             f"(services: {', '.join(stack.services)})")
         out.setdefault(service, []).append(rest)
     return out
 
@@ -69,7 +72,7 @@ def cmd_fly(args) -> int:
     if args.foxglove is not None and not 0 < args.foxglove < 65536:
         raise StackError(f"--foxglove {args.foxglove}: expected a port number 1..65535")
     launcher = Launcher(stack, out, router, lockstep=args.lockstep, seed=args.seed,
-                        vehicle=mission.vehicle, mission=mission.path, params=_param_overrides(args.set))
+                        vehicle=mission.vehicle, mission=mission.path, params=_param_overrides(args.set, stack))
     names = lockstep_services(stack.services) if args.lockstep else list(stack.services)
     print(f"zenpilot: flying {mission.name} ({mission.vehicle}, "
           f"{'lockstep' if args.lockstep else 'real time'}, seed {args.seed}) -> {out}", flush=True)
@@ -343,11 +346,11 @@ def _stacks() -> list[_UpStack]:
 def cmd_up(args) -> int:
     stack = load_stack(args.stack)
     machine, names, runs_router = _machine_services(stack, args.machine)
-    if args.lockstep:
-        names = lockstep_services(names)
+    # `up --lockstep` keeps the MAVLink bridge (unlike `fly`): a ground station is why one runs
+    # `up`, and the bridge lives on the wall clock whatever the clock of the rest
     router = args.router or stack.machines[machine].router
     run_dir = Path(args.out or _stack_dir(router) / f"run-{machine}")
-    params = _param_overrides(args.set)
+    params = _param_overrides(args.set, stack)
     # `up` runs until `down`, unless `--set sim.stop_after_mission=true` (given later, it wins)
     params["sim"] = ["stop_after_mission=false", *params.get("sim", [])]
     # the airframe the mission names, as `fly` flies it (without a mission: the stack's)

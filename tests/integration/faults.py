@@ -51,7 +51,7 @@ def fly_with_fault(out: Path, service: str, fault: str = "kill", at_s: float = 8
     m = load_mission(mission)
     router = f"tcp/127.0.0.1:{free_port()}"
     launcher = Launcher(stack, out, router, lockstep=lockstep, seed=seed, vehicle=m.vehicle,
-                        mission=m.path, params=_param_overrides(list(settings)))
+                        mission=m.path, params=_param_overrides(list(settings), stack))
     names = lockstep_services(stack.services) if lockstep else list(stack.services)
     seen = {"t": -1.0, "z": 0.0}
     reached = threading.Event()

@@ -55,25 +55,17 @@ def zp(*args, env):
 
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory):
-    """`zenpilot up --lockstep` with no mission, and the bridge beside it (a lockstep `up` starts the
-    flight services only: the bridge is a wall-clock link, started here as the launcher would)."""
+    """`zenpilot up --lockstep` with no mission (the planner waits for commands); the bridge it
+    starts (on the wall clock, as always) talks to this test's UDP port."""
     tmp = tmp_path_factory.mktemp("mavsdk")
     env = dict(os.environ, ZENPILOT_STATE_DIR=str(tmp))
     router, udp = f"tcp/127.0.0.1:{free_port()}", free_udp_port()
     up = zp("up", "-d", "--lockstep", "--router", router, "--out", str(tmp / "run"),
-            "--set", "planner.mission=none", env=env)
-    bridge = None
+            "--set", "planner.mission=none", "--set", f"mavlink.endpoint=udpout:127.0.0.1:{udp}", env=env)
     try:
         assert up.returncode == 0, up.stdout + up.stderr
-        log = open(tmp / "run" / "logs" / "mavlink.log", "w")
-        bridge = subprocess.Popen([sys.executable, "-m", "services.mavlink", "-e", router, "--lockstep",
-                                   "--endpoint", f"udpout:127.0.0.1:{udp}"], cwd=ROOT, env=env,
-                                  stdout=log, stderr=subprocess.STDOUT)
         yield udp, tmp / "run"
     finally:
-        if bridge is not None:
-            bridge.terminate()
-            bridge.wait(10)
         zp("down", env=env)
 
 
