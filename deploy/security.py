@@ -46,7 +46,7 @@ PUBLISHES: dict[str, tuple[str, ...]] = {
     "vision": ("vision/pose",),
     "planner": ("planner/setpoint", "planner/plan"),
     "recorder": (),
-    "mavlink": ("planner/command", "param/set"),
+    "mavlink": ("planner/command", "planner/mission", "param/set"),
 }
 
 # Zenoh access-control message kinds (zenoh 1.10) other than data

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import time
 from collections import deque
 from pathlib import Path
@@ -42,6 +43,11 @@ FLUSH_S = 1.0  # at most this much wall time of messages is lost if the recorder
 SKIP = object()  # a key the recorder does not log (its own health, liveliness)
 _UNSEEN = object()
 MAX_KEYS = 4096  # keys remembered by the per-key lookup; others are looked up per message
+# Asked to stop, the recorder keeps receiving until nothing has come for QUIET_STEPS loop periods
+# (the other services stop first: what they sent last may still be on its way, a busy machine
+# delivering it late), at most DRAIN_MAX_S; then it closes the log.
+QUIET_STEPS = 3
+DRAIN_MAX_S = 3.0
 
 
 def run(args) -> None:
@@ -73,8 +79,9 @@ def run(args) -> None:
     def on_sample(sample: zenoh.Sample) -> None:
         arrived.append((str(sample.key_expr), sample.payload.to_bytes()))
 
-    def write_arrived() -> None:
-        for _ in range(len(arrived)):
+    def write_arrived() -> int:
+        n = len(arrived)
+        for _ in range(n):
             key, payload = arrived.popleft()
             decode = decoders.get(key, _UNSEEN)
             if decode is _UNSEEN:
@@ -94,12 +101,25 @@ def run(args) -> None:
                 t_ns = int(round(msg["header"]["t_s"] * 1e9))
                 for topic, name, schema_data, data in live_foxglove.encoded(key, msg):
                     log.add(log.channel(topic, name, schema_data, "protobuf", "protobuf"), t_ns, data)
+        return n
 
+    stop_asked = [0.0, 0]   # when the stop was asked (monotonic), loop periods since with nothing new
+
+    def ask_stop(*_) -> None:
+        if not stop_asked[0]:
+            stop_asked[0] = time.monotonic()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, ask_stop)
     next_flush = time.monotonic() + FLUSH_S
 
     def step(_t: float) -> None:
         nonlocal next_flush
-        write_arrived()
+        got = write_arrived()
+        if stop_asked[0]:
+            stop_asked[1] = 0 if got else stop_asked[1] + 1
+            if stop_asked[1] >= QUIET_STEPS or time.monotonic() - stop_asked[0] > DRAIN_MAX_S:
+                rt.stop_event.set()
         if time.monotonic() >= next_flush:
             log.flush()
             next_flush = time.monotonic() + FLUSH_S
