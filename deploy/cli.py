@@ -92,7 +92,7 @@ def cmd_fly(args) -> int:
         limit = mission.timeout_s * (20.0 if args.lockstep else 1.5) + 30.0
         deadline = time.monotonic() + limit
         session = client_session(router)
-        progress = FlightProgress(session, stack.vehicle_id, mission.items)
+        progress = FlightProgress(session, stack.vehicle_id, mission.items, real_time=not args.lockstep)
         while launcher.procs["sim"].poll() is None:
             progress.show()
             bad = {n: c for n, c in launcher.failed().items() if n != "sim"}

@@ -29,7 +29,7 @@ def _timed_s(item: dict) -> float | None:
 
 
 class FlightProgress:
-    def __init__(self, session, vehicle_id: int, items: tuple[dict, ...], out=None):
+    def __init__(self, session, vehicle_id: int, items: tuple[dict, ...], out=None, real_time: bool = False):
         self.items = items
         self.out = out or sys.stdout
         self.tty = self.out.isatty()
@@ -37,6 +37,9 @@ class FlightProgress:
         self._sub = session.declare_subscriber(schemas.PLANNER_SETPOINT.key(vehicle_id), self._on_setpoint)
         self._wall0: float | None = None   # when the first setpoint came: the flight's start
         self._item, self._item_t0 = -1, 0.0
+        # simulated time counts from 0 in lockstep; in real time headers carry the wall clock's
+        # epoch seconds, so the flight's time counts from its first setpoint
+        self._t0: float | None = None if real_time else 0.0
         self._next_plain = time.monotonic() + (0.0 if self.tty else PLAIN_EVERY_S)
         self._drawn = False
 
@@ -55,6 +58,8 @@ class FlightProgress:
             sp = schemas.PLANNER_SETPOINT.decode(payload)
         except schemas.SchemaError:
             return None
+        if self._t0 is None:
+            self._t0 = sp["header"]["t_s"]
         if sp["item"] != self._item:
             self._item, self._item_t0 = sp["item"], sp["header"]["t_s"]
         return sp
@@ -63,7 +68,7 @@ class FlightProgress:
         sp = self._update()
         if sp is None:
             return None
-        sim_t = sp["header"]["t_s"]
+        sim_t = sp["header"]["t_s"] - self._t0
         wall = time.monotonic() - self._wall0
         n = len(self.items)
         text = f"sim {sim_t:6.1f} s  wall {wall:6.1f} s  {sim_t / wall if wall > 0 else 0.0:4.2f}x"
@@ -72,7 +77,7 @@ class FlightProgress:
             within = 0.0
             length = _timed_s(self.items[index])
             if length:
-                within = min(max((sim_t - self._item_t0) / length, 0.0), 0.99)
+                within = min(max((sp["header"]["t_s"] - self._item_t0) / length, 0.0), 0.99)
             done = 1.0 if sp["mission_state"] == "completed" else (index + within) / n
             filled = int(round(done * BAR))
             text += (f"  [{'#' * filled}{'-' * (BAR - filled)}] {100 * done:3.0f} %  item {index + 1}/{n} "

@@ -145,6 +145,7 @@ def run(args) -> None:
     mission_out = rt.publisher(schemas.PLANNER_MISSION)
     bridge = Bridge(conn.mav, config, ParamTable(current_params(rt)), tuple(rt.stack.services), rt.rejected,
                     t_origin_s=0.0 if lockstep else time.time(), problem=rt.problem)
+    bridge.health_on_stack_clock = lockstep
 
     def on_health(sample: zenoh.Sample) -> None:
         try:

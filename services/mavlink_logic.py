@@ -225,6 +225,8 @@ class Bridge:
         self.problem = problem
         self.inputs: dict[str, dict | None] = {}  # att, pos, imu, baro, mag, battery, setpoint
         self.health: dict[str, tuple[float, dict]] = {}  # service -> (arrival wall time, message)
+        self.health_on_stack_clock = False   # lockstep: health judged by its sample time (set by the shell)
+        self._now_stack = 0.0
         self.failsafe = LinkFailsafe(config.gcs_timeout_s, config.failsafe_hold_s)
         self.ground_stations: set[int] = set()   # system ids heard sending a GCS heartbeat
         self.intervals_s: dict[str, float] = {}
@@ -271,8 +273,11 @@ class Bridge:
 
     def healthy(self, service: str, now_wall: float) -> bool:
         got = self.health.get(service)
-        return (got is not None and now_wall - got[0] <= self.cfg.health_timeout_s
-                and got[1]["state"] == "running")
+        if got is None or got[1]["state"] != "running":
+            return False
+        if self.health_on_stack_clock:   # lockstep: 1 Hz of simulated time, however slow the machine runs it
+            return self._now_stack - got[1]["header"]["t_s"] <= self.cfg.health_timeout_s
+        return now_wall - got[0] <= self.cfg.health_timeout_s
 
     def statustext(self, text: str, severity: int = mavlink.MAV_SEVERITY_WARNING) -> None:
         self.send(self.mav.statustext_encode(severity, text[:50].encode()))
@@ -355,6 +360,7 @@ class Bridge:
     # ------------------------------------------------------------------ outgoing
     def tick(self, now_stack: float, now_wall: float) -> list[tuple[str, dict]]:
         """Send the streams that are due; follow the mission, offboard and the failsafe. Returns actions."""
+        self._now_stack = now_stack
         actions = self.follow_mission(now_wall) + self.follow_takeoff(now_wall)
         actions += self.follow_offboard(now_stack, now_wall)
         self.retry_upload(now_wall)
@@ -551,6 +557,7 @@ class Bridge:
     # ------------------------------------------------------------------ incoming
     def handle(self, msg, now_stack: float, now_wall: float) -> list[tuple[str, dict]]:
         """One received message -> replies sent, actions returned. Bad input is counted."""
+        self._now_stack = now_stack
         kind = msg.get_type()
         if kind == "BAD_DATA":
             if "signature" not in getattr(msg, "reason", ""):  # signing failures: pymavlink counts them

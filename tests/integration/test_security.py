@@ -300,7 +300,8 @@ connect = ["tls/{ends['link']}"]
         zenpilot("vehicle", "up", "-d", *common, "--machine", "vehicle", "--set", "sim.stop_after_mission=true",
                  "--out", str(tmp_path / "vehicle"))
         zenpilot("ground", "up", "-d", *common, "--machine", "ground", "--out", str(tmp_path / "ground"))
-        sim = json.loads((tmp_path / "state-vehicle" / "up-vehicle.json").read_text())["pids"]["sim"]
+        state = next((tmp_path / "state-vehicle").glob("*/up-vehicle.json"))   # a folder per stack (its router)
+        sim = json.loads(state.read_text())["pids"]["sim"]
         deadline = time.monotonic() + 300
         while time.monotonic() < deadline and _running(sim):
             time.sleep(1.0)
