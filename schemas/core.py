@@ -49,7 +49,7 @@ REASONS = (
 # encoding of its fields, counting STR_MAX_BYTES for a string without choices; one with a
 # field of unbounded size (a free-length array, a counts map) gets DEFAULT_MAX_BYTES unless
 # it names its own bound. Generous: they exist to refuse huge garbage before decoding it.
-STR_MAX_BYTES = 1024
+STR_MAX_BYTES = 256
 DEFAULT_MAX_BYTES = 64 * 1024
 
 # Field kinds. Arrays are MessagePack arrays; "counts" is a map str -> int >= 0.

@@ -16,7 +16,7 @@ from .core import HEADER_FIELDS, Field, Message
 KINDS = ("random_bytes", "not_a_map", "wrong_type", "missing_field", "extra_field", "non_finite",
          "wrong_version", "out_of_range", "huge_array", "deep_nesting")
 HUGE_ITEMS = 200_000   # a huge array: ~1.8 MB of floats, over every message's size bound
-DEEP = 100_000         # nesting levels of a deep payload (msgpack refuses beyond its stack)
+DEEP = (10, 100, 400, 1500, 100_000)   # nesting levels of deep payloads (msgpack refuses beyond 1023)
 
 
 def _value(f: Field) -> object:
@@ -40,6 +40,14 @@ def valid_doc(m: Message, source: str = "fuzz") -> dict:
     """A map of `m` with in-range values (the check may still refuse it: callers mutate it anyway)."""
     doc = {"version": m.version, "header": {"t_s": 1.0, "seq": 0, "source": source}}
     doc.update({f.name: _value(f) for f in m.fields})
+    # the cross-field checks of schemas/messages.py: array lengths that go together
+    if m.name == "planner_plan":
+        h, n = doc["horizon"], doc["state_dim"]
+        doc.update(states=[0.0] * ((h + 1) * n), controls_rad_s=[0.0] * (4 * h), gains=[0.0] * (4 * h * n),
+                   target_roll_rad=[0.0] * h)
+    elif m.name == "planner_mission":
+        doc.update(types=[doc["types"][0] if doc["types"] else "takeoff"], position_m=[0.0, 0.0, 1.0],
+                   yaw_rad=[0.0], hold_s=[0.0], acceptance_m=[0.5])
     return doc
 
 
@@ -69,8 +77,11 @@ def garbage(m: Message, kind: str, rng: random.Random) -> bytes:
         doc = valid_doc(m)
         doc[rng.choice([f.name for f in m.fields] + ["extra"])] = [0.0] * HUGE_ITEMS
         return msgpack.packb(doc)
-    if kind == "deep_nesting":
-        return b"\x91" * DEEP + b"\x00"
+    if kind == "deep_nesting":   # a field's value nested deep (or the whole payload)
+        depth = rng.choice(DEEP)
+        if rng.random() < 0.2:
+            return b"\x91" * depth + b"\x00"
+        return b"\x81\xa6header" + b"\x91" * depth + b"\x00"
     doc = valid_doc(m)
     fields = list(m.fields)
     if kind == "wrong_type":
@@ -109,7 +120,7 @@ class Garbage:
     def __init__(self, m: Message, seed: int = 0, pool: int = 64, kinds: tuple[str, ...] = KINDS):
         rng = random.Random(seed)
         self.kinds = kinds
-        self.pools = {k: [garbage(m, k, rng) for _ in range(2 if k in ("huge_array", "deep_nesting") else pool)]
+        self.pools = {k: [garbage(m, k, rng) for _ in range(2 if k == "huge_array" else 8 if k == "deep_nesting" else pool)]
                       for k in kinds}
         self._rng = random.Random(seed + 1)
 

@@ -52,6 +52,12 @@ RAW_QUEUE_MAX = 256   # payloads per key waiting to be read; beyond, the oldest 
 # rejects on one key in a second, its bad messages are counted as "flood" without a reason
 # (schemas.Message.accept: ~5 us, against up to ~50 us to find the reason).
 FLOOD_REJECTS_PER_S = 50
+# Large garbage costs by its size (unpacking 1 MB takes ~25 ms; only the plan, mission, camera
+# and bookkeeping keys allow payloads over FLOOD_SMALL_BYTES): once a key's rejected payloads
+# add up to FLOOD_BYTES_PER_S in a second, its large payloads are dropped undecoded for the rest
+# of that second, counted as "flood" (a valid plan among them too: a flood costs the loops little).
+FLOOD_SMALL_BYTES = 4096
+FLOOD_BYTES_PER_S = 256 * 1024
 # Every message is one MessagePack map: its first byte is a fixmap (0x80-0x8f), map16 or map32.
 MAP_FIRST_BYTES = frozenset([bytes([b]) for b in range(0x80, 0x90)] + [b"\xde", b"\xdf"])
 
@@ -175,7 +181,7 @@ class Inbox:
         self._decode, self._accept = message.decode, message.accept
         self.valid = 0          # messages accepted so far
         self._valid_seen = 0    # ... when fresh() last looked
-        self._window_start, self._window_rejects = -math.inf, 0   # rejects diagnosed this second
+        self._window_start, self._window_rejects, self._window_bytes = -math.inf, 0, 0   # this second's
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         rt = self.runtime
@@ -204,17 +210,21 @@ class Inbox:
         if self._superseded:
             self._superseded = False
             self._next_seq.clear()
-        # A flooded key (more than FLOOD_REJECTS_PER_S rejects in this second of wall time):
-        # bad messages are counted in bulk ("flood") without the reference path's diagnosis.
+        # A flooded key (FLOOD_REJECTS_PER_S rejects, or FLOOD_BYTES_PER_S of rejected payload, in
+        # this second of wall time): bad messages are counted in bulk ("flood"), undiagnosed.
         now = time.monotonic()
         if now - self._window_start >= 1.0:
-            self._window_start, self._window_rejects = now, 0
+            self._window_start, self._window_rejects, self._window_bytes = now, 0, 0
         while raw:
             tag, payload = raw.popleft()
             self.arrived += 1
-            if self._window_rejects >= FLOOD_REJECTS_PER_S:
+            if self._window_rejects >= FLOOD_REJECTS_PER_S or self._window_bytes >= FLOOD_BYTES_PER_S:
+                if len(payload) > FLOOD_SMALL_BYTES and self._window_bytes >= FLOOD_BYTES_PER_S:
+                    self.runtime.count_rejects(self.key, "flood")
+                    continue
                 msg = self._accept(payload)
                 if msg is None:
+                    self._window_bytes += len(payload)
                     self.runtime.count_rejects(self.key, "flood")
                     continue
             else:
@@ -222,6 +232,7 @@ class Inbox:
                     msg = self._decode(payload)
                 except schemas.SchemaError as exc:
                     self._window_rejects += 1
+                    self._window_bytes += len(payload)
                     self.runtime.reject(self.key, exc)
                     continue
             self.valid += 1
