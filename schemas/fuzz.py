@@ -64,8 +64,8 @@ def _wrong(f: Field, rng: random.Random) -> object:
     return rng.choice(["1.0", [1.0], {"x": 1.0}, None, True])
 
 
-def garbage(m: Message, kind: str, rng: random.Random) -> bytes:
-    """One invalid payload for `m` of the kind given."""
+def garbage(m: Message, kind: str, rng: random.Random, huge_items: int = HUGE_ITEMS) -> bytes:
+    """One invalid payload for `m` of the kind given (`huge_items`: the length of a huge array)."""
     if kind == "random_bytes":
         while True:   # random bytes that are a complete map of the right size are (nearly) impossible: make sure
             data = rng.randbytes(rng.randint(0, 64))
@@ -75,7 +75,7 @@ def garbage(m: Message, kind: str, rng: random.Random) -> bytes:
         return msgpack.packb(rng.choice([1, -3.5, "text", [1, 2, 3], None, True, b"\x00\x01"]))
     if kind == "huge_array":
         doc = valid_doc(m)
-        doc[rng.choice([f.name for f in m.fields] + ["extra"])] = [0.0] * HUGE_ITEMS
+        doc[rng.choice([f.name for f in m.fields] + ["extra"])] = [0.0] * huge_items
         return msgpack.packb(doc)
     if kind == "deep_nesting":   # a field's value nested deep (or the whole payload)
         depth = rng.choice(DEEP)
@@ -117,10 +117,12 @@ class Garbage:
     """Invalid payloads for a message at a few microseconds each: a pool made once per kind
     (huge and deep payloads are costly to build), served at random."""
 
-    def __init__(self, m: Message, seed: int = 0, pool: int = 64, kinds: tuple[str, ...] = KINDS):
+    def __init__(self, m: Message, seed: int = 0, pool: int = 64, kinds: tuple[str, ...] = KINDS,
+                 huge_items: int = HUGE_ITEMS):
         rng = random.Random(seed)
         self.kinds = kinds
-        self.pools = {k: [garbage(m, k, rng) for _ in range(2 if k == "huge_array" else 8 if k == "deep_nesting" else pool)]
+        self.pools = {k: [garbage(m, k, rng, huge_items)
+                          for _ in range(2 if k == "huge_array" else 8 if k == "deep_nesting" else pool)]
                       for k in kinds}
         self._rng = random.Random(seed + 1)
 
