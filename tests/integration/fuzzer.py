@@ -19,6 +19,7 @@ from schemas.fuzz import Garbage
 # (those get 1.8 MB arrays in tests/unit/test_fuzz_inputs.py); 1.8 MB at 60/s to every
 # subscriber would measure the loopback network, not the services
 HUGE_ITEMS = 20_000
+LINGER_S = 3.0
 
 
 def fuzz_keys(vehicle_id: int = 0) -> list[tuple[str, schemas.Message]]:
@@ -87,6 +88,7 @@ class Fuzzer(threading.Thread):
                 if delay > 0:
                     time.sleep(delay)
             self.finished_at = time.monotonic()
+            self.stop.wait(LINGER_S)   # what is still queued in the session goes out before it closes
         finally:
             session.close()
 
