@@ -150,17 +150,17 @@ def main(argv=None) -> None:
     for kind, payloads in cases.items():
         samples = [sample(x) for x in payloads]
         old_t, new_t = [], []
-        for _ in range(args.rounds):
-            rt = BenchRuntime()
-            old = OldInbox(rt, m, "zp/0/x")
-            old.message = SimpleNamespace(decode=old_decode_full(m))
-            old_t.append(per_message_us(old, samples))
-            rt2 = BenchRuntime()
-            new = Inbox(rt2, m, "zp/0/x", "sim", keep=4)
-            new_t.append(per_message_us(new, samples))
-            if kind != "valid":
-                got = sum(rt2.rejected.values())
-                assert got == len(samples), (kind, rt2.rejected)
+        for r in range(args.rounds):   # old and new alternate which runs first (load drifts)
+            for which in (("old", "new") if r % 2 == 0 else ("new", "old")):
+                rt = BenchRuntime()
+                if which == "old":
+                    box = OldInbox(rt, m, "zp/0/x")
+                    box.message = SimpleNamespace(decode=old_decode_full(m))
+                    old_t.append(per_message_us(box, samples))
+                    continue
+                new_t.append(per_message_us(Inbox(rt, m, "zp/0/x", "sim", keep=4), samples))
+                if kind != "valid":
+                    assert sum(rt.rejected.values()) == len(samples), (kind, rt.rejected)
         o, n = statistics.median(old_t), statistics.median(new_t)
         size = statistics.median(len(x) for x in payloads)
         print(f"{kind:16s} {size:9.0f} {o:9.2f} {n:9.2f} {o / n:8.1f}")

@@ -179,6 +179,7 @@ class Inbox:
         self._takes = False  # the reader takes every message (take), not only the newest
         self._superseded = False  # unread messages went to make room: no loss for a reader of the newest
         self._decode, self._accept = message.decode, message.accept
+        self.max_bytes = message.size_limit
         self.valid = 0          # messages accepted so far
         self._valid_seen = 0    # ... when fresh() last looked
         self._window_start, self._window_rejects, self._window_bytes = -math.inf, 0, 0   # this second's
@@ -187,9 +188,13 @@ class Inbox:
         rt = self.runtime
         # Garbage is refused here, before it is copied, queued or wakes the reader: over the
         # definition's size bound (a huge array costs ~20 ms to unpack), or not a map at all.
-        data, reason = screen(self.message, sample.payload)
-        if data is None:
-            rt.count_rejects(self.key, reason)
+        payload = sample.payload
+        if len(payload) > self.max_bytes:
+            rt.count_rejects(self.key, "too_large")
+            return
+        data = payload.to_bytes()
+        if data[:1] not in MAP_FIRST_BYTES:
+            rt.count_rejects(self.key, "malformed")
             return
         raw = self._raw
         raw.append((rt._sync_tick(self.upstream) if rt.lockstep else 0, data))
@@ -215,25 +220,29 @@ class Inbox:
         now = time.monotonic()
         if now - self._window_start >= 1.0:
             self._window_start, self._window_rejects, self._window_bytes = now, 0, 0
+        decode, count_rejects = self._decode, self.runtime.count_rejects
+        flooded = self._window_rejects >= FLOOD_REJECTS_PER_S or self._window_bytes >= FLOOD_BYTES_PER_S
         while raw:
             tag, payload = raw.popleft()
             self.arrived += 1
-            if self._window_rejects >= FLOOD_REJECTS_PER_S or self._window_bytes >= FLOOD_BYTES_PER_S:
-                if len(payload) > FLOOD_SMALL_BYTES and self._window_bytes >= FLOOD_BYTES_PER_S:
-                    self.runtime.count_rejects(self.key, "flood")
-                    continue
-                msg = self._accept(payload)
-                if msg is None:
-                    self._window_bytes += len(payload)
-                    self.runtime.count_rejects(self.key, "flood")
-                    continue
-            else:
+            if not flooded:
                 try:
-                    msg = self._decode(payload)
+                    msg = decode(payload)
                 except schemas.SchemaError as exc:
                     self._window_rejects += 1
                     self._window_bytes += len(payload)
                     self.runtime.reject(self.key, exc)
+                    flooded = (self._window_rejects >= FLOOD_REJECTS_PER_S
+                               or self._window_bytes >= FLOOD_BYTES_PER_S)
+                    continue
+            else:
+                if len(payload) > FLOOD_SMALL_BYTES and self._window_bytes >= FLOOD_BYTES_PER_S:
+                    count_rejects(self.key, "flood")
+                    continue
+                msg = self._accept(payload)
+                if msg is None:
+                    self._window_bytes += len(payload)
+                    count_rejects(self.key, "flood")
                     continue
             self.valid += 1
             header = msg["header"]
