@@ -220,7 +220,7 @@ class Inbox:
         now = time.monotonic()
         if now - self._window_start >= 1.0:
             self._window_start, self._window_rejects, self._window_bytes = now, 0, 0
-        decode, count_rejects = self._decode, self.runtime.count_rejects
+        decode = self._decode
         flooded = self._window_rejects >= FLOOD_REJECTS_PER_S or self._window_bytes >= FLOOD_BYTES_PER_S
         while raw:
             tag, payload = raw.popleft()
@@ -237,12 +237,12 @@ class Inbox:
                     continue
             else:
                 if len(payload) > FLOOD_SMALL_BYTES and self._window_bytes >= FLOOD_BYTES_PER_S:
-                    count_rejects(self.key, "flood")
+                    self.runtime.count_rejects(self.key, "flood")
                     continue
                 msg = self._accept(payload)
                 if msg is None:
                     self._window_bytes += len(payload)
-                    count_rejects(self.key, "flood")
+                    self.runtime.count_rejects(self.key, "flood")
                     continue
             self.valid += 1
             header = msg["header"]
