@@ -90,7 +90,7 @@ def main(argv=None) -> int:
     recorder = (out / "logs" / "recorder.log").read_text()
     recorder_counted = f"rejected {fuzzer.count} " in recorder
     log = read_log(out / "flight.mcap")
-    pwm = log.get(f"zp/0/motors/pwm", [])
+    pwm = log.get("zp/0/motors/pwm", [])
     non_finite = sum(1 for msg in pwm for v in msg["pwm_us"] + msg["thrust_n"] if not math.isfinite(v))
     holding = [s for s in log.get("zp/0/planner/setpoint", []) if s["phase"] == "hold"]
     err_max = math.inf

@@ -83,7 +83,6 @@ class OldInbox:
 def old_decode_full(m):
     """The decode the old path ran: no size bound; the reason always diagnosed."""
     import msgpack
-    from schemas.core import _validate_reference
 
     def decode(payload):
         try:

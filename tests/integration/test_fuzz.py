@@ -59,5 +59,12 @@ def test_fuzz_every_key_during_a_lockstep_hover(tmp_path, hover_lockstep):
     out, _ = hover_lockstep
     reference = read_log(out / "flight.mcap")
     assert set(log) == set(reference)
-    changed = [key for key in log if log[key] != reference[key] and not key.endswith("/health")]
+    changed = [key for key in log if _flown(log[key]) != _flown(reference[key]) and not key.endswith("/health")]
     assert not changed, changed
+
+
+def _flown(messages: list[dict]) -> list[dict]:
+    """A key's messages less the lockstep "ready" announcements (tick -1): whether the recorder
+    had subscribed when a participant announced itself is a start-up race of the launcher (seen
+    on a loaded machine without any garbage), not part of the flight."""
+    return [m for m in messages if m.get("tick") != -1]
