@@ -59,7 +59,9 @@ class _Rt:
 
 payload = schemas.ATTITUDE_COMMAND.encode(1.0, 0, "attitude", {"thrust_n": 3.9, "torque_nm": [0.0, 0.0, 0.0],
                                                                 "imu_t_s": 0.999})
-sample = type("S", (), {"payload": type("P", (), {"to_bytes": staticmethod(lambda: payload)})()})()
+import zenoh  # noqa: E402
+
+sample = type("S", (), {"payload": zenoh.ZBytes(payload)})()   # the inbox checks its length before copying
 box_latest, box_take = Inbox(_Rt(), schemas.ATTITUDE_COMMAND, "c", "attitude", 4), Inbox(_Rt(), schemas.ATTITUDE_COMMAND, "c", "attitude", 4)
 held = {"cmd": None}
 

@@ -90,6 +90,7 @@ CAMERA = Message(
           "(corner order of flight.camera.marker_grid)", "px", min=-1e5, max=1e5),
     ),
     check=_camera_lengths,
+    max_bytes=1 << 20,   # ~13,000 markers in view
 )
 
 TRUTH = Message(
@@ -293,6 +294,7 @@ PLANNER_MISSION = Message(
         F("origin", "str", "who sent it, for logs (e.g. 'mavlink:255/190')"),
     ),
     check=_mission_lengths,
+    max_bytes=4 << 20,   # ~50,000 items
 )
 
 def _plan_lengths(doc: dict) -> str | None:
@@ -335,6 +337,7 @@ PLANNER_PLAN = Message(
         F("overrun_solves", "int", "solves longer than the re-solve period", min=0),
     ),
     check=_plan_lengths,
+    max_bytes=2 << 20,   # the largest plan (horizon 1000, state_dim 17) packs to ~0.8 MB
 )
 
 PARAM_SET = Message(

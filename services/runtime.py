@@ -48,6 +48,29 @@ HEALTH_PERIOD_S = 1.0
 READY_RESEND_S = 0.2
 LATE_S = 0.005        # a wake-up later than this past its deadline counts as late
 RAW_QUEUE_MAX = 256   # payloads per key waiting to be read; beyond, the oldest is lost (counted)
+# Rejecting must stay cheap under a flood of garbage (issue 22): beyond this many diagnosed
+# rejects on one key in a second, its bad messages are counted as "flood" without a reason
+# (schemas.Message.accept: ~5 us, against up to ~50 us to find the reason).
+FLOOD_REJECTS_PER_S = 50
+# Large garbage costs by its size (unpacking 1 MB takes ~25 ms; only the plan, mission, camera
+# and bookkeeping keys allow payloads over FLOOD_SMALL_BYTES): once a key's rejected payloads
+# add up to FLOOD_BYTES_PER_S in a second, its large payloads are dropped undecoded for the rest
+# of that second, counted as "flood" (a valid plan among them too: a flood costs the loops little).
+FLOOD_SMALL_BYTES = 4096
+FLOOD_BYTES_PER_S = 256 * 1024
+# Every message is one MessagePack map: its first byte is a fixmap (0x80-0x8f), map16 or map32.
+MAP_FIRST_BYTES = frozenset([bytes([b]) for b in range(0x80, 0x90)] + [b"\xde", b"\xdf"])
+
+
+def screen(message: schemas.Message, payload: zenoh.ZBytes) -> tuple[bytes | None, str]:
+    """The cheap first look at a payload, before any decoding: (bytes, "") or (None, the
+    reason to reject it): over the message's size bound (not even copied), or not a map."""
+    if len(payload) > message.size_limit:
+        return None, "too_large"
+    data = payload.to_bytes()
+    if data[:1] not in MAP_FIRST_BYTES:
+        return None, "malformed"
+    return data, ""
 # A loop woken by its input (run(..., wake_on=inbox)) runs at the input's arrival, at most
 # once per `min_gap` periods; without input it runs on its own timer this much past a period.
 WAKE_TIMER_MARGIN = 0.25
@@ -155,11 +178,26 @@ class Inbox:
         self.wakes = False   # set by Runtime.run(wake_on=...)
         self._takes = False  # the reader takes every message (take), not only the newest
         self._superseded = False  # unread messages went to make room: no loss for a reader of the newest
+        self._decode, self._accept = message.decode, message.accept
+        self.max_bytes = message.size_limit
+        self.valid = 0          # messages accepted so far
+        self._valid_seen = 0    # ... when fresh() last looked
+        self._window_start, self._window_rejects, self._window_bytes = -math.inf, 0, 0   # this second's
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        raw = self._raw
         rt = self.runtime
-        raw.append((rt._sync_tick(self.upstream) if rt.lockstep else 0, sample.payload.to_bytes()))
+        # Garbage is refused here, before it is copied, queued or wakes the reader: over the
+        # definition's size bound (a huge array costs ~20 ms to unpack), or not a map at all.
+        payload = sample.payload
+        if len(payload) > self.max_bytes:
+            rt.count_rejects(self.key, "too_large")
+            return
+        data = payload.to_bytes()
+        if data[:1] not in MAP_FIRST_BYTES:
+            rt.count_rejects(self.key, "malformed")
+            return
+        raw = self._raw
+        raw.append((rt._sync_tick(self.upstream) if rt.lockstep else 0, data))
         if len(raw) > RAW_QUEUE_MAX:   # not read for a while: the oldest goes
             raw.popleft()
             if self._takes:   # a reader of every message lost one; a reader of the newest did not
@@ -173,18 +211,40 @@ class Inbox:
             rt._arrival.set()  # wakes an event-driven service in real time
 
     def _drain(self) -> None:
-        raw, items, decode = self._raw, self._items, self.message.decode
+        raw, items = self._raw, self._items
         if self._superseded:
             self._superseded = False
             self._next_seq.clear()
+        # A flooded key (FLOOD_REJECTS_PER_S rejects, or FLOOD_BYTES_PER_S of rejected payload, in
+        # this second of wall time): bad messages are counted in bulk ("flood"), undiagnosed.
+        now = time.monotonic()
+        if now - self._window_start >= 1.0:
+            self._window_start, self._window_rejects, self._window_bytes = now, 0, 0
+        decode = self._decode
+        flooded = self._window_rejects >= FLOOD_REJECTS_PER_S or self._window_bytes >= FLOOD_BYTES_PER_S
         while raw:
             tag, payload = raw.popleft()
             self.arrived += 1
-            try:
-                msg = decode(payload)
-            except schemas.SchemaError as exc:
-                self.runtime.reject(self.key, exc)
-                continue
+            if not flooded:
+                try:
+                    msg = decode(payload)
+                except schemas.SchemaError as exc:
+                    self._window_rejects += 1
+                    self._window_bytes += len(payload)
+                    self.runtime.reject(self.key, exc)
+                    flooded = (self._window_rejects >= FLOOD_REJECTS_PER_S
+                               or self._window_bytes >= FLOOD_BYTES_PER_S)
+                    continue
+            else:
+                if len(payload) > FLOOD_SMALL_BYTES and self._window_bytes >= FLOOD_BYTES_PER_S:
+                    self.runtime.count_rejects(self.key, "flood")
+                    continue
+                msg = self._accept(payload)
+                if msg is None:
+                    self._window_bytes += len(payload)
+                    self.runtime.count_rejects(self.key, "flood")
+                    continue
+            self.valid += 1
             header = msg["header"]
             seq, source = header["seq"], header["source"]
             expected = self._next_seq.get(source)
@@ -193,6 +253,16 @@ class Inbox:
             if expected is None or seq >= expected - 1 or seq < expected - 1000:  # a repeat keeps its seq; a restart starts over
                 self._next_seq[source] = seq + 1
             items.append((tag, self.arrived, msg))
+
+    def fresh(self) -> bool:
+        """Whether a valid message came since the last call (decodes what is queued): a loop
+        woken by this input runs only for a real message, never for garbage."""
+        with self._lock:
+            if self._raw:
+                self._drain()
+            new = self.valid != self._valid_seen
+            self._valid_seen = self.valid
+        return new
 
     def latest(self) -> dict | None:
         """The newest visible message, or None."""
@@ -287,6 +357,7 @@ class Runtime:
         self.tick_rate = self.stack.tick_rate_hz
         self.stop_event = threading.Event()
         self.rejected: dict[str, int] = {}
+        self._count_lock = threading.Lock()
         self._reported: set[tuple[str, str]] = set()
         self.detail = ""
         self.overruns = 0
@@ -357,10 +428,20 @@ class Runtime:
         self.dropped[key] = self.dropped.get(key, 0) + n
 
     def reject(self, key: str, exc: schemas.SchemaError) -> None:
-        self.rejected[exc.reason] = self.rejected.get(exc.reason, 0) + 1
+        with self._count_lock:
+            self.rejected[exc.reason] = self.rejected.get(exc.reason, 0) + 1
         if (key, exc.reason) not in self._reported:  # log once per kind
             self._reported.add((key, exc.reason))
             self.problem(f"dropped a message on {key}: {exc}")
+
+    def count_rejects(self, key: str, reason: str, n: int = 1) -> None:
+        """Count rejected messages (from Zenoh's threads and the service's: under a lock, so
+        that none is lost); the first of each kind per key is reported."""
+        with self._count_lock:
+            self.rejected[reason] = self.rejected.get(reason, 0) + n
+        if (key, reason) not in self._reported:
+            self._reported.add((key, reason))
+            self.problem(f"dropped a message on {key}: {reason}")
 
     def inbox(self, message: schemas.Message, upstream: str, key: str | None = None, keep: int = 4) -> Inbox:
         """Subscribe to `message` from `upstream` ("sim" or a service name)."""
@@ -401,8 +482,12 @@ class Runtime:
         return arr
 
     def _on_param_set(self, sample: zenoh.Sample) -> None:
+        data, reason = screen(schemas.PARAM_SET, sample.payload)
+        if data is None:
+            self.count_rejects("param/set", reason)
+            return
         try:
-            msg = schemas.PARAM_SET.decode(sample.payload.to_bytes())
+            msg = schemas.PARAM_SET.decode(data)
         except schemas.SchemaError as exc:
             self.reject("param/set", exc)
             return
@@ -432,8 +517,12 @@ class Runtime:
 
     def _make_sync_cb(self, upstream: str) -> Callable:
         def on_sync(sample: zenoh.Sample) -> None:
+            data, reason = screen(schemas.SYNC_DONE, sample.payload)
+            if data is None:   # garbage on a sync key: counted and dropped, the clock untouched
+                self.count_rejects(f"sync/{upstream}", reason)
+                return
             try:
-                msg = schemas.SYNC_DONE.decode(sample.payload.to_bytes())
+                msg = schemas.SYNC_DONE.decode(data)
             except schemas.SchemaError as exc:
                 self.reject(f"sync/{upstream}", exc)
                 return
@@ -467,8 +556,12 @@ class Runtime:
             self.problem(f"lockstep: {name} dropped from the clock ({self._gone_why.pop(name)}); the others run on")
 
     def _on_clock(self, sample: zenoh.Sample) -> None:
+        data, reason = screen(schemas.CLOCK, sample.payload)
+        if data is None:   # garbage on the clock key: counted and dropped, no tick taken from it
+            self.count_rejects(self.key("sim/clock"), reason)
+            return
         try:
-            msg = schemas.CLOCK.decode(sample.payload.to_bytes())
+            msg = schemas.CLOCK.decode(data)
         except schemas.SchemaError as exc:
             self.reject(self.key("sim/clock"), exc)
             return
@@ -525,13 +618,13 @@ class Runtime:
                 self._run_lockstep(step, triggers)
             elif wake_on is not None and self.rate_hz > 0:
                 wake_on.wakes = True
-                self._run_woken(step, min_gap)
+                self._run_woken(step, min_gap, wake_on)
             else:
                 self._run_realtime(step, triggers)
         finally:
             self.close()
 
-    def _run_woken(self, step: Callable[[float], None], min_gap: float) -> None:
+    def _run_woken(self, step: Callable[[float], None], min_gap: float, box: Inbox) -> None:
         self.state = "running"
         self.enter_loop()
         period = 1.0 / self.rate_hz
@@ -547,7 +640,7 @@ class Runtime:
                 if wake.wait(wait):
                     wake.clear()
                     arrived = self._wake_t
-                    if arrived - t_last >= gap:
+                    if arrived - t_last >= gap and box.fresh():   # garbage does not run the loop
                         deadline = arrived   # lateness from the input's arrival
                         break
             now = clock()

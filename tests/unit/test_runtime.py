@@ -6,6 +6,8 @@ import threading
 from types import SimpleNamespace
 
 
+import zenoh
+
 import schemas
 from services import runtime
 from services.runtime import RAW_QUEUE_MAX, Inbox, apply_scheduling
@@ -31,13 +33,16 @@ class FakeRuntime:
     def count_dropped(self, key, n=1):
         self.dropped[key] = self.dropped.get(key, 0) + n
 
+    def count_rejects(self, key, reason, n=1):
+        self.rejected[reason] = self.rejected.get(reason, 0) + n
+
 
 def imu_payload(seq, t=1.0, source="sim"):
     return schemas.IMU.encode(t, seq, source, {"gyro_rad_s": [0.0, 0.0, 0.1], "accel_m_s2": [0.0, 0.0, 9.8]})
 
 
 def deliver(box, payload):
-    box._on_sample(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda: payload)))
+    box._on_sample(SimpleNamespace(payload=zenoh.ZBytes(payload)))
 
 
 def test_inbox_decodes_when_read_and_counts_rejects_and_gaps():
@@ -45,7 +50,7 @@ def test_inbox_decodes_when_read_and_counts_rejects_and_gaps():
     box = Inbox(rt, schemas.IMU, "zp/0/sim/imu", "sim", keep=8)
     for seq in (0, 1, 3):                      # seq 2 never arrived
         deliver(box, imu_payload(seq, t=1.0 + seq))
-    deliver(box, b"\xc1not msgpack")           # malformed
+    deliver(box, b"\x82\xc1not msgpack")       # malformed, though it starts like a map
     assert rt.rejected == {} and box._raw      # the callback only queued
     taken = box.take()
     assert [m["header"]["seq"] for m in taken] == [0, 1, 3]
