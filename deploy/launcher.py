@@ -169,6 +169,8 @@ class Launcher:
                     os.setpriority(os.PRIO_PROCESS, proc.pid, nice)
                 except OSError as exc:  # it still runs, at the default priority: say so
                     print(f"zenpilot: {name}: could not set nice {nice}: {exc}", file=sys.stderr)
+            if name == "recorder":   # its token means it listens: nothing the others send is missed
+                self.wait_alive(["recorder"])   # one still missing is reported with the others
 
     def wait_alive(self, names: list[str], timeout_s: float = 30.0) -> set[str]:
         """Wait for every service's liveliness token; returns the ones still missing."""

@@ -51,7 +51,7 @@ DRAIN_MAX_S = 3.0
 
 
 def run(args) -> None:
-    rt = Runtime(NAME, args, PARAMS)
+    rt = Runtime(NAME, args, PARAMS, announce=False)   # alive once it listens: the launcher waits for that
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / LOG_NAME
@@ -125,6 +125,7 @@ def run(args) -> None:
             next_flush = time.monotonic() + FLUSH_S
 
     rt.subscribe(rt.key("**"), on_sample)
+    rt.announce_alive()
     rt.lockstep = False  # the recorder only listens: it keeps wall time for its own health
     rt.rate_hz = 10.0
     try:

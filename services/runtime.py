@@ -337,7 +337,8 @@ class _Upstream:
 
 # ---------------------------------------------------------------- runtime
 class Runtime:
-    def __init__(self, name: str, args: argparse.Namespace, param_defaults: dict[str, Any] | None = None):
+    def __init__(self, name: str, args: argparse.Namespace, param_defaults: dict[str, Any] | None = None,
+                 announce: bool = True):
         self.name = name
         self.args = args
         try:
@@ -389,7 +390,9 @@ class Runtime:
             self.session = zenoh.open(self.conf)
         except zenoh.ZError as exc:
             fail(name, f"cannot open the Zenoh session: {exc}")
-        self._token = self.session.liveliness().declare_token(self.key(f"alive/{name}"))
+        # the liveliness token says "up"; a service whose inputs must be in place first (the
+        # recorder's subscription) announces itself later (announce_alive)
+        self._token = self.session.liveliness().declare_token(self.key(f"alive/{name}")) if announce else None
         self._health = Publisher(self, schemas.HEALTH, schemas.HEALTH.key(self.vehicle_id, name))
         self._next_health = 0.0
         self.subscribe(schemas.PARAM_SET.key(self.vehicle_id), self._on_param_set)
@@ -415,6 +418,10 @@ class Runtime:
 
     def key(self, topic: str) -> str:
         return f"zp/{self.vehicle_id}/{topic}"
+
+    def announce_alive(self) -> None:
+        if self._token is None:
+            self._token = self.session.liveliness().declare_token(self.key(f"alive/{self.name}"))
 
     def now(self) -> float:
         return self._t if self.lockstep else time.time()
@@ -794,7 +801,8 @@ class Runtime:
         self.state = "stopping"
         try:
             self.publish_health(force=True)
-            self._token.undeclare()
+            if self._token is not None:
+                self._token.undeclare()
             self.session.close()
         except Exception:  # already closing; nothing left to report to
             pass
