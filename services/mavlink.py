@@ -35,6 +35,7 @@ from services.mavlink_logic import (
     ParamTable,
     latency_summary,
     mavutil,
+    is_loopback_endpoint,
 )
 from services.runtime import Inbox, Runtime, main_guard, service_parser
 
@@ -50,6 +51,9 @@ PARAMS = {
     "failsafe_hold_s": 3.0,
     "health_timeout_s": 3.0,
     "signing_key_file": "",
+    # MAVLink 2 signing is required on any endpoint off this machine (a radio, another host, every
+    # interface): unsigned, anyone on the link could command the vehicle. True opts out, knowingly.
+    "allow_unsigned_link": False,
     "rates_hz": {},  # per stream overrides, e.g. {ATTITUDE = 50.0}
     "max_messages_per_step": 200,  # bounded work per loop under a flood
     # estimates converged (SYS_STATUS AHRS/GPS healthy, arming allowed): each axis' std below these
@@ -122,6 +126,9 @@ def run(args) -> None:
                           rates_hz=rates(p["rates_hz"], rt.where()),
                           converged_position_std_m=p["converged_position_std_m"],
                           converged_attitude_std_deg=p["converged_attitude_std_deg"])
+    if not p["signing_key_file"] and not p["allow_unsigned_link"] and not is_loopback_endpoint(p["endpoint"]):
+        raise ValueError(f"{rt.where()} endpoint {p['endpoint']!r} leaves this machine: set signing_key_file "
+                         f"(MAVLink 2 signing; the ground station needs the same key), or allow_unsigned_link = true")
     try:
         conn = mavutil.mavlink_connection(p["endpoint"], source_system=p["system_id"],
                                           source_component=p["component_id"], autoreconnect=True)

@@ -123,6 +123,19 @@ ARM_PENDING_S = 3.0  # an accepted arm counts as armed this long before the plan
 MISSION_START_GRACE_S = 3.0  # the planner shows a sent mission within this (wall) time, or it refused it
 
 
+LOOPBACK_HOSTS = ("127.", "localhost", "::1", "[::1]")
+
+
+def is_loopback_endpoint(endpoint: str) -> bool:
+    """A pymavlink connection string that stays on this machine (udp/tcp to or on a loopback
+    address). Anything else (another host, every interface, a serial radio) is a link."""
+    kind, sep, rest = endpoint.partition(":")
+    if not sep or kind not in ("udp", "udpin", "udpout", "udpbcast", "tcp", "tcpin"):
+        return False   # a serial device, or a string pymavlink would take for one
+    host = rest.rsplit(":", 1)[0]
+    return host.startswith(LOOPBACK_HOSTS)
+
+
 @dataclass
 class BridgeConfig:
     system_id: int = 1

@@ -545,3 +545,23 @@ def test_arm_then_mission_start_at_once_with_mavsdk_items(link):
     # SET_MODE (the older message) to PX4's hold: accepted on the ground
     send(gcs.set_mode_encode(1, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, MODES["hold"]))
     assert bridge.mode_name() == "hold"
+
+
+def test_an_endpoint_off_this_machine_is_a_link():
+    from services.mavlink_logic import is_loopback_endpoint
+    for local in ("udpout:127.0.0.1:14550", "udpin:127.0.0.1:14540", "tcp:localhost:5760", "udp:[::1]:14550"):
+        assert is_loopback_endpoint(local), local
+    for link in ("udpin:0.0.0.0:14550", "udpout:192.168.1.10:14550", "tcpin:0.0.0.0:5760", "/dev/ttyUSB0",
+                 "udpbcast:10.0.0.255:14550", "nonsense"):
+        assert not is_loopback_endpoint(link), link
+
+
+def test_an_unsigned_link_off_this_machine_is_refused_at_start():
+    import subprocess
+    import sys
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[2]
+    proc = subprocess.run([sys.executable, "-m", "services.mavlink", "--endpoint", "udpin:0.0.0.0:14599"],
+                          cwd=root, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert "signing_key_file" in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
