@@ -37,7 +37,8 @@ SERVICES = "\n".join(f'[services.{name}]\nmachine = "{machine}"\nrate_hz = {rate
     ("mavlink", "ground", 50.0)))
 
 
-def secure_stack(folder: Path) -> tuple[Path, dict[str, str]]:
+def secure_stack(folder: Path, services: str = SERVICES, keys: bool = True) -> tuple[Path, dict[str, str]]:
+    """A vehicle and a ground router linked over TLS, with `services`; keys made unless told not to."""
     ports = {k: free_port() for k in ("vehicle", "link", "ground")}
     ends = {"vehicle": f"tcp/127.0.0.1:{ports['vehicle']}", "link": f"tls/127.0.0.1:{ports['link']}",
             "ground": f"tcp/127.0.0.1:{ports['ground']}"}
@@ -55,8 +56,9 @@ listen = ["{ends['link']}"]
 router = "{ends['ground']}"
 runs_router = true
 connect = ["{ends['link']}"]
-{SERVICES}""")
-    security.make_keys(folder / "keys", load_stack(path))
+{services}""")
+    if keys:
+        security.make_keys(folder / "keys", load_stack(path))
     return path, ends
 
 
@@ -268,21 +270,7 @@ def test_secured_split_flies_a_hover(tmp_path):
     services = text[text.index("[services.sim]"):].replace('[services.planner]\nmachine = "vehicle"',
                                                            '[services.planner]\nmachine = "ground"')
     assert '[services.planner]\nmachine = "ground"' in services
-    ends = {k: f"127.0.0.1:{free_port()}" for k in ("vehicle", "link", "ground")}
-    stack = tmp_path / "split.toml"
-    stack.write_text(f"""[stack]
-vehicle_id = 0
-[security]
-dir = "keys"
-[machines.vehicle]
-router = "tcp/{ends['vehicle']}"
-runs_router = true
-listen = ["tls/{ends['link']}"]
-[machines.ground]
-router = "tcp/{ends['ground']}"
-runs_router = true
-connect = ["tls/{ends['link']}"]
-{services}""")
+    stack, _ = secure_stack(tmp_path, services, keys=False)   # the keys: `zenpilot certs`, below
 
     def zenpilot(machine: str, *args: str, timeout: float = 120) -> str:
         env = dict(os.environ, ZENPILOT_STATE_DIR=str(tmp_path / f"state-{machine}"))
