@@ -30,7 +30,7 @@ from pathlib import Path
 import zenoh
 
 import schemas
-from deploy import gyrovertical_training
+from deploy import gyrovertical_training, predict_cli
 from deploy.flightlog import LOG_NAME, LogError, LogScan, log_is_complete, read_log, recover, scan
 from deploy.launcher import DELIVERY_S, Launcher, alive_services, client_session, free_port, stop_groups, wait_port
 from deploy.progress import FlightProgress
@@ -584,6 +584,7 @@ def build_parser() -> argparse.ArgumentParser:
     mis.set_defaults(func=cmd_missions)
 
     gyrovertical_training.add_parser(sub)
+    predict_cli.add_parser(sub)
     return p
 
 

@@ -418,6 +418,7 @@ def _flip(log, p, sp, truth, truth_t, sp_idx) -> dict:
     out: dict[str, Any] = {k: (v if isinstance(v, bool) else _f(v)) for k, v in fm.__dict__.items()}
     flip_sp = [x for x in sp if x["phase"].startswith("flip")]
     out["aborted"] = any(x["phase"] == "flip-aborted" for x in sp)
+    out["refused"] = any(x["phase"] == "flip-refused" for x in sp)  # predicted unsafe, never started
     plans = _sorted(log.get(p + "planner/plan", []))
     out["method"] = plans[-1]["method"] if plans else None
     out["solves"] = plans[-1]["solves"] if plans else 0

@@ -178,6 +178,19 @@ def _thrust_coefficient(vehicle: Vehicle) -> float:
     return vehicle.thrust_coefficient_kf
 
 
+def rigid_body_derivative(x, forces_n, mass, inertia, allocation, drag, gravity, wind=None):
+    """xdot (13,) of the rigid body under rotor forces (4,): the model of 001 with the
+    vehicle's allocation and linear drag against the air (wind (3,), world; None: still).
+    The vehicle's numbers are arguments so that flight/predict.py can draw them per case."""
+    v, q, w = x[VEL], x[QUAT], x[RATE]
+    thrust_torque = jnp.sum(allocation * forces_n, axis=1)  # allocation @ forces, fusible
+    air = v if wind is None else v - wind
+    accel = (_body_z_in_world(q) * thrust_torque[0] - drag * air) / mass - gravity
+    q_dot = 0.5 * _quat_multiply(q, jnp.concatenate([jnp.zeros(1), w]))
+    w_dot = (thrust_torque[1:] - jnp.cross(w, inertia * w)) / inertia
+    return jnp.concatenate([v, accel, q_dot, w_dot])
+
+
 def make_derivative(vehicle: Vehicle) -> Callable:
     """Continuous model xdot(x, u) of 001 with the vehicle's allocation (thrust kf*u^2).
     derivative.with_forces(x, forces_n) is the same rigid body driven by rotor forces."""
@@ -192,12 +205,7 @@ def make_derivative(vehicle: Vehicle) -> Callable:
         return allocation @ (kf * u * u)  # [thrust_n, torque_x, torque_y, torque_z]
 
     def with_forces(x, forces_n):
-        v, q, w = x[VEL], x[QUAT], x[RATE]
-        thrust_torque = jnp.sum(allocation * forces_n, axis=1)  # allocation @ forces, fusible
-        accel = (_body_z_in_world(q) * thrust_torque[0] - drag * v) / mass - gravity
-        q_dot = 0.5 * _quat_multiply(q, jnp.concatenate([jnp.zeros(1), w]))
-        w_dot = (thrust_torque[1:] - jnp.cross(w, inertia * w)) / inertia
-        return jnp.concatenate([v, accel, q_dot, w_dot])
+        return rigid_body_derivative(x, forces_n, mass, inertia, allocation, drag, gravity)
 
     def derivative(x, u):
         return with_forces(x, kf * u * u)

@@ -252,7 +252,8 @@ class MissionRunner:
         sp.phase = "flip" if phase == "flip" else f"flip-{phase}"
         self.ref = np.array(ref, dtype=float)
         if failed or dt > item["timeout_s"]:  # abort: the position level takes over where it is
-            sp.mode, sp.phase, sp.mission_state = "position", "flip-aborted", "failed"
+            sp.mode, sp.mission_state = "position", "failed"
+            sp.phase = "flip-refused" if phase == "refused" else "flip-aborted"
             return False
         if done:
             sp.mode = "position"

@@ -41,6 +41,11 @@ PARAMS = {
     "flip_method": "",    # fly every flip item with this method ("" : as the mission says)
     # where compiled iLQR solvers are kept between starts ("": compile every start)
     "compile_cache_dir": "~/.cache/zenpilot/jax",
+    # before the first tick, each iLQR flip item is predicted over this many uncertain cases
+    # (flight/predict.py; `zenpilot predict` prints the same); 0: no check
+    "flip_predict_rollouts": 256,
+    # ... and refused when its 95th-percentile loss from the hover leaves less than this, m
+    "flip_clearance_m": 0.5,
 }
 NO_MISSION = ("", "none")
 # woken by the position state: at most one run per this many periods (a late state and the next
@@ -83,6 +88,39 @@ def flip_controllers(rt: Runtime, mission) -> dict:
     return controllers
 
 
+def predict_flips(rt: Runtime, mission, controllers: dict) -> dict:
+    """The flip items this vehicle should not fly: {(method, altitude_m): reason}, from each
+    iLQR item's predicted envelope (the controllers' own solvers fly the nominal)."""
+    n = int(rt.params["flip_predict_rollouts"])
+    if n < 0:
+        raise ValueError(f"{rt.where()} flip_predict_rollouts: must be >= 0 (got {n})")
+    if n == 0 or not controllers:
+        return {}
+    from flight.predict import PredictError, build_predictor
+    refused = {}
+    items = {(i["method"], float(i["altitude_m"])) for i in mission.items if i["type"] == "flip"}
+    for method, altitude in sorted(items):
+        if method == "baseline":
+            continue
+        t0 = time.monotonic()
+        try:
+            result = build_predictor(controllers[method].vehicle, method, altitude,
+                                     controller=controllers[method]).predict(n, seed=0)
+        except PredictError as exc:
+            refused[(method, altitude)] = f"no prediction: {exc}"
+            rt.problem(f"flip {method} at {altitude:g} m: no prediction: {exc}")
+            continue
+        loss = result.band("loss_from_hover_m")
+        print(f"zenpilot-planner: flip {method} at {altitude:g} m predicted over {n} cases in "
+              f"{time.monotonic() - t0:.1f} s: loss from the hover p50 {loss[1]:.2f} / p95 {loss[2]:.2f} m, "
+              f"P(crash) {result.crash_probability:.3f}", flush=True)
+        reason = result.refusal(float(rt.params["flip_clearance_m"]))
+        if reason is not None:
+            refused[(method, altitude)] = reason
+            rt.problem(f"flip {method} at {altitude:g} m refused: {reason}")
+    return refused
+
+
 def run(args) -> None:
     rt = Runtime(NAME, args, PARAMS)
     name = args.mission if args.mission is not None else rt.params["mission"]
@@ -92,6 +130,7 @@ def run(args) -> None:
         mission = replace(mission, items=tuple({**i, "method": method} if i["type"] == "flip" else i
                                                for i in mission.items))
     controllers = flip_controllers(rt, mission)   # at normal scheduling: the runtime raises it for the loop
+    refused = predict_flips(rt, mission, controllers)
     state = rt.inbox(schemas.POSITION_STATE, "position")
     commands = rt.inbox(schemas.PLANNER_COMMAND, "mavlink", keep=16)
     missions = rt.inbox(schemas.PLANNER_MISSION, "mavlink", keep=4)
@@ -114,6 +153,8 @@ def run(args) -> None:
         if flip["x"] is None:  # no attitude state yet: wait (the fallback laws hold)
             return "takeoff", False, False, flip["pos"]
         x = flip["x"] if c.state_dim == 17 else flip["x"][:13]
+        if (item["method"], float(item["altitude_m"])) in refused:  # predicted unsafe: never started
+            return "refused", False, True, flip["pos"]
         if starting:
             c.start(t, x, item["altitude_m"], item["baseline_climb_m"])
             flip["steps"] = 0
