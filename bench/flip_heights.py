@@ -29,20 +29,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from deploy.flightlog import read_log  # noqa: E402
-from flight.flip import Phase, RollAccumulator  # noqa: E402
+from flight.flip import Phase, RollAccumulator, heights  # noqa: E402
 
-TURN_START_RAD = math.radians(3.0)
 FIELDS = ("roll+3", "peak", "lowest", "turn_loss", "fall", "excursion")
-
-
-def heights(z, roll_rad) -> dict[str, float]:
-    """From the flip's start to its recovery's end: z (m) about the start, accumulated roll (rad)."""
-    z = np.asarray(z, dtype=np.float64)
-    turn = int(np.argmax(np.asarray(roll_rad) > TURN_START_RAD))
-    peak = int(np.argmax(z))
-    lowest = float(np.min(z[peak:]))
-    return {"roll+3": float(z[turn]), "peak": float(z[peak]), "lowest": lowest,
-            "turn_loss": float(z[turn]) - lowest, "fall": float(z[peak]) - lowest}
 
 
 def flip_heights(flight_dir: Path) -> dict[str, float]:

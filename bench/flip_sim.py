@@ -27,7 +27,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.flip_heights import heights
+from flight.flip import heights
 from flight.flip import (
     PROJECT_FLIP,
     THESIS_BASELINE,

@@ -417,6 +417,7 @@ def _flip(log, p, sp, truth, truth_t, sp_idx) -> dict:
                       [x["rate_rad_s"] for x in truth], phases)
     out: dict[str, Any] = {k: (v if isinstance(v, bool) else _f(v)) for k, v in fm.__dict__.items()}
     flip_sp = [x for x in sp if x["phase"].startswith("flip")]
+    out["turn_loss_m"] = _turn_loss(fm, truth, truth_t, phases)
     out["aborted"] = any(x["phase"] == "flip-aborted" for x in sp)
     out["refused"] = any(x["phase"] == "flip-refused" for x in sp)  # predicted unsafe, never started
     plans = _sorted(log.get(p + "planner/plan", []))
@@ -433,6 +434,42 @@ def _flip(log, p, sp, truth, truth_t, sp_idx) -> dict:
     for h in _sorted(log.get(p + "motors/health", []))[-1:]:
         fallbacks = {k: int(v) for k, v in h["rejected"].items() if k.startswith("plan_fallback")}
     out["motor_fallbacks"] = fallbacks
+    out["predicted"] = _predicted_against_flown(log, p, out)
+    return out
+
+
+def _turn_loss(fm, truth, truth_t, phases) -> float | None:
+    """The height lost from the turn's start (flight.flip.heights), None without a completed flip."""
+    from flight.flip import RollAccumulator, heights
+    if not fm.completed:
+        return None
+    start = phases.index("flip")
+    end = int(np.searchsorted(truth_t, truth_t[start] + fm.duration_s + 1e-9, side="right"))
+    z = np.array([x["position_m"][2] for x in truth[start:end]])
+    roll = RollAccumulator()
+    roll.reset(truth[start]["quaternion_wxyz"])
+    return _f(heights(z - z[0], [roll.update(x["quaternion_wxyz"]) for x in truth[start:end]])["turn_loss"])
+
+
+# the planner's prediction's figures -> the flown figure of the same definition
+PREDICTED_FIGURES = {"loss_from_turn_m": "turn_loss_m", "loss_from_hover_m": "altitude_loss_m",
+                     "xy_drift_m": "xy_drift_m", "overshoot_deg": "overshoot_deg", "recovery_s": "recovery_s"}
+
+
+def _predicted_against_flown(log, p, flown: dict) -> dict | None:
+    """The planner's planner/flip_prediction for the method flown, each figure's band beside the
+    flown value and whether it fell inside [p5, p95]; None when the planner predicted nothing."""
+    preds = [x for x in _sorted(log.get(p + "planner/flip_prediction", []))
+             if flown.get("method") in (None, x["method"])]
+    if not preds:
+        return None
+    pred = preds[0]
+    out: dict[str, Any] = {"rollouts": pred["rollouts"], "p_crash": _f(pred["p_crash"]), "refused": pred["refused"]}
+    for name, flown_name in PREDICTED_FIGURES.items():
+        band, value = pred[name], flown.get(flown_name)
+        inside = (len(band) == 3 and value is not None and band[0] - 1e-3 <= value <= band[2] + 1e-3)
+        out[name] = {"p5": _f(band[0]) if band else None, "p50": _f(band[1]) if band else None,
+                     "p95": _f(band[2]) if band else None, "flown": value, "inside": bool(inside)}
     return out
 
 
@@ -503,7 +540,15 @@ def format_table(metrics: dict) -> str:
     for k, v in metrics.get("latency_ms", {}).items():
         rows.append((f"latency_ms.{k}", _fmt(v)))
     for k, v in (metrics.get("flip") or {}).items():
+        if k == "predicted":
+            continue
         rows.append((f"flip.{k}", _fmt(v) if not isinstance(v, dict) else str(v)))
+    predicted = (metrics.get("flip") or {}).get("predicted") or {}
+    for k in PREDICTED_FIGURES:
+        if k in predicted:
+            b = predicted[k]
+            rows.append((f"flip predicted {k}", f"p5 {_fmt(b['p5'])} / p50 {_fmt(b['p50'])} / p95 {_fmt(b['p95'])}, "
+                                                 f"flown {_fmt(b['flown'])} ({'inside' if b['inside'] else 'OUTSIDE'})"))
     for k, v in (metrics.get("estimation") or {}).items():
         rows.append((f"estimation.{k}", _fmt(v) if not isinstance(v, list) else str(v)))
     rej = metrics.get("rejected_messages", {})

@@ -34,6 +34,8 @@ def add_parser(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the draws (default 0)")
     p.add_argument("--clearance-m", type=float, default=0.5,
                    help="height to keep above the ground at the 95th percentile (default 0.5)")
+    p.add_argument("--mass-scale", type=float, default=d.mass_scale,
+                   help="the mass's centre, times the vehicle file's (default 1; 1.1: a 10 %% payload)")
     p.add_argument("--mass-frac", type=float, default=d.mass_frac, help=f"mass +- fraction (default {d.mass_frac:g})")
     p.add_argument("--inertia-frac", type=float, default=d.inertia_frac,
                    help=f"inertia +- fraction per axis (default {d.inertia_frac:g})")
@@ -59,7 +61,7 @@ def cmd_predict(args) -> int:
     if not (math.isfinite(args.clearance_m) and args.clearance_m >= 0):
         raise ValueError(f"predict: --clearance-m must be >= 0 (got {args.clearance_m!r})")
     try:
-        uncertainty = Uncertainty(mass_frac=args.mass_frac, inertia_frac=args.inertia_frac,
+        uncertainty = Uncertainty(mass_scale=args.mass_scale, mass_frac=args.mass_frac, inertia_frac=args.inertia_frac,
                                   thrust_coefficient_frac=args.thrust_frac, motor_lag_frac=args.motor_lag_frac,
                                   wind_m_s=args.wind_m_s, gust_m_s=args.gust_m_s, delay_max_s=args.delay_ms / 1e3)
     except PredictError as exc:

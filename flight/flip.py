@@ -484,6 +484,22 @@ class FlipMetrics:
     duration_s: float        # flip start -> recovery end
 
 
+TURN_START_RAD = math.radians(3.0)  # the turn has started (the height loss "from the turn's start")
+
+
+def heights(z, roll_rad) -> dict[str, float]:
+    """From the flip's start to its recovery's end: z (m) about the start, accumulated roll (rad).
+    roll+3: height where the roll passes TURN_START_RAD (the turn's start); peak: the highest
+    point; lowest: the lowest after the peak; turn_loss: roll+3 less lowest (the loss measured
+    from the turn's start); fall: peak less lowest."""
+    z = np.asarray(z, dtype=np.float64)
+    turn = int(np.argmax(np.asarray(roll_rad) > TURN_START_RAD))
+    peak = int(np.argmax(z))
+    lowest = float(np.min(z[peak:]))
+    return {"roll+3": float(z[turn]), "peak": float(z[peak]), "lowest": lowest,
+            "turn_loss": float(z[turn]) - lowest, "fall": float(z[peak]) - lowest}
+
+
 def flip_metrics(t_s, position_m, quaternion, rate_rad_s, phase,
                  level_tolerance_rad: float = math.radians(5.0), level_rate_rad_s: float = 0.5,
                  hold_s: float = 0.2) -> FlipMetrics:

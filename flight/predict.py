@@ -17,7 +17,8 @@ Two steps, both pure (no I/O):
 The rollouts replay the nominal flight's plans with their feedback gains; in flight the
 planner also re-plans from where the vehicle is, so the prediction is the pessimistic side
 of the stack (it does not re-target a vehicle that fell behind). The metrics are those of
-flight/flip.flip_metrics, on the nominal phases' clock.
+flight/flip.flip_metrics, on the nominal phases' clock, and the loss from the turn's start
+(flight/flip.heights: the height where the roll starts, less the lowest point after the peak).
 """
 from __future__ import annotations
 
@@ -27,6 +28,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from flight.flip import TURN_START_RAD
 from flight.vehicle import Vehicle
 
 # the flip's metric thresholds (flight/flip.flip_metrics' defaults)
@@ -35,6 +37,7 @@ LEVEL_RATE_RAD_S = 0.5
 HOLD_S = 0.2
 LOST_TILT_RAD = math.radians(30.0)
 LOST_RATE_RAD_S = 3.0
+FIGURES = ("loss_from_turn_m", "loss_from_hover_m", "xy_drift_m", "overshoot_deg", "recovery_s")
 TICK_RATE_HZ = 400.0      # the motor driver's rate: the policy is applied per tick
 AFTER_RECOVERY_S = 1.0    # how long the nominal flight holds after recovery
 MAX_TIME_S = 12.0
@@ -46,10 +49,12 @@ class PredictError(ValueError):
 
 @dataclass(frozen=True)
 class Uncertainty:
-    """What is drawn per case: uniform +-fractions about the vehicle file's numbers; the wind
+    """What is drawn per case: uniform +-fractions about the vehicle file's numbers (the mass
+    about mass_scale times it); the wind
     uniform in direction, its speed uniform in [0, wind_m_s]; gusts of gust_m_s (1 sigma per
     axis) with gust_time_s correlation; the control delay uniform in [0, delay_max_s]; the
     start state's error normal with these sigmas (per axis; the attitude's about each axis)."""
+    mass_scale: float = 1.0   # the centre of the mass's spread, times the file's (a payload)
     mass_frac: float = 0.10
     inertia_frac: float = 0.10
     thrust_coefficient_frac: float = 0.05
@@ -67,6 +72,8 @@ class Uncertainty:
         for name, value in asdict(self).items():
             if not (math.isfinite(value) and value >= 0.0):
                 raise PredictError(f"uncertainty {name} must be finite and >= 0 (got {value!r})")
+        if self.mass_scale <= 0.0:
+            raise PredictError(f"uncertainty mass_scale must be > 0 (got {self.mass_scale!r})")
         for name in ("mass_frac", "inertia_frac", "thrust_coefficient_frac", "motor_lag_frac"):
             if getattr(self, name) >= 0.9:
                 raise PredictError(f"uncertainty {name} must be < 0.9 (got {getattr(self, name)!r})")
@@ -75,7 +82,7 @@ class Uncertainty:
 
     @classmethod
     def none(cls) -> "Uncertainty":
-        return cls(**{k: 0.0 for k in asdict(cls())} | {"gust_time_s": 1.0})
+        return cls(**{k: 0.0 for k in asdict(cls())} | {"gust_time_s": 1.0, "mass_scale": 1.0})
 
 
 @dataclass
@@ -157,7 +164,7 @@ class Prediction:
                "p_crash": self.crash_probability, "p_ground": self.ground_probability,
                "p_recovered": self.recovered_probability,
                "rollout_s": self.rollout_s, "compile_s": self.compile_s, "nominal_s": self.nominal_s}
-        for name in ("loss_from_turn_m", "loss_from_hover_m", "xy_drift_m", "overshoot_deg", "recovery_s"):
+        for name in FIGURES:
             p5, p50, p95 = self.band(name)
             out[name] = {"p5": p5, "p50": p50, "p95": p95}
         return out
@@ -290,7 +297,7 @@ def draw_cases(vehicle: Vehicle, nominal: NominalFlip, n: int, uncertainty: Unce
     dq = np.concatenate([np.cos(angle / 2), np.sin(angle / 2) * axis], axis=1)
     max_delay = int(round(u.delay_max_s * TICK_RATE_HZ))
     return {
-        "mass": (vehicle.mass_kg * spread(u.mass_frac)).astype(np.float32),
+        "mass": (vehicle.mass_kg * u.mass_scale * spread(u.mass_frac)).astype(np.float32),
         "inertia": (np.asarray(vehicle.inertia_kg_m2)[None] * spread(u.inertia_frac, (n, 3))).astype(np.float32),
         "thrust_scale": spread(u.thrust_coefficient_frac).astype(np.float32),
         "tau": (tau0 * spread(u.motor_lag_frac)).astype(np.float32),
@@ -389,6 +396,12 @@ def metrics_from_series(series: np.ndarray, flip_tick: int, tick_s: float, altit
     in_span = after & (ticks[None, :] <= end[:, None])
     z_span = np.where(in_span, z, np.inf)
     lowest_span = z_span.min(axis=1)
+    # from the turn's start (flight/flip.heights' turn_loss): the height where the roll passes
+    # TURN_START_RAD, less the lowest point after the peak (a climb before the turn is not a gain)
+    turn_start = np.argmax(after & (roll > TURN_START_RAD), axis=1)
+    peak = np.argmax(np.where(in_span, z, -np.inf), axis=1)
+    lowest_after_peak = np.where(in_span & (ticks[None, :] >= peak[:, None]), z, np.inf).min(axis=1)
+    rows = np.arange(n)
     drift = np.where(in_span, np.linalg.norm(xy - xy[:, flip_tick:flip_tick + 1], axis=2), 0.0).max(axis=1)
     overshoot = np.maximum(0.0, np.degrees(np.where(in_span, roll, -np.inf).max(axis=1)) - 360.0)
     nan = np.full(n, np.nan)
@@ -401,7 +414,7 @@ def metrics_from_series(series: np.ndarray, flip_tick: int, tick_s: float, altit
         "crashed": hit_ground | ~has_turn | lost,
         "hit_ground": hit_ground,
         "lowest_m": z.min(axis=1),
-        "loss_from_turn_m": z[:, flip_tick] - lowest_span,
+        "loss_from_turn_m": z[rows, turn_start] - lowest_after_peak,
         "loss_from_hover_m": altitude_m - lowest_span,
         "xy_drift_m": drift,
         "overshoot_deg": np.where(has_turn, overshoot, nan),

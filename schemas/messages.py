@@ -340,6 +340,34 @@ PLANNER_PLAN = Message(
     max_bytes=2 << 20,   # the largest plan (horizon 1000, state_dim 17) packs to ~0.8 MB
 )
 
+PLANNER_FLIP_PREDICTION = Message(
+    "planner_flip_prediction", "planner/flip_prediction", 1,
+    "A flip item's predicted envelope (flight/predict.py), sent once on the planner's first "
+    "tick for each iLQR flip item of its mission: N closed-loop rollouts of the planner's plans "
+    "and gains over drawn mass, inertia, thrust, motor lag, wind, gusts, delay and start error. "
+    "Each figure is [p5, p50, p95], or [] where no case defines it (none turned, none "
+    "recovered). refused: the planner will not start the item (reason says why).",
+    (
+        F("method", "str", "flip method", choices=FLIP_METHODS),
+        F("altitude_m", "float", "the item's altitude (the hover the flip starts from)", "m", min=0.0, max=1e4),
+        F("rollouts", "int", "cases drawn", min=1),
+        F("loss_from_turn_m", "float[]", "altitude loss from the turn's start, [p5, p50, p95]", "m",
+          min=-1e4, max=1e4),
+        F("loss_from_hover_m", "float[]", "altitude loss from the hover height, [p5, p50, p95]", "m",
+          min=-1e4, max=1e4),
+        F("xy_drift_m", "float[]", "XY drift, [p5, p50, p95]", "m", min=0.0, max=1e4),
+        F("overshoot_deg", "float[]", "roll overshoot, [p5, p50, p95]", "deg", min=0.0, max=1e5),
+        F("recovery_s", "float[]", "recovery time, [p5, p50, p95]", "s", min=0.0, max=1e4),
+        F("p_crash", "float", "fraction of cases that crash", "", min=0.0, max=1.0),
+        F("p_ground", "float", "fraction of cases that touch the ground", "", min=0.0, max=1.0),
+        F("refused", "bool", "the item will not be started"),
+        F("reason", "str", "why it is refused ('' when it is not)"),
+    ),
+    check=lambda doc: next((f"{k} has {len(doc[k])} values, expected 3 (p5, p50, p95) or none"
+                            for k in ("loss_from_turn_m", "loss_from_hover_m", "xy_drift_m", "overshoot_deg",
+                                      "recovery_s") if len(doc[k]) not in (0, 3)), None),
+)
+
 PARAM_SET = Message(
     "param_set", "param/set", 1,
     "Set a running service's parameter (the MAVLink parameter protocol): the "
@@ -356,7 +384,7 @@ PARAM_SET = Message(
 ALL = (
     CLOCK, SYNC_DONE, IMU, BARO, MAG, CAMERA, TRUTH, VISION_POSE, PLANNER_SETPOINT,
     POSITION_SETPOINT, POSITION_STATE, ATTITUDE_COMMAND, ATTITUDE_STATE, MOTOR_PWM, HEALTH,
-    BATTERY, PLANNER_COMMAND, PARAM_SET, PLANNER_PLAN, PLANNER_MISSION,
+    BATTERY, PLANNER_COMMAND, PARAM_SET, PLANNER_PLAN, PLANNER_MISSION, PLANNER_FLIP_PREDICTION,
 )
 
 BY_NAME = {m.name: m for m in ALL}

@@ -88,16 +88,17 @@ def flip_controllers(rt: Runtime, mission) -> dict:
     return controllers
 
 
-def predict_flips(rt: Runtime, mission, controllers: dict) -> dict:
-    """The flip items this vehicle should not fly: {(method, altitude_m): reason}, from each
-    iLQR item's predicted envelope (the controllers' own solvers fly the nominal)."""
+def predict_flips(rt: Runtime, mission, controllers: dict) -> tuple[dict, list]:
+    """The flip items this vehicle should not fly, {(method, altitude_m): reason}, from each
+    iLQR item's predicted envelope (the controllers' own solvers fly the nominal), and the
+    planner/flip_prediction messages that say so."""
     n = int(rt.params["flip_predict_rollouts"])
     if n < 0:
         raise ValueError(f"{rt.where()} flip_predict_rollouts: must be >= 0 (got {n})")
     if n == 0 or not controllers:
-        return {}
-    from flight.predict import PredictError, build_predictor
-    refused = {}
+        return {}, []
+    from flight.predict import FIGURES, PredictError, build_predictor
+    refused, messages = {}, []
     items = {(i["method"], float(i["altitude_m"])) for i in mission.items if i["type"] == "flip"}
     for method, altitude in sorted(items):
         if method == "baseline":
@@ -118,7 +119,12 @@ def predict_flips(rt: Runtime, mission, controllers: dict) -> dict:
         if reason is not None:
             refused[(method, altitude)] = reason
             rt.problem(f"flip {method} at {altitude:g} m refused: {reason}")
-    return refused
+        bands = {name: [v for v in result.band(name)] for name in FIGURES}
+        messages.append({"method": method, "altitude_m": altitude, "rollouts": n,
+                         **{k: (v if all(np.isfinite(v)) else []) for k, v in bands.items()},
+                         "p_crash": result.crash_probability, "p_ground": result.ground_probability,
+                         "refused": reason is not None, "reason": reason or ""})
+    return refused, messages
 
 
 def run(args) -> None:
@@ -130,7 +136,7 @@ def run(args) -> None:
         mission = replace(mission, items=tuple({**i, "method": method} if i["type"] == "flip" else i
                                                for i in mission.items))
     controllers = flip_controllers(rt, mission)   # at normal scheduling: the runtime raises it for the loop
-    refused = predict_flips(rt, mission, controllers)
+    refused, predictions = predict_flips(rt, mission, controllers)
     state = rt.inbox(schemas.POSITION_STATE, "position")
     commands = rt.inbox(schemas.PLANNER_COMMAND, "mavlink", keep=16)
     missions = rt.inbox(schemas.PLANNER_MISSION, "mavlink", keep=4)
@@ -141,6 +147,7 @@ def run(args) -> None:
         attitude = rt.inbox(schemas.ATTITUDE_STATE, "attitude")
         pwm = rt.inbox(schemas.MOTOR_PWM, "motors", keep=32)
         plan_out = rt.publisher(schemas.PLANNER_PLAN)
+        prediction_out = rt.publisher(schemas.PLANNER_FLIP_PREDICTION)
         from flight.vehicle import load_vehicle
         vehicle = load_vehicle(rt.vehicle_name)
         forces = {"n": None, "tau": vehicle.motor_time_constant_s}
@@ -201,6 +208,8 @@ def run(args) -> None:
             print(f"zenpilot-planner: mission of {len(m['types'])} items from {m['origin']}", flush=True)
 
     def step(t: float) -> None:
+        while predictions:  # on the first tick: on the stack's clock, in the log before the flip
+            prediction_out.put(predictions.pop(0), t_s=t)
         follow_commands()
         s = state.latest()
         if s is None:  # the mission starts once the position level reports a state

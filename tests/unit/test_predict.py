@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flight.flip import flip_metrics
+from flight.flip import flip_metrics, heights
 from flight.predict import (
     PredictError,
     Predictor,
@@ -46,7 +46,11 @@ def test_vectorised_metrics_are_flip_metrics(predictor):
     t = np.arange(nominal.ticks) * nominal.tick_s
     ref = flip_metrics(t, nominal.states[:, 0:3], nominal.states[:, 6:10], nominal.states[:, 10:13], nominal.phases)
     assert ref.completed and bool(m["completed"][0])
-    assert m["loss_from_turn_m"][0] == pytest.approx(ref.altitude_loss_m, abs=2e-3)
+    assert m["loss_from_hover_m"][0] == pytest.approx(ref.altitude_loss_m, abs=2e-3)
+    roll = series[0, nominal.flip_tick:, 3] - series[0, nominal.flip_tick, 3]
+    span = slice(nominal.flip_tick, nominal.flip_tick + int(round(ref.duration_s / nominal.tick_s)) + 1)
+    turn = heights(nominal.states[span, 2] - nominal.states[nominal.flip_tick, 2], roll[:span.stop - span.start])
+    assert m["loss_from_turn_m"][0] == pytest.approx(turn["turn_loss"], abs=2e-3)
     assert m["xy_drift_m"][0] == pytest.approx(ref.xy_drift_m, abs=2e-3)
     assert m["overshoot_deg"][0] == pytest.approx(ref.overshoot_deg, abs=0.2)
     assert m["recovery_s"][0] == pytest.approx(ref.recovery_s, abs=2 * nominal.tick_s)

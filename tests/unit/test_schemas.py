@@ -132,6 +132,9 @@ def valid_values(m):
                    target_roll_rad=[0.0] * h)
     if m is schemas.PLANNER_MISSION:  # two items: 3 positions each
         out.update(position_m=[1.0] * 6)
+    if m is schemas.PLANNER_FLIP_PREDICTION:  # bands of three percentiles
+        out.update({k: [0.1, 0.2, 0.3] for k in ("loss_from_turn_m", "loss_from_hover_m", "xy_drift_m",
+                                                  "overshoot_deg", "recovery_s")})
     return out
 
 
