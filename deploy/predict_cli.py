@@ -88,7 +88,7 @@ def cmd_predict(args) -> int:
         reason = result.refusal(args.clearance_m)
         refused += reason is not None
         print(f"\nitem {index}: {item['method']} flip from {item['altitude_m']:g} m "
-              f"(nominal flight {predictor.nominal_s:.1f} s with {predictor.nominal.solves} iLQR solves; "
+              f"(nominal flight {predictor.nominal_s:.1f} s, solver compile and {predictor.nominal.solves} iLQR solves; "
               f"rollouts compiled in {result.compile_s:.2f} s, "
               f"{args.rollouts} rollouts in {result.rollout_s:.2f} s)")
         print(f"  {'figure':<38} {'p5':>8} {'median':>8} {'p95':>8}")
