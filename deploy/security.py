@@ -44,7 +44,7 @@ PUBLISHES: dict[str, tuple[str, ...]] = {
     "attitude": ("att/command", "att/state"),
     "position": ("pos/setpoint", "pos/state"),
     "vision": ("vision/pose",),
-    "planner": ("planner/setpoint", "planner/plan"),
+    "planner": ("planner/setpoint", "planner/plan", "planner/flip_prediction"),
     "recorder": (),
     "mavlink": ("planner/command", "planner/mission", "param/set"),
 }
