@@ -36,6 +36,7 @@ from deploy.launcher import DELIVERY_S, Launcher, alive_services, client_session
 from deploy.progress import FlightProgress
 from deploy.report import REPORT_NAME, RUN_FILES, write_report
 from deploy.stack import StackError, load_stack, lockstep_services
+from deploy.supervisor import POLL_S, Supervisor
 from flight.mission import MissionError, available_missions, load_mission
 
 DEFAULT_MISSION = "steps"
@@ -93,9 +94,11 @@ def cmd_fly(args) -> int:
         deadline = time.monotonic() + limit
         session = client_session(router)
         progress = FlightProgress(session, stack.vehicle_id, mission.items, real_time=not args.lockstep)
+        supervisor = watch_services(launcher, [n for n in names if n != "sim"], session, not args.lockstep)
         while launcher.procs["sim"].poll() is None:
             progress.show()
-            bad = {n: c for n, c in launcher.failed().items() if n != "sim"}
+            lost = supervisor.poll()
+            bad = {n: launcher.procs[n].returncode for n in lost if launcher.procs[n].returncode != 0}
             if bad:
                 raise StackError("service(s) failed during the flight: " + ", ".join(
                     f"{n} (status {c}, see {out / 'logs' / (n + '.log')})" for n, c in bad.items())
@@ -103,7 +106,7 @@ def cmd_fly(args) -> int:
                        if "recorder" in bad else ""))
             if time.monotonic() > deadline:
                 raise StackError(f"the flight did not finish within {limit:.0f} s of wall time")
-            time.sleep(0.1)
+            time.sleep(POLL_S)
         completed_run = launcher.procs["sim"].returncode == 0
     finally:
         if progress is not None:
@@ -157,6 +160,24 @@ def _read(path: Path) -> str:
         return path.read_text(errors="replace")
     except OSError:
         return ""
+
+
+def watch_services(launcher: Launcher, names: list[str], session, real_time: bool) -> Supervisor:
+    """The supervisor of `names` (deploy/supervisor.py), told of every health message; in real time
+    it publishes its own health (supervisor/health) once a second."""
+    publish = None
+    if real_time:   # in lockstep a wall-clock message would make the log depend on the machine
+        publisher = session.declare_publisher(schemas.HEALTH.key(launcher.stack.vehicle_id, "supervisor"))
+        seq = iter(range(1 << 62))
+
+        def publish(health: dict) -> None:
+            publisher.put(schemas.HEALTH.encode(time.time(), next(seq), "supervisor", health))
+    supervisor = Supervisor(launcher, names, real_time, publish=publish,
+                            say=lambda text: print(text, file=sys.stderr, flush=True))
+    prefix = f"zp/{launcher.stack.vehicle_id}/"
+    supervisor.subscription = session.declare_subscriber(
+        f"{prefix}*/health", lambda sample: supervisor.health_seen(str(sample.key_expr)[len(prefix):-len("/health")]))
+    return supervisor
 
 
 def analyse(out: Path, info: dict, plots: bool = True) -> dict:
@@ -283,11 +304,12 @@ def _status_lines(session, stack) -> list[str]:
     while time.monotonic() < deadline and not alive <= set(replies):
         time.sleep(0.1)
     sub.undeclare()
-    for name in stack.services:
+    for name in [*stack.services, *(["supervisor"] if "supervisor" in replies else [])]:
         h = replies.get(name)
         if h:
             rej = ", ".join(f"{k}={v}" for k, v in h["rejected"].items()) or "-"
-            lines.append(f"{name:<10} {'yes' if name in alive else 'NO':<6} {h['state']:<9} "
+            live = "yes" if name in alive else "-" if name == "supervisor" else "NO"  # it has no token
+            lines.append(f"{name:<10} {live:<6} {h['state']:<9} "
                          f"{h['rate_hz']:>8.1f} {h['target_rate_hz']:>7.0f} {h['overruns']:>8}  {rej}")
         else:
             lines.append(f"{name:<10} {'yes' if name in alive else 'NO':<6} {'-':<9}")
@@ -379,13 +401,20 @@ def cmd_up(args) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     session = client_session(router, stack, machine)
+    supervisor = watch_services(launcher, names, session, not args.lockstep)
     try:
+        drawn = 0.0
         while not stop.is_set():
-            lines = _status_lines(session, stack)
-            print("\033[2J\033[H" + f"zenpilot up ({machine}) - Ctrl-C stops\n" + "\n".join(lines), flush=True)
-            for n, code in launcher.failed().items():
-                print(f"  {n} exited with status {code} (see {run_dir / 'logs' / (n + '.log')})")
-            stop.wait(1.0)
+            supervisor.poll()
+            if time.monotonic() - drawn >= 1.0:
+                drawn = time.monotonic()
+                lines = _status_lines(session, stack)
+                print("\033[2J\033[H" + f"zenpilot up ({machine}) - Ctrl-C stops\n" + "\n".join(lines), flush=True)
+                for n, code in launcher.failed().items():
+                    print(f"  {n} exited with status {code} (see {run_dir / 'logs' / (n + '.log')})")
+                for event in supervisor.events[-5:]:
+                    print(f"  supervisor +{event['t_s']:.1f} s: {event['service']} {event['detail']}")
+            stop.wait(POLL_S)
     finally:
         session.close()
         launcher.stop_all()

@@ -118,8 +118,11 @@ class Launcher:
     def __post_init__(self):
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
 
-    def _spawn(self, name: str, argv: list[str]) -> subprocess.Popen:
-        log = open(self.run_dir / "logs" / f"{name}.log", "w")
+    def _spawn(self, name: str, argv: list[str], append: bool = False) -> subprocess.Popen:
+        log = open(self.run_dir / "logs" / f"{name}.log", "a" if append else "w")
+        if append:
+            log.write(f"--- zenpilot: {name} restarted at {time.strftime('%H:%M:%S')} ---\n")
+            log.flush()
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         env.setdefault("ZENOH_RUNTIME", ZENOH_RUNTIME)
         for key, value in SERVICE_THREADS.items():
@@ -163,14 +166,22 @@ class Launcher:
         # the recorder first so it sees everything; the simulator last, it drives the clock
         order = sorted(names, key=lambda n: (n != "recorder", n == "sim"))
         for name in order:
-            proc = self._spawn(name, self.service_argv(name))
-            if nice := self.stack.service(name).nice:
-                try:
-                    os.setpriority(os.PRIO_PROCESS, proc.pid, nice)
-                except OSError as exc:  # it still runs, at the default priority: say so
-                    print(f"zenpilot: {name}: could not set nice {nice}: {exc}", file=sys.stderr)
+            self._start_service(name)
             if name == "recorder":   # its token means it listens: nothing the others send is missed
                 self.wait_alive(["recorder"])   # one still missing is reported with the others
+
+    def _start_service(self, name: str, append: bool = False) -> None:
+        proc = self._spawn(name, self.service_argv(name), append)
+        if nice := self.stack.service(name).nice:
+            try:
+                os.setpriority(os.PRIO_PROCESS, proc.pid, nice)
+            except OSError as exc:  # it still runs, at the default priority: say so
+                print(f"zenpilot: {name}: could not set nice {nice}: {exc}", file=sys.stderr)
+
+    def restart(self, name: str) -> None:
+        """Start a service again with the same command line (the supervisor's restart); its
+        output is appended to its log."""
+        self._start_service(name, append=True)
 
     def wait_alive(self, names: list[str], timeout_s: float = 30.0) -> set[str]:
         """Wait for every service's liveliness token; returns the ones still missing."""

@@ -23,6 +23,8 @@ A stack file is TOML:
     nice = 0                  # OS scheduling niceness (0..19): above 0 yields the CPU to the loops
     priority = 80             # real-time (SCHED_FIFO) priority 1..99 for a rate loop; 0: normal scheduling
     cpu = [1]                 # CPUs the process may run on (affinity); [] or absent: any
+    restart = "on-failure"    # the supervisor restarts it when it dies (real time): on-failure | always | never
+    restart_limit = 3         # ... at most this many times (deploy/supervisor.py)
     [services.attitude.params]
     state_source = "truth"
 
@@ -38,6 +40,7 @@ from pathlib import Path
 from typing import Any
 
 from deploy.security import Security, endpoint_host, is_loopback, parse_security
+from deploy.supervisor import DEFAULT_RESTART, DEFAULT_RESTART_LIMIT, NEVER_RESTARTED, RESTART_POLICIES
 
 STACKS_DIR = Path(__file__).parent / "stacks"
 DEFAULT_STACK = STACKS_DIR / "default.toml"
@@ -79,6 +82,8 @@ class ServiceSpec:
     nice: int = 0  # OS niceness the launcher gives the process: >0 for work the flight must not wait for
     priority: int = 0  # SCHED_FIFO priority the service asks for (1..99), 0: normal scheduling
     cpu: tuple[int, ...] = ()  # CPU affinity the service asks for; (): any CPU
+    restart: str = "on-failure"  # the supervisor's policy (deploy/supervisor.py): on-failure | always | never
+    restart_limit: int = 3       # restarts at most, per run
 
 
 # Where a service listens unless its machine says otherwise: its own host only. A peer that
@@ -166,7 +171,7 @@ def load_stack(path: str | Path | None = None) -> Stack:
         where = f"{path}: [services.{name}]"
         if name not in SERVICE_MODULES:
             raise StackError(f"{where}: unknown service (known: {', '.join(SERVICE_MODULES)})")
-        unknown = set(s) - {"machine", "rate_hz", "params", "nice", "priority", "cpu"}
+        unknown = set(s) - {"machine", "rate_hz", "params", "nice", "priority", "cpu", "restart", "restart_limit"}
         if unknown:
             raise StackError(f"{where}: unknown key(s) {sorted(unknown)}")
         machine = _expect(s.get("machine", next(iter(machines))), str, f"{where} machine")
@@ -184,8 +189,17 @@ def load_stack(path: str | Path | None = None) -> Stack:
         cpu = _expect(s.get("cpu", []), list, f"{where} cpu")
         if not all(isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in cpu):
             raise StackError(f"{where}: cpu {cpu!r} must be a list of CPU numbers (0, 1, ...)")
+        restart = _expect(s.get("restart", DEFAULT_RESTART.get(name, "on-failure")), str, f"{where} restart")
+        if restart not in RESTART_POLICIES:
+            raise StackError(f"{where}: restart {restart!r} must be one of {', '.join(RESTART_POLICIES)}")
+        if name in NEVER_RESTARTED and restart != "never":
+            raise StackError(f"{where}: restart {restart!r}: the simulator is never restarted (a new world "
+                             "mid-flight); say \"never\" or leave it out")
+        restart_limit = _expect(s.get("restart_limit", DEFAULT_RESTART_LIMIT), int, f"{where} restart_limit")
+        if not 0 <= restart_limit <= 100:
+            raise StackError(f"{where}: restart_limit {restart_limit} must be within 0..100")
         services[name] = ServiceSpec(name, machine, rate, dict(_expect(s.get("params", {}), dict, f"{where} params")),
-                                     nice, priority, tuple(cpu))
+                                     nice, priority, tuple(cpu), restart, restart_limit)
     for needed in ("sim", "motors", "attitude", "position", "planner"):
         if needed not in services:
             raise StackError(f"{path}: the stack needs a [services.{needed}] section")

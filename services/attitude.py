@@ -325,7 +325,9 @@ def run(args) -> None:
         if thrust <= 0.0:
             torque = np.zeros(3)  # on the ground, idle: nothing to steer (and nothing to wind up)
         last_torque["u"] = torque
-        command.put({"thrust_n": float(thrust), "torque_nm": torque, "imu_t_s": sample_t}, t_s=t)
+        if sp is not None:   # before any setpoint there is nothing to command: a level restarted in
+            # the air would otherwise send zero thrust over the motor driver's own failsafe
+            command.put({"thrust_n": float(thrust), "torque_nm": torque, "imu_t_s": sample_t}, t_s=t)
         state_out.put({"quaternion_wxyz": q, "euler_rad": euler, "rate_rad_s": rates,
                        "euler_ref_rad": ref, "euler_var_rad2": euler_var, "rate_var_rad2_s2": rate_var,
                        "state_source": p["state_source"]}, t_s=t)

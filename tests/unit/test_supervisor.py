@@ -1,0 +1,139 @@
+"""The launcher's supervisor (deploy/supervisor.py): detection and restart policy, on fake
+processes and a fake clock, and a real stopped process."""
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from deploy.stack import StackError, load_stack
+from deploy.supervisor import BACKOFF_S, HEALTH_SILENCE_S, Supervisor, process_state
+
+
+class FakeProc:
+    def __init__(self, pid=1, status=None):
+        self.pid, self.returncode = pid, status
+
+    def poll(self):
+        return self.returncode
+
+
+class FakeLauncher:
+    def __init__(self, tmp_path, policies):
+        spec = type("Spec", (), {})
+        self.specs = {}
+        for name, (policy, limit) in policies.items():
+            s = spec()
+            s.restart, s.restart_limit = policy, limit
+            self.specs[name] = s
+        self.stack = type("Stack", (), {"service": lambda _, n: self.specs[n]})()
+        self.run_dir = tmp_path
+        self.procs = {n: FakeProc(pid=10 ** 9 + i) for i, n in enumerate(policies)}   # no such pids
+        self.restarted = []
+
+    def restart(self, name):
+        self.restarted.append(name)
+        self.procs[name] = FakeProc(pid=10 ** 9 + 100 + len(self.restarted))
+
+
+class Clock:
+    def __init__(self):
+        self.t = 100.0
+
+    def __call__(self):
+        return self.t
+
+
+def supervisor(tmp_path, policies, real_time=True):
+    launcher, clock, said = FakeLauncher(tmp_path, policies), Clock(), []
+    return Supervisor(launcher, list(policies), real_time, say=said.append, clock=clock), launcher, clock, said
+
+
+def test_a_dead_service_is_restarted_after_a_growing_back_off_until_its_limit(tmp_path):
+    sup, launcher, clock, said = supervisor(tmp_path, {"attitude": ("on-failure", 2)})
+    for restart in range(2):
+        launcher.procs["attitude"].returncode = -9
+        assert sup.poll() == [] and sup.watches["attitude"].state == "restarting"
+        clock.t += BACKOFF_S * 2 ** restart - 0.01
+        sup.poll()
+        assert len(launcher.restarted) == restart, "restarted before its back-off"
+        clock.t += 0.02
+        sup.poll()
+        assert len(launcher.restarted) == restart + 1
+    launcher.procs["attitude"].returncode = 1
+    assert sup.poll() == ["attitude"], "a third death past the limit is lost"
+    assert sup.poll() == [], "reported once"
+    w = sup.watches["attitude"]
+    assert (w.exits, w.restarts, w.state, w.last_status) == (3, 2, "exited", 1)
+    assert "killed by signal 9" in said[0] and "restart limit 2 reached" in said[-1]
+    saved = json.loads((tmp_path / "supervisor.json").read_text())
+    assert saved["services"]["attitude"]["restarts"] == 2 and len(saved["events"]) == 5
+    health = sup.health_message()
+    assert health["state"] == "degraded" and health["rejected"] == {"exited_attitude": 3, "restarted_attitude": 2}
+
+
+def test_policies_never_always_and_lockstep(tmp_path):
+    sup, launcher, clock, said = supervisor(tmp_path, {"recorder": ("never", 3), "planner": ("always", 3),
+                                                       "position": ("on-failure", 3)})
+    launcher.procs["recorder"].returncode = -9
+    launcher.procs["planner"].returncode = 0      # "always": a clean exit is restarted too
+    launcher.procs["position"].returncode = 0     # "on-failure": a clean exit is not a failure
+    assert sup.poll() == ["recorder"]
+    assert sup.watches["planner"].state == "restarting" and sup.watches["position"].state == "gave-up"
+    assert any("policy never" in s for s in said)
+    lock, launcher, _, said = supervisor(tmp_path, {"attitude": ("on-failure", 3)}, real_time=False)
+    launcher.procs["attitude"].returncode = -9
+    assert lock.poll() == ["attitude"] and launcher.restarted == []
+    assert "lockstep" in said[-1]
+
+
+def test_silence_is_reported_in_real_time_only_and_ends_with_the_next_health(tmp_path):
+    sup, launcher, clock, said = supervisor(tmp_path, {"position": ("on-failure", 3)})
+    sup.health_seen("position")
+    clock.t += HEALTH_SILENCE_S + 0.1
+    sup.poll()
+    assert sup.watches["position"].state == "silent" and "no health message" in said[-1]
+    sup.health_seen("position")
+    sup.poll()
+    assert sup.watches["position"].state == "running" and sup.watches["position"].silences == 1
+    lock, _, clock, _ = supervisor(tmp_path, {"position": ("on-failure", 3)}, real_time=False)
+    clock.t += 10 * HEALTH_SILENCE_S
+    lock.poll()
+    assert lock.watches["position"].state == "running"
+
+
+def test_a_stopped_process_is_seen_at_once_and_again_when_it_runs(tmp_path):
+    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        sup, launcher, clock, said = supervisor(tmp_path, {"vision": ("on-failure", 3)})
+        launcher.procs["vision"] = proc
+        proc.send_signal(signal.SIGSTOP)
+        for _ in range(50):
+            if process_state(proc.pid) == "T":
+                break
+            time.sleep(0.01)   # the signal is delivered asynchronously
+        sup.poll()
+        assert sup.watches["vision"].state == "stopped", process_state(proc.pid)
+        proc.send_signal(signal.SIGCONT)
+        sup.poll()
+        assert sup.watches["vision"].state == "running" and sup.watches["vision"].stops == 1
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def test_stack_restart_keys_are_checked(tmp_path):
+    base = (Path(__file__).resolve().parents[2] / "deploy" / "stacks" / "default.toml").read_text()
+    stack = load_stack(None)
+    assert stack.service("attitude").restart == "on-failure" and stack.service("recorder").restart == "never"
+    assert stack.service("sim").restart == "never" and stack.service("attitude").restart_limit == 3
+    for extra, message in (('restart = "sometimes"', "must be one of"), ("restart_limit = -1", "within 0..100"),
+                           ('restart = "always"', "never restarted")):
+        section = "[services.sim]" if "always" in extra else "[services.attitude]"
+        path = tmp_path / "s.toml"
+        path.write_text(base.replace(section, f"{section}\n{extra}", 1))
+        with pytest.raises(StackError, match=message):
+            load_stack(str(path))
