@@ -470,7 +470,7 @@ def run_sweep(grid: Grid, out: Path, workers: int = 2, scheduler: str | None = N
               timeout_s: float | None = None, rerun: bool = False, say: Callable[[str], None] = print) -> list[dict]:
     out = out.resolve()
     out.mkdir(parents=True, exist_ok=True)
-    tasks, rows_by_id, pending = [], {}, []
+    tasks, rows_by_id = [], {}
     for f in grid.flights:
         folder = out / f.id
         if rerun and folder.exists():
@@ -481,8 +481,8 @@ def run_sweep(grid: Grid, out: Path, workers: int = 2, scheduler: str | None = N
         if done is not None:
             rows_by_id[f.id] = make_row(f, {**done, "resumed": True}, None, folder)
         else:
+            (folder / ATTEMPTS_FILE).unlink(missing_ok=True)   # attempts count within this run
             tasks.append(task)
-            pending.append(f)
     skipped = len(rows_by_id)
     say(f"zenpilot sweep: {len(grid.flights)} flights ({skipped} done already, {len(tasks)} to fly) -> {out}")
     by_id = {f.id: f for f in grid.flights}
@@ -563,6 +563,7 @@ services and its own folder OUT/<flight id>/; a flight that leaves no metrics.js
 once, then reported as failed. Re-running into the same --out skips the flights done already.
 Results: OUT/sweep.csv and OUT/sweep.parquet (one row per flight: grid values, status, wall
 time, attempts, every metric of metrics.json) and OUT/sweep-<dimension>.png per swept dimension.
+Exit status 1 when a flight failed (the table has it, with the error), 2 for a bad grid.
 
 Cluster: by default a LocalCluster of --workers processes (one flight each at a time; on a
 small machine a flight's services take ~1.5 cores, so 2 workers on 2 cores gain little).
