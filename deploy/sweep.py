@@ -313,7 +313,8 @@ def fly_task(task: dict) -> dict:
     cmd = [sys.executable, "-m", "deploy.cli", *argv, "--out", str(folder), "--port", str(free_port())]
     t0 = time.monotonic()
     with open(folder / "fly.log", "w") as log:
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=task.get("cwd") or None)
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
+                                cwd=task["cwd"] if os.path.isdir(task.get("cwd") or "") else None)
         try:
             proc.wait(timeout=task.get("timeout_s"))
         except subprocess.TimeoutExpired:
@@ -328,14 +329,28 @@ def fly_task(task: dict) -> dict:
     try:
         metrics = json.loads((folder / "metrics.json").read_text())
     except (OSError, ValueError):
-        tail = [ln for ln in (folder / "fly.log").read_text(errors="replace").splitlines() if ln.strip()]
-        errors = [ln for ln in tail if "error" in ln.lower()]
-        raise FlightFailed(f"exit status {proc.returncode}: " + ((errors or tail or ["no output"])[-1])[:300]
-                           + f" (see {folder / 'fly.log'})") from None
+        raise FlightFailed(f"exit status {proc.returncode}: {_why(folder)}") from None
     row = {"id": task["id"], "argv": argv, "wall_s": round(wall, 2), "attempts": attempts,
            "worker": os.uname().nodename + f":{os.getpid()}", "exit_status": proc.returncode}
     (folder / ROW_FILE).write_text(json.dumps(row, indent=1) + "\n")
     return {**row, "metrics": metrics, "resumed": False}
+
+
+def _last_error(path: Path) -> str | None:
+    try:
+        lines = [ln.strip() for ln in path.read_text(errors="replace").splitlines() if ln.strip()]
+    except OSError:
+        return None
+    errors = [ln for ln in lines if "error" in ln.lower()]
+    return (errors or lines or [None])[-1]
+
+
+def _why(folder: Path) -> str:
+    """fly's error line, and the error line of the service's log it points at (what was refused)."""
+    said = _last_error(folder / "fly.log") or "no output"
+    service_log = re.search(r"see (\S+/logs/\w+\.log)", said)
+    cause = _last_error(Path(service_log.group(1))) if service_log else None
+    return (said[:300] + (f" <- {cause[:300]}" if cause else "") + f" (see {folder / 'fly.log'})")
 
 
 # ---------------------------------------------------------------- the table
