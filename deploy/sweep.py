@@ -508,9 +508,9 @@ def run_sweep(grid: Grid, out: Path, workers: int = 2, scheduler: str | None = N
 
         client, cluster = open_client(workers, scheduler)
         try:
-            n_workers = len(client.scheduler_info().get("workers", {}))
+            n_workers = len(client.nthreads())
             say(f"zenpilot sweep: Dask {'scheduler ' + scheduler if scheduler else 'LocalCluster'}, "
-                f"{n_workers} worker(s)")
+                f"{n_workers} worker(s)" + ("" if n_workers else "; the flights wait for a worker to join"))
             futures = client.map(fly_task, tasks, key=[f"fly-{t['id']}" for t in tasks], retries=1, pure=False)
             ids = {fut.key: t["id"] for fut, t in zip(futures, tasks)}
             for i, fut in enumerate(as_completed(futures), 1):
@@ -580,8 +580,9 @@ Results: OUT/sweep.csv and OUT/sweep.parquet (one row per flight: grid values, s
 time, attempts, every metric of metrics.json) and OUT/sweep-<dimension>.png per swept dimension.
 Exit status 1 when a flight failed (the table has it, with the error), 2 for a bad grid.
 
-Cluster: by default a LocalCluster of --workers processes (one flight each at a time; on a
-small machine a flight's services take ~1.5 cores, so 2 workers on 2 cores gain little).
+Cluster: by default a LocalCluster of --workers processes, one flight each at a time (a
+short lockstep flight keeps 1-1.4 cores busy; on 2 cores 2 workers flew 40 flights 1.45x
+faster than 1: docs/sweep.md).
 With --scheduler tcp://HOST:8786 the flights run on that cluster's workers (started with
 `dask scheduler` and `dask worker tcp://HOST:8786 --nthreads 1`): each needs zenpilot
 installed, and --out on a filesystem every worker shares.
