@@ -2,52 +2,42 @@
 
     .venv/bin/python bench/flip_stack.py [--seeds 3] [--methods ilqr-project,ilqr-thesis,baseline]
         [--scenarios nominal,mass+10%,wind-2m/s,camera-drop-20%] [--state estimate|truth]
-        [--mission flip] [--jobs 1] [--out runs/flip-stack] [--doc docs/flip.md]
+        [--mission flip] [--workers 1] [--scheduler tcp://HOST:PORT] [--out runs/flip-stack] [--doc docs/flip.md]
 
-Every flight is `zenpilot fly --lockstep` (every service its own process) of the flip
-mission, the method chosen with `--set planner.flip_method=...`; its metrics.json's
+The flights are a `zenpilot sweep` (deploy/sweep.py): every flight `zenpilot fly --lockstep`
+(every service its own process) of the flip mission, the method swept as
+`planner.flip_method`, as tasks on a Dask LocalCluster of --workers processes (or the cluster
+of --scheduler); a flight already in --out from the same command is not flown again, and
+--out/sweep.csv and sweep.parquet hold every flight's metrics. Each flight's metrics.json's
 `flip` object (flight/flip.flip_metrics on the simulator truth) is tabulated as
-median (worst) over the completed flights of the seeds. Scenarios: +10 % mass (the plant's only: sim.mass_scale,
-the planner keeps the airframe file's 0.82 kg), a 2 m/s wind across the roll (world y),
-20 % of camera frames lost. `--state estimate` (default): the stack's own estimators
-(the attitude level's gyro carrier through the inversion, see
-flight/attitude_filter.GyroCarrier), so the seeds change the sensor noise the
+median (worst) over the completed flights of the seeds. Scenarios (deploy/sweep.SCENARIOS):
++10 % mass (the plant's only: sim.mass_scale, the planner keeps the airframe file's 0.82 kg),
+a 2 m/s wind across the roll (world y), 20 % of camera frames lost. `--state estimate`
+(default): the stack's own estimators (the attitude level's gyro carrier through the
+inversion, see flight/attitude_filter.GyroCarrier), so the seeds change the sensor noise the
 controllers read. `--state truth` (the ablation): the camera is not used by the
 controllers and the seeds change only sensor noise nobody reads: flights repeat.
-Lockstep: solve times are wall-clock measurements of this machine under its load.
+Lockstep: solve times are wall-clock measurements of this machine under its load (two
+workers: each flight's solves with another flight beside it).
 """
 from __future__ import annotations
 
 import argparse
-import concurrent.futures
 import json
 import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
 
-TRUTH_STATE = ["--set", "attitude.state_source=truth", "--set", "position.state_source=truth",
-               "--set", "sim.truth_rate_hz=200"]
-SCENARIOS = {
-    "nominal": [],
-    "mass+10%": ["--set", "sim.mass_scale=1.1"],
-    "wind-2m/s": ["--set", "sim.wind_m_s=[0.0,2.0,0.0]"],
-    "camera-drop-20%": ["--set", "sim.camera_drop_rate=0.2"],
-}
+from deploy.sweep import SCENARIOS, expand_grid, run_sweep  # noqa: E402
+
+TRUTH_STATE = ["attitude.state_source=truth", "position.state_source=truth", "sim.truth_rate_hz=200"]
 METHODS = ("ilqr-project", "ilqr-thesis", "baseline")
 TABLE_BEGIN, TABLE_END = "<!-- flip_stack table -->", "<!-- end of flip_stack table -->"
 FIELDS = ("altitude_loss_m", "xy_drift_m", "overshoot_deg", "recovery_s", "duration_s")
-
-
-def fly(mission: str, out: Path, seed: int, extra: list[str]) -> dict | None:
-    argv = [sys.executable, "-m", "deploy.cli", "fly", "--mission", mission, "--lockstep",
-            "--seed", str(seed), "--out", str(out), *extra]
-    subprocess.run(argv, cwd=ROOT, capture_output=True, text=True)
-    path = out / "metrics.json"
-    return json.loads(path.read_text()) if path.exists() else None
 
 
 def summary(values: list) -> str:
@@ -67,48 +57,37 @@ def main(argv=None) -> None:
     p.add_argument("--methods", default=",".join(METHODS))
     p.add_argument("--scenarios", default=",".join(SCENARIOS))
     p.add_argument("--state", choices=("estimate", "truth"), default="estimate")
-    p.add_argument("--jobs", type=int, default=1, help="flights in parallel (solve times suffer)")
-    p.add_argument("--reuse", action="store_true", help="take a flight's metrics.json from --out when there")
+    p.add_argument("--workers", "--jobs", type=int, default=1, dest="workers",
+                   help="flights at a time on a Dask LocalCluster (solve times suffer)")
+    p.add_argument("--scheduler", help="a Dask scheduler's address: fly on its cluster")
     p.add_argument("--tabulate-only", action="store_true",
                    help="fly nothing: tabulate the flights found in --out (missing ones are left out of n)")
     p.add_argument("--mission", default="flip")
     p.add_argument("--out", default="runs/flip-stack")
     p.add_argument("--doc", default="docs/flip.md")
     args = p.parse_args(argv)
-    state = TRUTH_STATE if args.state == "truth" else []
-    rows = []
+    methods, scenarios = args.methods.split(","), args.scenarios.split(",")
+    grid = expand_grid([args.mission], f"0-{args.seeds - 1}", [f"planner.flip_method={args.methods}"],
+                       [args.scenarios], TRUTH_STATE if args.state == "truth" else None)
+    out = ROOT / args.out
     wall0 = time.monotonic()
-    # seed-major: a run cut short still has every method and scenario at the first seeds
-    cases = [(method, scenario, seed) for seed in range(args.seeds) for method in args.methods.split(",")
-             for scenario in args.scenarios.split(",")]
-
-    def one(case):
-        method, scenario, seed = case
-        out = ROOT / args.out / f"{method}-{scenario.replace('/', '_').replace('%', 'pct')}-seed{seed}"
-        t0 = time.monotonic()
-        done = out / "metrics.json"
-        m = None
-        if args.tabulate_only or (args.reuse and done.exists()):
-            m = json.loads(done.read_text()) if done.exists() else None
-            # a flight of another mission or state source (truth flights have no estimation figures)
-            # is not reused
-            if m is not None and ((m.get("estimation") is not None) != (args.state == "estimate")
-                                  or m.get("mission") != Path(args.mission).stem):
-                m = None
-            if m is None and args.tabulate_only:
-                return None
-        if m is None:
-            m = fly(args.mission, out, seed, [*state, "--set", f"planner.flip_method={method}", *SCENARIOS[scenario]])
-        f = (m or {}).get("flip") or {}
-        print(f"{method:13s} {scenario:16s} seed {seed:2d}: completed={f.get('completed')} "
-              + " ".join(f"{k}={f.get(k) if f.get(k) is None else round(f[k], 3)}" for k in FIELDS)
-              + f"  crashed={(m or {}).get('crashed')}  ({time.monotonic() - t0:.0f} s)", flush=True)
-        return m, f
-
-    with concurrent.futures.ThreadPoolExecutor(max(1, args.jobs)) as pool:
-        results = dict(zip(cases, pool.map(one, cases)))
-    for method in args.methods.split(","):
-        for scenario in args.scenarios.split(","):
+    flown = 0
+    if not args.tabulate_only:
+        sweep_rows = run_sweep(grid, out, workers=args.workers, scheduler=args.scheduler, metric="flip.altitude_loss_m")
+        flown = sum(1 for r in sweep_rows if not r.get("resumed"))
+    results = {}
+    for f in grid.flights:
+        path = out / f.id / "metrics.json"
+        m = json.loads(path.read_text()) if path.exists() else None
+        fl = (m or {}).get("flip") or {}
+        results[(f.values()["planner.flip_method"], f.scenario, f.seed)] = None if m is None else (m, fl)
+        if m is not None:
+            print(f"{f.id:60s} completed={fl.get('completed')} "
+                  + " ".join(f"{k}={fl.get(k) if fl.get(k) is None else round(fl[k], 3)}" for k in FIELDS)
+                  + f"  crashed={m.get('crashed')}", flush=True)
+    rows = []
+    for method in methods:
+        for scenario in scenarios:
             runs = [results[(method, scenario, seed)] for seed in range(args.seeds)
                     if results[(method, scenario, seed)] is not None]
             flips = [f for _, f in runs]
@@ -141,7 +120,8 @@ def main(argv=None) -> None:
         "whole mission too (the flip item handed back after its hold, the hold after it flown).\n\n"
         f"    {cmd}\n\n{table}\n\n"
         f"{sum(r['n'] for r in rows)} flights"
-        + ("" if args.tabulate_only or args.reuse else f" in {time.monotonic() - wall0:.0f} s of wall time") + ".\n")
+        + (f" ({flown} flown in {time.monotonic() - wall0:.0f} s of wall time, {args.workers} at a time)"
+           if flown else "") + f"; every flight's metrics in {args.out}/sweep.csv.\n")
     # the table goes between the markers; what the doc says around it is kept
     text = doc.read_text() if doc.exists() else ""
     if TABLE_BEGIN in text and TABLE_END in text:

@@ -4,6 +4,8 @@
   zenpilot up [--machine NAME] [-d]     start the router and a machine's services, show live status
   zenpilot status                        liveliness and health of a running stack
   zenpilot down [--router R | --all]     stop what `zenpilot up -d` started
+  zenpilot sweep [--param S.K=V1,V2] [--seeds 0-99] [--workers N | --scheduler ADDR]
+                                         fly a grid of lockstep flights on Dask, one table
   zenpilot report DIR                    redraw a flight's plots, print its metrics, write report.html
   zenpilot view [--port 8765]            live Foxglove view of a running stack (WebSocket)
   zenpilot log info|recover RUN_OR_FILE  what a flight log holds; recover a cut one
@@ -30,7 +32,7 @@ from pathlib import Path
 import zenoh
 
 import schemas
-from deploy import gyrovertical_training, predict_cli
+from deploy import gyrovertical_training, predict_cli, sweep
 from deploy.flightlog import LOG_NAME, LogError, LogScan, log_is_complete, read_log, recover, scan
 from deploy.launcher import DELIVERY_S, Launcher, alive_services, client_session, free_port, stop_groups, wait_port
 from deploy.progress import FlightProgress
@@ -612,6 +614,7 @@ def build_parser() -> argparse.ArgumentParser:
     mis = sub.add_parser("missions", help="list the shipped missions")
     mis.set_defaults(func=cmd_missions)
 
+    sweep.add_parser(sub)
     gyrovertical_training.add_parser(sub)
     predict_cli.add_parser(sub)
     return p
