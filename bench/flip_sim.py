@@ -110,7 +110,7 @@ def simulate_mpc(vehicle: Vehicle, planner: Planner, flip: FlipConfig, solve_rat
     machine.start(0.0, plant.x[:13])
     run = FlipRun()
     plan, plan_t_s = None, 0.0
-    tau = planner.config.motor_time_constant_s
+    tau = planner.motor_time_constant_s
     forces_est = plant.motor_thrust_n  # the plan's motor states: estimated from the commands
     for tick in range(int(max_time_s * sim.tick_rate_hz)):
         t_s = tick / sim.tick_rate_hz

@@ -81,7 +81,7 @@ class FlipController:
             self.flip_config = PROJECT_FLIP if method == "ilqr-project" else THESIS_FLIP
             self.planner = Planner(vehicle, self.ilqr_config)  # compiles and warms up here
             self.state_dim = self.planner.state_dim
-            self.motor_time_constant_s = self.ilqr_config.motor_time_constant_s
+            self.motor_time_constant_s = self.planner.motor_time_constant_s
         else:
             self.state_dim = 13
             self.motor_time_constant_s = None

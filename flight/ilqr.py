@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from flight import motor_model
 from flight.vehicle import Vehicle
 
 # How XLA runs the solver on the CPU. Its runtime launches a kernel per fused operation and
@@ -85,7 +86,7 @@ BODY_DIM = 13
 STATE_DIM = BODY_DIM  # without the motor model; Planner.state_dim is 17 with it
 CONTROL_DIM = 4
 POS, VEL, QUAT, RATE = slice(0, 3), slice(3, 6), slice(6, 10), slice(10, 13)
-MOTOR = slice(13, 17)  # rotor forces, N, when ILQRConfig.motor_time_constant_s is set
+MOTOR = slice(13, 17)  # rotor forces, N, when ILQRConfig.models_motors
 
 
 @dataclass(frozen=True)
@@ -107,9 +108,10 @@ class ILQRConfig:
     regularisation_min: float = 1e-8
     regularisation_max: float = 1e4
     regularisation_factor: float = 10.0
-    # None: the thesis's model, rotor speeds act at once. A value: the rotor forces are
-    # states lagging the command by this time constant (the plant's 20 ms motors).
-    motor_time_constant_s: float | None = None
+    # False: the thesis's model, rotor speeds act at once. True: the rotor forces are
+    # states, the rotors' speeds lagging the command by the vehicle file's
+    # motor_time_constant_s (flight/motor_model.py, the plant's motors).
+    models_motors: bool = False
     # True: once the iterations are over, one more linearisation and backward pass at the
     # returned plan, so its gains K are that plan's. False: the gains of the last backward
     # pass (linearised at the plan the last line search started from; the usual iLQR
@@ -145,7 +147,7 @@ PROJECT = ILQRConfig(
     name="project", dt_s=0.025, horizon=32, max_iterations=8, integrator="rk4",
     state_weight=(900.0, 900.0, 40.0, 4.0, 4.0, 4.0, 60.0, 10.0, 10.0, 5.0),
     terminal_weight=(900.0, 900.0, 40.0, 4.0, 4.0, 4.0, 60.0, 10.0, 10.0, 5.0),
-    control_weight=1e-5, motor_time_constant_s=0.02,
+    control_weight=1e-5, models_motors=True,
 )
 
 
@@ -221,9 +223,10 @@ def make_dynamics(vehicle: Vehicle, dt_s: float, integrator: str = "euler",
     and rate by Euler, position with the dt^2/2 term, quaternion with the new rate.
 
     With motor_time_constant_s the state has 4 more components, the rotor forces (N),
-    which follow the commanded kf u^2 with that first-order lag (the plant's motors):
-    they are advanced exactly (zero-order hold on the command) and the rigid body is
-    integrated with their mean over the step."""
+    which follow the commanded kf u^2 through flight/motor_model.py's motors (the rotor
+    speed lagging u with that time constant, thrust kf w^2): they are advanced exactly
+    (zero-order hold on the command) and the rigid body is integrated with their exact
+    mean over the step."""
     derivative = make_derivative(vehicle)
     body = derivative.with_forces
 
@@ -250,23 +253,29 @@ def make_dynamics(vehicle: Vehicle, dt_s: float, integrator: str = "euler",
     if motor_time_constant_s is None:
         return lambda x, u: step(x, kf * u * u)
 
-    decay = float(np.exp(-dt_s / motor_time_constant_s))
-    mean_weight = float(motor_time_constant_s / dt_s * (1.0 - decay))
+    decay, w1, w2 = motor_model.mean_weights(dt_s, motor_time_constant_s)
+    root_kf = float(np.sqrt(kf))
 
     def lagged(x, u):
-        command = kf * u * u
-        forces = x[MOTOR]
-        mean = command + (forces - command) * mean_weight
-        return jnp.concatenate([step(x[:BODY_DIM], mean), command + (forces - command) * decay])
+        # sqrt of the command's force is sqrt(kf) u (smooth in u); of the state's, floored
+        # away from 0, where the square root's derivative is infinite
+        sc = root_kf * u
+        e = jnp.sqrt(jnp.maximum(x[MOTOR], _FORCE_FLOOR_N)) - sc
+        mean = sc * sc + 2.0 * sc * e * w1 + e * e * w2
+        s_next = sc + e * decay
+        return jnp.concatenate([step(x[:BODY_DIM], mean), s_next * s_next])
 
     return lagged
 
 
+_FORCE_FLOOR_N = 1e-12  # rotor force below which the lag model's sqrt(f) is taken at this
+
+
 def motor_forces_update(forces_n, command_n, dt_s: float, motor_time_constant_s: float) -> np.ndarray:
-    """The rotor forces of the lag model after dt_s under a held command: the estimate to
-    append to the body state when the plan models the motors (no force sensor needed)."""
-    decay = np.exp(-dt_s / motor_time_constant_s)
-    return np.asarray(command_n) + (np.asarray(forces_n) - np.asarray(command_n)) * decay
+    """The rotor forces of the motor model after dt_s under a held command: the estimate to
+    append to the body state when the plan models the motors (no force sensor needed).
+    flight.motor_model.thrust_step."""
+    return motor_model.thrust_step(forces_n, command_n, dt_s, motor_time_constant_s)
 
 
 # --- cost --------------------------------------------------------------------------
@@ -622,11 +631,12 @@ class Planner:
     def __init__(self, vehicle: Vehicle, config: ILQRConfig, warm_up: bool = True):
         self.vehicle = vehicle
         self.config = config
-        self.dynamics = make_dynamics(vehicle, config.dt_s, config.integrator, config.motor_time_constant_s)
+        self.motor_time_constant_s = vehicle.motor_time_constant_s if config.models_motors else None
+        self.dynamics = make_dynamics(vehicle, config.dt_s, config.integrator, self.motor_time_constant_s)
         self.stage_cost, self.terminal_cost = make_cost(config)
         self.u_max_rad_s = float(vehicle.max_rotor_speed_rad_s)
         self.u_hover_rad_s = hover_rotor_speed_rad_s(vehicle)
-        self.models_motors = config.motor_time_constant_s is not None
+        self.models_motors = config.models_motors
         self.state_dim = BODY_DIM + (CONTROL_DIM if self.models_motors else 0)
         solver = make_solver(self.dynamics, self.stage_cost, self.terminal_cost,
                              config, 0.0, self.u_max_rad_s, make_cost_derivatives(config))

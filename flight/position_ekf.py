@@ -109,6 +109,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from flight import motor_model
 from flight.vehicle import Vehicle
 
 __all__ = [
@@ -951,10 +952,12 @@ class LaggedMotorInput:
     command, lagged over the whole step, puts the force of the step's end on all of it:
     through a flip the rotor forces swing by ~6 N within 60 ms, ~0.5 N (0.6 m/s^2) off
     for half a step at a time. The mean of the lagged force over each held command is
-    exact for a held command: c + (f0 - c) (tau / h) (1 - exp(-h / tau)).
+    exact for a held command (flight/motor_model.py's motors, the rotor speed lagging:
+    with e = sqrt(f0) - sqrt(c), c + 2 sqrt(c) e w1 + e^2 w2, w1 = (tau / h)(1 - exp(-h / tau)),
+    w2 = (tau / 2h)(1 - exp(-2h / tau))).
 
     Kept in plain floats (four of them, several times a step); the lag is that of
-    flight.plan.motor_forces_update, c + (f0 - c) exp(-h / tau)."""
+    flight.motor_model.thrust_step (flight.plan.motor_forces_update)."""
 
     def __init__(self, time_constant_s: float):
         if not (math.isfinite(time_constant_s) and time_constant_s > 0):
@@ -1002,12 +1005,15 @@ class LaggedMotorInput:
                 end = pending[0][0]
             h = end - self.t
             if h > 0.0:
-                decay = math.exp(-h / tau)
-                th = tau / h
-                rest = 1.0 - decay
-                c, f0 = self._command, self._forces
-                total = [s + h * (ci + (fi - ci) * th * rest) for s, ci, fi in zip(total, c, f0)]
-                self._forces = [ci + (fi - ci) * decay for ci, fi in zip(c, f0)]
+                decay, w1, w2 = motor_model.mean_weights(h, tau)
+                forces = []
+                for k, (ci, fi) in enumerate(zip(self._command, self._forces)):
+                    sc = math.sqrt(ci) if ci > 0.0 else 0.0
+                    e = (math.sqrt(fi) if fi > 0.0 else 0.0) - sc
+                    total[k] += h * (sc * sc + 2.0 * sc * e * w1 + e * e * w2)
+                    s = sc + e * decay
+                    forces.append(s * s)
+                self._forces = forces
                 self.t = end
             if end >= t_s:
                 break

@@ -39,13 +39,13 @@ class Vehicle:
     drag_n_per_m_s: float
     gravity_m_s2: float = 9.81
     min_thrust_n: float = 0.0
-    motor_time_constant_s: float = 0.02
+    motor_time_constant_s: float = 0.02  # s: the rotor speed's first-order lag (flight/motor_model.py)
     pwm_min_us: float = 1000.0
     pwm_max_us: float = 2000.0
     # optional extras of document 001 (None when the file does not give them)
-    thrust_coefficient_kf: float | None = None
-    moment_coefficient_km: float | None = None
-    max_rotor_speed_rad_s: float | None = None
+    thrust_coefficient_kf: float | None = None   # N s^2 (rad^-2): rotor thrust kf w^2, > 0
+    moment_coefficient_km: float | None = None   # N m s^2: rotor yaw torque km w^2, km / kf = yaw_moment_m
+    max_rotor_speed_rad_s: float | None = None   # rad/s, > 0
     rotor_inertia_kg_m2: float | None = None
     max_body_rate_rad_s: float | None = None
     # the tilt this airframe's position laws may ask for (None: the position service's
@@ -172,6 +172,11 @@ def vehicle_from_dict(d: dict, src: str = "<dict>") -> Vehicle:
     if veh.hover_thrust_per_motor_n >= veh.max_thrust_n:
         raise VehicleError(f"{src}: field 'max_thrust_n': cannot lift mass_kg (hover needs "
                            f"{veh.hover_thrust_per_motor_n:.3f} N per motor)")
+    if veh.thrust_coefficient_kf is not None and veh.moment_coefficient_km is not None:
+        ratio = veh.moment_coefficient_km / veh.thrust_coefficient_kf
+        if not math.isclose(ratio, veh.yaw_moment_m, rel_tol=1e-6):
+            raise VehicleError(f"{src}: field 'moment_coefficient_km': km / kf = {ratio:.6g} m must equal "
+                               f"yaw_moment_m ({veh.yaw_moment_m:.6g} m): one motor model")
     m = veh.allocation
     if abs(np.linalg.det(m)) < 1e-12:
         raise VehicleError(f"{src}: field 'motor_positions_m': allocation matrix is singular")

@@ -1,7 +1,11 @@
 """Rigid-body 6-DOF quadcopter with first-order motors, linear drag and ground contact.
 
 State x (17,): position_m (3, world ENU), velocity_m_s (3), quaternion (4, [w,x,y,z]
-body->world), rate_rad_s (3, body FLU), motor_thrust_n (4). Integrated with RK4.
+body->world), rate_rad_s (3, body FLU), rotor_speed_rad_s (4). The motors are
+flight.motor_model's: each rotor's speed lags its command sqrt(c / kf) by the vehicle's
+motor_time_constant_s, its thrust is kf w^2 (motor_thrust_n) and its yaw torque
+km w^2 = yaw_moment_m kf w^2 (the allocation). The rigid body is integrated with RK4, the
+rotor speeds with the lag's exact step (RK4's stages see the exact speeds at their times).
 
 The integrator runs on plain Python floats: the simulator takes 5 RK4 steps (20
 derivative evaluations) per 400 Hz tick, and numpy's ~1 us per call on 3- and
@@ -15,6 +19,7 @@ import math
 
 import numpy as np
 
+from flight.motor_model import MotorModel, decay
 from flight.quat import quat_from_euler, quat_to_rotation
 from flight.vehicle import Vehicle
 
@@ -56,15 +61,17 @@ class Plant:
         self._g = np.array([0.0, 0.0, -vehicle.gravity_m_s2])
         self._gz = float(self._g[2])
         self._drag = float(vehicle.drag_n_per_m_s)
+        self.motors = MotorModel.of(vehicle)
+        self._kf = self.motors.kf
         self._tau = float(vehicle.motor_time_constant_s)
-        self._lag = {}  # dt -> RK4 factors of the motor lag (see _lag_factors)
+        self._lag = {}  # dt -> the lag's factors at RK4's stage times (see _lag_factors)
         self.x = np.zeros(17)
         self.x[P] = position_m
         self.x[V] = velocity_m_s
         self.x[Q] = quat_from_euler(0.0, 0.0, yaw_rad)
         self.x[W] = rate_rad_s
         if motor_thrust_n is not None:
-            self.x[F] = motor_thrust_n
+            self.x[F] = self.motors.speed_command(motor_thrust_n)
         self.landed = False
         if self.x[2] <= 0.0:
             self.x[2] = 0.0
@@ -89,6 +96,16 @@ class Plant:
 
     @property
     def motor_thrust_n(self) -> np.ndarray:
+        """Thrust of each rotor now (N): kf w^2."""
+        return self.motors.thrust(self.x[F])
+
+    def motor_thrust_floats(self) -> list:
+        """motor_thrust_n as 4 Python floats."""
+        kf = self._kf
+        return [kf * w * w for w in self.x[F].tolist()]
+
+    @property
+    def rotor_speed_rad_s(self) -> np.ndarray:
         return self.x[F].copy()
 
     @property
@@ -102,7 +119,9 @@ class Plant:
     # --- dynamics -------------------------------------------------------------
     def derivative(self, x: np.ndarray, thrust_cmd_n: np.ndarray, wind_m_s: np.ndarray) -> np.ndarray:
         """dx/dt (17,) at state x under the command and the wind (the model; step() integrates it)."""
-        vx, vy, vz, qw, qx, qy, qz, wx, wy, wz, f0, f1, f2, f3 = _floats(x, 17)[3:]
+        vx, vy, vz, qw, qx, qy, qz, wx, wy, wz, o0, o1, o2, o3 = _floats(x, 17)[3:]
+        kf = self._kf
+        f0, f1, f2, f3 = kf * o0 * o0, kf * o1 * o1, kf * o2 * o2, kf * o3 * o3
         (a00, a01, a02, a03), (a10, a11, a12, a13), (a20, a21, a22, a23), (a30, a31, a32, a33) = self._alloc_rows
         u0 = a00 * f0 + a01 * f1 + a02 * f2 + a03 * f3
         u1 = a10 * f0 + a11 * f1 + a12 * f2 + a13 * f3
@@ -114,7 +133,7 @@ class Plant:
         r22 = 1.0 - 2.0 * (qx * qx + qy * qy)
         m, c = self._m, self._drag
         windx, windy, windz = _floats(wind_m_s, 3)
-        c0, c1, c2, c3 = _floats(thrust_cmd_n, 4)
+        c0, c1, c2, c3 = [math.sqrt(c / kf) if c > 0.0 else 0.0 for c in _floats(thrust_cmd_n, 4)]
         ix, iy, iz = self._inertia_t
         tau = self._tau
         return np.array([
@@ -128,7 +147,7 @@ class Plant:
             (u1 - (wy * iz * wz - wz * iy * wy)) / ix,
             (u2 - (wz * ix * wx - wx * iz * wz)) / iy,
             (u3 - (wx * iy * wy - wy * ix * wx)) / iz,
-            (c0 - f0) / tau, (c1 - f1) / tau, (c2 - f2) / tau, (c3 - f3) / tau,
+            (c0 - o0) / tau, (c1 - o1) / tau, (c2 - o2) / tau, (c3 - o3) / tau,
         ])
 
     def acceleration_floats(self, wind_m_s) -> tuple:
@@ -137,9 +156,9 @@ class Plant:
         It does not depend on the command: the motors' thrust is a state."""
         if self.landed:
             return (0.0, 0.0, 0.0)
-        _, _, _, vx, vy, vz, qw, qx, qy, qz, _, _, _, f0, f1, f2, f3 = self.x.tolist()
+        _, _, _, vx, vy, vz, qw, qx, qy, qz, _, _, _, o0, o1, o2, o3 = self.x.tolist()
         a00, a01, a02, a03 = self._alloc_rows[0]
-        u0 = a00 * f0 + a01 * f1 + a02 * f2 + a03 * f3
+        u0 = self._kf * (a00 * o0 * o0 + a01 * o1 * o1 + a02 * o2 * o2 + a03 * o3 * o3)
         windx, windy, windz = _floats(wind_m_s, 3)
         m, c = self._m, self._drag
         return ((2.0 * (qx * qz + qw * qy) * u0 - c * (vx - windx)) / m,
@@ -155,15 +174,13 @@ class Plant:
         self.advance(dt_s, 1, thrust_cmd_n, wind_m_s)
 
     def _lag_factors(self, dt_s: float) -> tuple:
-        """The motor lag f' = (c - f) / tau is linear, so RK4's stages of it are closed
-        form: with e = f - c and z = dt / tau, stage i sees f = c + beta_i e and one step
-        gives f = c + p e (p: RK4's 4th-order Taylor polynomial of exp(-z))."""
+        """The rotor-speed lag w' = (c - w) / tau held over a step has the exact solution
+        w(t) = c + e exp(-t / tau), e = w - c (flight.motor_model): RK4's stages at t = dt/2,
+        dt/2 and dt see w = c + beta_i e, and the step ends at w = c + exp(-dt / tau) e."""
         k = self._lag.get(dt_s)
         if k is None:
-            z = dt_s / self._tau
-            k = self._lag[dt_s] = (1.0 - z / 2.0, 1.0 - z / 2.0 + z * z / 4.0,
-                                   1.0 - z + z * z / 2.0 - z ** 3 / 4.0,
-                                   1.0 - z + z * z / 2.0 - z ** 3 / 6.0 + z ** 4 / 24.0)
+            half, full = decay(0.5 * dt_s, self._tau), decay(dt_s, self._tau)
+            k = self._lag[dt_s] = (half, half, full, full)
         return k
 
     def advance(self, dt_s: float, steps: int, thrust_cmd_n, wind_m_s) -> None:
@@ -173,29 +190,39 @@ class Plant:
 
     def _advance(self, dt_s: float, steps: int, thrust_cmd_n: list, wind_m_s: list) -> None:
         """advance() on Python floats: the command (4) and the wind (3) as lists of floats."""
-        c0, c1, c2, c3 = thrust_cmd_n
+        kf = self._kf
+        c0, c1, c2, c3 = [math.sqrt(c / kf) if c > 0.0 else 0.0 for c in thrust_cmd_n]  # rotor speeds
         windx, windy, windz = wind_m_s
-        px, py, pz, vx, vy, vz, qw, qx, qy, qz, wx, wy, wz, f0, f1, f2, f3 = self.x.tolist()
+        px, py, pz, vx, vy, vz, qw, qx, qy, qz, wx, wy, wz, f0, f1, f2, f3 = self.x.tolist()  # f: rotor speeds
         (a00, a01, a02, a03), (a10, a11, a12, a13), (a20, a21, a22, a23), (a30, a31, a32, a33) = self._alloc_rows
         m, c, gz = self._m, self._drag, self._gz
         ix, iy, iz = self._inertia_t
         b2, b3, b4, lag = self._lag_factors(dt_s)
         h2, h, h6 = 0.5 * dt_s, dt_s, dt_s / 6.0
         landed = self.landed
-        # the wrench is linear in the forces: A f = A c + beta (A e) at each stage, e = f - c
-        uc0 = a00 * c0 + a01 * c1 + a02 * c2 + a03 * c3
-        uc1 = a10 * c0 + a11 * c1 + a12 * c2 + a13 * c3
-        uc2 = a20 * c0 + a21 * c1 + a22 * c2 + a23 * c3
-        uc3 = a30 * c0 + a31 * c1 + a32 * c2 + a33 * c3
+        # the forces kf (c + beta e)^2 = kf c^2 + beta 2 kf c e + beta^2 kf e^2 at each stage
+        # (e = w - c), so the wrench A f = A fc + beta (A g) + beta^2 (A h)
+        fc0, fc1, fc2, fc3 = kf * c0 * c0, kf * c1 * c1, kf * c2 * c2, kf * c3 * c3
+        uc0 = a00 * fc0 + a01 * fc1 + a02 * fc2 + a03 * fc3
+        uc1 = a10 * fc0 + a11 * fc1 + a12 * fc2 + a13 * fc3
+        uc2 = a20 * fc0 + a21 * fc1 + a22 * fc2 + a23 * fc3
+        uc3 = a30 * fc0 + a31 * fc1 + a32 * fc2 + a33 * fc3
+        k2 = 2.0 * kf
         for _ in range(steps):
-            # e and A e from the forces each step, so n steps here are n calls of step() exactly
+            # e, A g and A h from the speeds each step, so n steps here are n calls of step() exactly
             e0, e1, e2, e3 = f0 - c0, f1 - c1, f2 - c2, f3 - c3
-            d0 = a00 * e0 + a01 * e1 + a02 * e2 + a03 * e3
-            d1 = a10 * e0 + a11 * e1 + a12 * e2 + a13 * e3
-            d2 = a20 * e0 + a21 * e1 + a22 * e2 + a23 * e3
-            d3 = a30 * e0 + a31 * e1 + a32 * e2 + a33 * e3
+            g0, g1, g2, g3 = k2 * c0 * e0, k2 * c1 * e1, k2 * c2 * e2, k2 * c3 * e3
+            j0, j1, j2, j3 = kf * e0 * e0, kf * e1 * e1, kf * e2 * e2, kf * e3 * e3
+            d0 = a00 * g0 + a01 * g1 + a02 * g2 + a03 * g3
+            d1 = a10 * g0 + a11 * g1 + a12 * g2 + a13 * g3
+            d2 = a20 * g0 + a21 * g1 + a22 * g2 + a23 * g3
+            d3 = a30 * g0 + a31 * g1 + a32 * g2 + a33 * g3
+            s0 = a00 * j0 + a01 * j1 + a02 * j2 + a03 * j3
+            s1 = a10 * j0 + a11 * j1 + a12 * j2 + a13 * j3
+            s2 = a20 * j0 + a21 * j1 + a22 * j2 + a23 * j3
+            s3 = a30 * j0 + a31 * j1 + a32 * j2 + a33 * j3
             # k1 at (v, q, w); the position enters no derivative
-            u0, u1, u2, u3 = uc0 + d0, uc1 + d1, uc2 + d2, uc3 + d3
+            u0, u1, u2, u3 = uc0 + d0 + s0, uc1 + d1 + s1, uc2 + d2 + s2, uc3 + d3 + s3
             ax1 = (2.0 * (qx * qz + qw * qy) * u0 - c * (vx - windx)) / m
             ay1 = (2.0 * (qy * qz - qw * qx) * u0 - c * (vy - windy)) / m
             az1 = ((1.0 - 2.0 * (qx * qx + qy * qy)) * u0 - c * (vz - windz)) / m + gz
@@ -210,7 +237,9 @@ class Plant:
             vx2, vy2, vz2 = vx + h2 * ax1, vy + h2 * ay1, vz + h2 * az1
             sw, sx, sy, sz = qw + h2 * qw1, qx + h2 * qx1, qy + h2 * qy1, qz + h2 * qz1
             rx, ry, rz = wx + h2 * wx1, wy + h2 * wy1, wz + h2 * wz1
-            u0, u1, u2, u3 = uc0 + b2 * d0, uc1 + b2 * d1, uc2 + b2 * d2, uc3 + b2 * d3
+            bb = b2 * b2
+            u0, u1, u2, u3 = (uc0 + b2 * d0 + bb * s0, uc1 + b2 * d1 + bb * s1,
+                              uc2 + b2 * d2 + bb * s2, uc3 + b2 * d3 + bb * s3)
             ax2 = (2.0 * (sx * sz + sw * sy) * u0 - c * (vx2 - windx)) / m
             ay2 = (2.0 * (sy * sz - sw * sx) * u0 - c * (vy2 - windy)) / m
             az2 = ((1.0 - 2.0 * (sx * sx + sy * sy)) * u0 - c * (vz2 - windz)) / m + gz
@@ -225,7 +254,9 @@ class Plant:
             vx3, vy3, vz3 = vx + h2 * ax2, vy + h2 * ay2, vz + h2 * az2
             sw, sx, sy, sz = qw + h2 * qw2, qx + h2 * qx2, qy + h2 * qy2, qz + h2 * qz2
             rx, ry, rz = wx + h2 * wx2, wy + h2 * wy2, wz + h2 * wz2
-            u0, u1, u2, u3 = uc0 + b3 * d0, uc1 + b3 * d1, uc2 + b3 * d2, uc3 + b3 * d3
+            bb = b3 * b3
+            u0, u1, u2, u3 = (uc0 + b3 * d0 + bb * s0, uc1 + b3 * d1 + bb * s1,
+                              uc2 + b3 * d2 + bb * s2, uc3 + b3 * d3 + bb * s3)
             ax3 = (2.0 * (sx * sz + sw * sy) * u0 - c * (vx3 - windx)) / m
             ay3 = (2.0 * (sy * sz - sw * sx) * u0 - c * (vy3 - windy)) / m
             az3 = ((1.0 - 2.0 * (sx * sx + sy * sy)) * u0 - c * (vz3 - windz)) / m + gz
@@ -240,7 +271,9 @@ class Plant:
             vx4, vy4, vz4 = vx + h * ax3, vy + h * ay3, vz + h * az3
             sw, sx, sy, sz = qw + h * qw3, qx + h * qx3, qy + h * qy3, qz + h * qz3
             rx, ry, rz = wx + h * wx3, wy + h * wy3, wz + h * wz3
-            u0, u1, u2, u3 = uc0 + b4 * d0, uc1 + b4 * d1, uc2 + b4 * d2, uc3 + b4 * d3
+            bb = b4 * b4
+            u0, u1, u2, u3 = (uc0 + b4 * d0 + bb * s0, uc1 + b4 * d1 + bb * s1,
+                              uc2 + b4 * d2 + bb * s2, uc3 + b4 * d3 + bb * s3)
             ax4 = (2.0 * (sx * sz + sw * sy) * u0 - c * (vx4 - windx)) / m
             ay4 = (2.0 * (sy * sz - sw * sx) * u0 - c * (vy4 - windy)) / m
             az4 = ((1.0 - 2.0 * (sx * sx + sy * sy)) * u0 - c * (vz4 - windz)) / m + gz
@@ -274,7 +307,7 @@ class Plant:
             if pz < 0.0 or (landed and pz <= 0.0):
                 # _apply_ground: rest unless the net vertical force (as if at rest) lifts off
                 pz = 0.0
-                fz = ((1.0 - 2.0 * (qx * qx + qy * qy)) * (f0 + f1 + f2 + f3)
+                fz = ((1.0 - 2.0 * (qx * qx + qy * qy)) * kf * (f0 * f0 + f1 * f1 + f2 * f2 + f3 * f3)
                       + m * gz + c * windz)
                 if fz <= 0.0:
                     yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
@@ -298,7 +331,7 @@ class Plant:
         qw, qx, qy, qz = x[Q].tolist()
         r22 = rotation_rows(qw, qx, qy, qz)[8]
         # vertical force as if at rest (v = 0) so a fast impact's drag does not count as lift
-        fz = r22 * sum(x[F].tolist()) + self._m * self._gz + self._drag * float(wind_m_s[2])
+        fz = r22 * sum(self.motor_thrust_floats()) + self._m * self._gz + self._drag * float(wind_m_s[2])
         if fz <= 0.0:
             n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
             qw, qx, qy, qz = qw / n, qx / n, qy / n, qz / n

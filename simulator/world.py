@@ -104,7 +104,7 @@ class Simulator:
             "quaternion_wxyz": x[6:10],
             "rate_rad_s": x[10:13],
             "acceleration_m_s2": list(acc),
-            "motor_thrust_n": x[13:17],
+            "motor_thrust_n": p.motor_thrust_floats(),
             "wind_m_s": list(self._wind),
             "landed": bool(p.landed),
         }
@@ -172,7 +172,7 @@ class Simulator:
         self._thrust_cmd_n = cmd
         n = self.config.physics_substeps
         self.plant._advance(self._dt_tick_s / n, n, cmd, self._wind)
-        self.battery.step(self._dt_tick_s, self.plant.x[13:17])
+        self.battery.step(self._dt_tick_s, self.plant.motor_thrust_floats())
         self.tick += 1
         if self._gust_b != 0.0:
             # (with no gust, the wind's own generator is not drawn from: nothing else uses it)

@@ -1,6 +1,10 @@
 """The simulator's and the mixer's former numpy implementations (zenpilot a2ef311), kept
 verbatim as the reference the float rewrites are checked against (tests/unit/test_sim_fast.py,
 tests/unit/test_mixer_fast.py) and timed against (bench/sim_step.py). Not used in flight.
+
+RefPlant's motors were changed with the plant's (issue 26): the rotor speeds are the motor
+states (flight.motor_model), advanced by the lag's exact step, RK4's stages seeing the exact
+speeds at their times.
 """
 from __future__ import annotations
 
@@ -9,6 +13,7 @@ from collections import deque
 
 import numpy as np
 
+from flight.motor_model import MotorModel
 from flight.quat import quat_from_euler, quat_normalize, quat_to_euler, quat_to_rotation
 from flight.vehicle import Vehicle
 from simulator.battery import Battery
@@ -27,13 +32,14 @@ class RefPlant:
         self._inertia_t = tuple(float(i) for i in self._inertia)
         self._alloc = vehicle.allocation
         self._g = np.array([0.0, 0.0, -vehicle.gravity_m_s2])
+        self._kf = MotorModel.of(vehicle).kf
         self.x = np.zeros(17)
         self.x[P] = position_m
         self.x[V] = velocity_m_s
         self.x[Q] = quat_from_euler(0.0, 0.0, yaw_rad)
         self.x[W] = rate_rad_s
         if motor_thrust_n is not None:
-            self.x[F] = motor_thrust_n
+            self.x[F] = np.sqrt(np.maximum(np.asarray(motor_thrust_n, float), 0.0) / self._kf)
         self.landed = False
         if self.x[2] <= 0.0:
             self.x[2] = 0.0
@@ -58,7 +64,7 @@ class RefPlant:
 
     @property
     def motor_thrust_n(self) -> np.ndarray:
-        return self.x[F].copy()
+        return self._kf * self.x[F] ** 2
 
     @property
     def rotation(self) -> np.ndarray:
@@ -69,7 +75,7 @@ class RefPlant:
         # Written with scalars: numpy's per-call overhead on 3-vectors dominated the
         # simulator's time (20 evaluations per 400 Hz tick).
         vx, vy, vz, qw, qx, qy, qz, wx, wy, wz = x[3:13].tolist()
-        f = x[F]
+        f = self._kf * x[F] ** 2
         u0, u1, u2, u3 = (self._alloc @ f).tolist()
         # third column of R(q): the body z axis in the world
         r02 = 2.0 * (qx * qz + qw * qy)
@@ -89,7 +95,8 @@ class RefPlant:
         dx[10] = (u1 - (wy * iz * wz - wz * iy * wy)) / ix
         dx[11] = (u2 - (wz * ix * wx - wx * iz * wz)) / iy
         dx[12] = (u3 - (wx * iy * wy - wy * ix * wx)) / iz
-        dx[F] = (thrust_cmd_n - f) / self.vehicle.motor_time_constant_s
+        speed_cmd = np.sqrt(np.maximum(np.asarray(thrust_cmd_n, float), 0.0) / self._kf)
+        dx[F] = (speed_cmd - x[F]) / self.vehicle.motor_time_constant_s
         return dx
 
     def acceleration_m_s2(self, thrust_cmd_n, wind_m_s) -> np.ndarray:
@@ -103,11 +110,22 @@ class RefPlant:
         cmd = np.asarray(thrust_cmd_n, dtype=np.float64)
         wind = np.asarray(wind_m_s, dtype=np.float64)
         x = self.x
+        tau = self.vehicle.motor_time_constant_s
+        speed_cmd = np.sqrt(np.maximum(cmd, 0.0) / self._kf)
+        e = x[F] - speed_cmd
+        w_half = speed_cmd + math.exp(-0.5 * dt_s / tau) * e  # the lag's exact speeds
+        w_end = speed_cmd + math.exp(-dt_s / tau) * e
+
+        def at(xs, w):
+            xs[F] = w
+            return xs
+
         k1 = self.derivative(x, cmd, wind)
-        k2 = self.derivative(x + 0.5 * dt_s * k1, cmd, wind)
-        k3 = self.derivative(x + 0.5 * dt_s * k2, cmd, wind)
-        k4 = self.derivative(x + dt_s * k3, cmd, wind)
+        k2 = self.derivative(at(x + 0.5 * dt_s * k1, w_half), cmd, wind)
+        k3 = self.derivative(at(x + 0.5 * dt_s * k2, w_half), cmd, wind)
+        k4 = self.derivative(at(x + dt_s * k3, w_end), cmd, wind)
         x = x + dt_s / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+        x[F] = w_end
         x[Q] = quat_normalize(x[Q])
         self.x = x
         if x[2] < 0.0 or (self.landed and x[2] <= 0.0):
@@ -121,7 +139,7 @@ class RefPlant:
         x = self.x
         r = quat_to_rotation(x[Q])
         # vertical force as if at rest (v = 0) so a fast impact's drag does not count as lift
-        fz = (r[2, 2] * np.sum(x[F]) + self._m * self._g[2]
+        fz = (r[2, 2] * np.sum(self._kf * x[F] ** 2) + self._m * self._g[2]
               + self.vehicle.drag_n_per_m_s * wind_m_s[2])
         if fz <= 0.0:
             _, _, yaw = quat_to_euler(x[Q])
@@ -208,10 +226,12 @@ def ref_pwm_to_thrust(vehicle: Vehicle, pwm_us) -> np.ndarray:
 
 
 def ref_motor_forces_update(forces_n, command_n, dt_s: float, motor_time_constant_s: float) -> np.ndarray:
-    """Rotor forces after dt_s under a held command with a first-order lag (as
-    flight.ilqr.motor_forces_update and the simulator's motors)."""
+    """Rotor forces after dt_s under a held command, the rotor speed lagging (issue 26: was
+    the force lagging, c + (f - c) exp(-dt / tau))."""
     decay = math.exp(-dt_s / motor_time_constant_s)
-    return np.asarray(command_n) + (np.asarray(forces_n) - np.asarray(command_n)) * decay
+    sc = np.sqrt(np.maximum(np.asarray(command_n, float), 0.0))
+    s = sc + (np.sqrt(np.maximum(np.asarray(forces_n, float), 0.0)) - sc) * decay
+    return s * s
 
 
 def ref_scale_collective(allocation, forces_n, factor: float) -> np.ndarray:

@@ -19,7 +19,7 @@ def test_x250_allocation_is_mixer_of_000():
     np.testing.assert_allclose(v.allocation_inv @ v.allocation, np.eye(4), atol=1e-12)
     assert v.mass_kg == 0.4 and v.inertia_kg_m2 == (7.5e-3, 7.5e-3, 14.2e-3)
     assert v.hover_thrust_per_motor_n == pytest.approx(0.4 * 9.81 / 4)
-    assert v.thrust_coefficient_kf is None
+    assert v.thrust_coefficient_kf == 4.0e-7 and v.moment_coefficient_km == pytest.approx(0.016 * 4.0e-7)
 
 
 def test_q820_allocation_is_torque_of_001():

@@ -242,7 +242,8 @@ def test_backward_pass_is_the_riccati_recursion():
 
 def test_motor_lag_model_forces_follow_the_command_exactly():
     """With motor_time_constant_s the rotor forces are states: hover is an equilibrium and a
-    step of the command is followed as exp(-t / tau) (the plant's motors)."""
+    step of the command is followed as the rotor speed's lag (flight/motor_model.py, the
+    plant's motors): sqrt(f) moves to sqrt(c) as exp(-t / tau)."""
     tau, dt = 0.02, 0.025
     f = make_dynamics(VEHICLE, dt, "rk4", motor_time_constant_s=tau)
     hover_n = VEHICLE.hover_thrust_per_motor_n
@@ -250,14 +251,15 @@ def test_motor_lag_model_forces_follow_the_command_exactly():
     u = jnp.full(4, hover_rotor_speed_rad_s(VEHICLE))
     np.testing.assert_allclose(f(x, u), x, atol=1e-5)
     x_step = f(x, u * np.sqrt(2.0))
-    np.testing.assert_allclose(x_step[13:17], hover_n * (2 - np.exp(-dt / tau)), rtol=1e-6)
+    d = np.exp(-dt / tau)
+    np.testing.assert_allclose(x_step[13:17], hover_n * (np.sqrt(2) - (np.sqrt(2) - 1) * d) ** 2, rtol=1e-6)
     np.testing.assert_allclose(motor_forces_update(np.full(4, hover_n), np.full(4, 2 * hover_n), dt, tau),
                                x_step[13:17], rtol=1e-6)
     assert 0 < x_step[5] < 2 * 9.81 * dt  # accelerates up, less than with the thrust at once
 
 
 def test_planner_with_motor_model_pads_13_state_inputs():
-    config = dataclasses.replace(THESIS, motor_time_constant_s=0.02, max_iterations=2)
+    config = dataclasses.replace(THESIS, models_motors=True, max_iterations=2)
     p = Planner(VEHICLE, config, warm_up=False)
     targets = np.repeat(hover_state([0, 0, 5])[None], config.horizon + 1, axis=0)
     plan = p.solve(hover_state([0, 0, 4.9]), targets)

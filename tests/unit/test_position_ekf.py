@@ -462,8 +462,10 @@ def test_lagged_motor_input_is_the_mean_of_the_plants_lag_over_every_command():
     lag.add(*commands[0])
     fine, force, sub = [], commands[0][1].copy(), 400
     for t0, c in commands[:-1]:  # the plant: Euler on a fine grid, each command held a tick
-        for _ in range(sub):
-            force = force + (c - force) * (tick / sub) / tau
+        for _ in range(sub):  # the rotor speed lags (sqrt(f) ~ speed, flight/motor_model.py)
+            root = np.sqrt(force)
+            root = root + (np.sqrt(c) - root) * (tick / sub) / tau
+            force = root * root
             fine.append(force.copy())
     fine = np.array(fine)
     per_step = 4 * sub
@@ -711,7 +713,7 @@ class _RefEKF:
 
 
 class _RefLaggedMotorInput:
-    """LaggedMotorInput as it was (numpy 4-vectors)."""
+    """LaggedMotorInput as it was (numpy 4-vectors), its lag on the rotor speed (issue 26)."""
 
     def __init__(self, tau):
         self.tau, self.forces, self.command, self.t, self.pending = tau, np.zeros(4), np.zeros(4), None, []
@@ -735,9 +737,12 @@ class _RefLaggedMotorInput:
             h = end - self.t
             if h > 0.0:
                 decay = math.exp(-h / self.tau)
-                c, f0 = self.command, self.forces
-                total += h * (c + (f0 - c) * (self.tau / h) * (1.0 - decay))
-                self.forces = c + (f0 - c) * decay
+                sc = np.sqrt(np.maximum(self.command, 0.0))
+                e = np.sqrt(np.maximum(self.forces, 0.0)) - sc
+                w1 = self.tau / h * (1.0 - decay)
+                w2 = 0.5 * self.tau / h * (1.0 - decay * decay)
+                total += h * (sc * sc + 2.0 * sc * e * w1 + e * e * w2)
+                self.forces = (sc + e * decay) ** 2
                 self.t = end
             if end >= t_s:
                 break

@@ -48,11 +48,15 @@ def test_rk4_conserves_rotational_energy_and_quaternion_norm():
 
 
 def test_motor_first_order_lag():
+    """The lag is on the rotor speed (flight/motor_model.py): after one time constant from
+    rest the speed is (1 - 1/e) of the commanded sqrt(c / kf), the thrust that squared."""
     v = load_vehicle("x250")
     p = Plant(v, position_m=(0, 0, 10.0))
     for _ in range(40):  # 0.02 s = one time constant
         p.step(0.0005, np.full(4, 2.0), np.zeros(3))
-    np.testing.assert_allclose(p.motor_thrust_n, 2.0 * (1 - np.exp(-1)), rtol=1e-8)
+    np.testing.assert_allclose(p.rotor_speed_rad_s, np.sqrt(2.0 / v.thrust_coefficient_kf) * (1 - np.exp(-1)),
+                               rtol=1e-12)
+    np.testing.assert_allclose(p.motor_thrust_n, 2.0 * (1 - np.exp(-1)) ** 2, rtol=1e-12)
 
 
 def test_ground_rest_and_landing():
