@@ -3,6 +3,7 @@ every service as its own process; the tests read what the flight wrote."""
 
 import json
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -24,8 +25,10 @@ def fly(out: Path, mission: str, *extra: str, lockstep: bool = True, seed: int =
         argv.append("--no-plots")
     if lockstep:
         argv.append("--lockstep")
-    if background:
-        return subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    if background:   # SIGINT as a terminal gives it, even where the suite runs in the background
+        # (a shell's background job ignores SIGINT, and Python keeps an inherited SIG_IGN)
+        return subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     proc = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=timeout)
     assert (out / "metrics.json").exists(), proc.stdout + proc.stderr
     return proc, json.loads((out / "metrics.json").read_text())
