@@ -23,6 +23,7 @@ import re
 import shlex
 import shutil
 import signal
+import subprocess
 import sys
 import threading
 import time
@@ -34,7 +35,8 @@ import zenoh
 import schemas
 from deploy import gyrovertical_training, predict_cli, sweep
 from deploy.flightlog import LOG_NAME, LogError, LogScan, log_is_complete, read_log, recover, scan
-from deploy.launcher import DELIVERY_S, Launcher, alive_services, client_session, free_port, stop_groups, wait_port
+from deploy.launcher import (DELIVERY_S, STOP_GRACE_S, Launcher, alive_services, client_session, free_port,
+                             recorder_grace_s, stop_groups, wait_port)
 from deploy.progress import FlightProgress
 from deploy.report import REPORT_NAME, RUN_FILES, write_report
 from deploy.stack import StackError, load_stack, lockstep_services
@@ -342,6 +344,8 @@ class _UpStack:
     pids: dict[str, int] = field(default_factory=dict)
     run_dirs: list[str] = field(default_factory=list)
     files: list[Path] = field(default_factory=list)
+    # `up -d`'s background `up` of each machine: (pid, the services it started)
+    supervisors: list[tuple[int, set[str]]] = field(default_factory=list)
 
     @property
     def live(self) -> dict[str, int]:
@@ -362,9 +366,54 @@ def _stacks() -> list[_UpStack]:
             st.files.append(f)
             if state.get("run_dir"):
                 st.run_dirs.append(state["run_dir"])
+            if state.get("supervisor"):
+                st.supervisors.append((int(state["supervisor"]), set(state["pids"])))
         except (OSError, ValueError, KeyError, TypeError) as exc:
             print(f"zenpilot: {f}: unreadable state file, ignored ({exc})", file=sys.stderr)
     return list(found.values())
+
+
+DETACH_START_TIMEOUT_S = 120.0   # `up -d`: for the background `up` to report its stack up
+
+
+def _up_detached(args, stack, machine: str, router: str, run_dir: Path) -> int:
+    """`up -d`: the same `zenpilot up` in the background, in its own session (it outlives this
+    command and supervises the services, deploy/supervisor.py); returns once it has written the
+    state file that `status` and `down` read, or says why it did not start."""
+    folder = _stack_dir(router)
+    folder.mkdir(parents=True, exist_ok=True)
+    state = folder / f"up-{machine}.json"
+    state.unlink(missing_ok=True)
+    (run_dir / "logs").mkdir(parents=True, exist_ok=True)
+    argv = [sys.executable, "-m", "deploy.cli", "up", "--router", router, "--out", str(run_dir),
+            "--seed", str(args.seed), "--machine", machine, "--state-file", str(state)]
+    argv += ["--stack", str(stack.path)] + (["--mission", args.mission] if args.mission is not None else [])
+    argv += (["--lockstep"] if args.lockstep else []) + [a for s in args.set or [] for a in ("--set", s)]
+    log = run_dir / "logs" / "up.log"
+    with open(log, "w") as out:
+        child = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                 start_new_session=True)
+    deadline = time.monotonic() + DETACH_START_TIMEOUT_S
+    while not state.exists():
+        if child.poll() is not None:
+            said = log.read_text().strip().splitlines()
+            raise StackError(f"the stack did not start: {said[-1] if said else f'status {child.returncode}'} "
+                             f"(see {log})")
+        if time.monotonic() > deadline:
+            os.kill(child.pid, signal.SIGTERM)   # it stops what it started
+            raise StackError(f"the stack was not up within {DETACH_START_TIMEOUT_S:.0f} s (see {log})")
+        time.sleep(0.1)
+    print(f"zenpilot: machine {machine!r} up: router {router}; supervised by pid {child.pid}; logs in {run_dir / 'logs'}")
+    return 0
+
+
+def _write_state(path: Path, stack, router: str, run_dir: Path, launcher) -> dict:
+    state = {"router": router, "stack": str(stack.path), "run_dir": str(run_dir),
+             "pids": {n: p.pid for n, p in launcher.procs.items()}, "supervisor": os.getpid()}
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(state))
+    tmp.replace(path)
+    return state["pids"]
 
 
 def cmd_up(args) -> int:
@@ -374,6 +423,9 @@ def cmd_up(args) -> int:
     # `up`, and the bridge lives on the wall clock whatever the clock of the rest
     router = args.router or stack.machines[machine].router
     run_dir = Path(args.out or _stack_dir(router) / f"run-{machine}")
+    if args.detach:
+        return _up_detached(args, stack, machine, router, run_dir)
+    background = args.state_file is not None
     params = _param_overrides(args.set, stack)
     # `up` runs until `down`, unless `--set sim.stop_after_mission=true` (given later, it wins)
     params["sim"] = ["stop_after_mission=false", *params.get("sim", [])]
@@ -391,24 +443,22 @@ def cmd_up(args) -> int:
     except BaseException:
         launcher.stop_all()   # what did start stops again, the recorder's log complete
         raise
-    print(f"zenpilot: machine {machine!r} up: router {router}, services {', '.join(names)}; logs in {run_dir / 'logs'}")
-    if args.detach:
-        folder = _stack_dir(router)
-        folder.mkdir(parents=True, exist_ok=True)
-        (folder / f"up-{machine}.json").write_text(json.dumps(
-            {"router": router, "stack": str(stack.path), "run_dir": str(run_dir),
-             "pids": {n: p.pid for n, p in launcher.procs.items()}}))
-        return 0
+    print(f"zenpilot: machine {machine!r} up: router {router}, services {', '.join(names)}; logs in {run_dir / 'logs'}",
+          flush=True)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     session = client_session(router, stack, machine)
     supervisor = watch_services(launcher, names, session, not args.lockstep)
+    recorded = _write_state(Path(args.state_file), stack, router, run_dir, launcher) if background else None
     try:
         drawn = 0.0
         while not stop.is_set():
             supervisor.poll()
-            if time.monotonic() - drawn >= 1.0:
+            if background:   # no screen: the state file follows the restarts (`down` stops the new pids)
+                if recorded != {n: p.pid for n, p in launcher.procs.items()}:
+                    recorded = _write_state(Path(args.state_file), stack, router, run_dir, launcher)
+            elif time.monotonic() - drawn >= 1.0:
                 drawn = time.monotonic()
                 lines = _status_lines(session, stack)
                 print("\033[2J\033[H" + f"zenpilot up ({machine}) - Ctrl-C stops\n" + "\n".join(lines), flush=True)
@@ -420,6 +470,8 @@ def cmd_up(args) -> int:
     finally:
         session.close()
         launcher.stop_all()
+        if background:
+            Path(args.state_file).unlink(missing_ok=True)
     _say_log(run_dir / LOG_NAME)
     return 0
 
@@ -474,15 +526,30 @@ def cmd_down(args) -> int:
         print("zenpilot: nothing to stop (no stack started with `zenpilot up -d` is running)")
     for st in chosen:
         pids = st.live
-        if not pids:   # a stack gone already (stopped otherwise, the machine restarted): forget it
+        logs = [Path(d) / LOG_NAME for d in st.run_dirs]
+        supervisors = [(pid, names) for pid, names in st.supervisors if _running(pid) and _names_router(pid, st.router)]
+        if not pids and not supervisors:   # a stack gone already (stopped otherwise, the machine restarted)
             for f in st.files:
                 f.unlink(missing_ok=True)
             continue
-        stopped = []
-        for names, grace_s in stop_groups(list(pids), [Path(d) / LOG_NAME for d in st.run_dirs]):
+        stopped = list(pids)
+        # `up -d`'s background `up`s stop their own services in order; the machine with the
+        # recorder last, so that it logs what the others sent until they stopped
+        for group in ([p for p, names in supervisors if "recorder" not in names],
+                      [p for p, names in supervisors if "recorder" in names]):
+            for pid in group:
+                try:
+                    os.kill(pid, signal.SIGTERM)
+                except ProcessLookupError:
+                    pass
+            deadline = time.monotonic() + 2 * STOP_GRACE_S + recorder_grace_s(logs) + 5.0
+            while time.monotonic() < deadline and any(_running(pid) for pid in group):
+                time.sleep(0.05)
+        pids = st.live   # what they left running (nothing, normally; all of it without them) is stopped here
+        for names, grace_s in stop_groups(list(pids), logs):
             if names == ["recorder"]:
                 time.sleep(DELIVERY_S)
-            stopped += names
+            stopped += [n for n in names if n not in stopped]
             for n in names:
                 try:
                     os.kill(pids[n], signal.SIGTERM)
@@ -570,7 +637,9 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--router", help="router endpoint to connect to (default: the stack's)")
     up.add_argument("--mission", help="mission for the planner")
     up.add_argument("--out", help="run directory for logs and the flight log")
-    up.add_argument("-d", "--detach", action="store_true", help="return once everything is up; `zenpilot down` stops it")
+    up.add_argument("-d", "--detach", action="store_true",
+                    help="return once everything is up (a background `zenpilot up` supervises it); `zenpilot down` stops it")
+    up.add_argument("--state-file", help=argparse.SUPPRESS)   # `up -d`'s background supervisor: where it reports
     up.set_defaults(func=cmd_up)
 
     st = sub.add_parser("status", help="liveliness and health of a running stack")

@@ -1,8 +1,11 @@
 """`zenpilot up -d` / `status` / `down`, with the stack split over two machines."""
 
+import json
 import os
+import signal
 import subprocess
 import sys
+import time
 
 import pytest
 from mcap.reader import make_reader
@@ -38,6 +41,17 @@ def test_up_two_machines_status_down(tmp_path):
         for service in ("sim", "motors", "attitude", "position", "planner", "recorder"):
             assert rows[service][1] == "yes", status.stdout
             assert rows[service][2] in ("running", "degraded"), status.stdout
+        # the background `up` supervises: attitude killed, it is started again and `down` knows the new pid
+        state = next(tmp_path.glob("*/up-vehicle.json"))
+        killed = json.loads(state.read_text())["pids"]["attitude"]
+        os.kill(killed, signal.SIGKILL)
+        deadline = time.monotonic() + 15
+        while json.loads(state.read_text())["pids"]["attitude"] == killed:
+            assert time.monotonic() < deadline, next(tmp_path.glob("*/run-vehicle/logs/up.log")).read_text()
+            time.sleep(0.1)
+        restarted = json.loads(state.read_text())["pids"]["attitude"]
+        assert os.path.exists(f"/proc/{restarted}")
+        assert "attitude killed by signal 9" in next(tmp_path.glob("*/run-vehicle/logs/up.log")).read_text()
         beside = zp("up", "-d", "--stack", str(OTHER_STACK), "--machine", "solo", "--router", other, env=env)
         assert beside.returncode == 0, beside.stderr
         which = zp("down", env=env)   # two stacks up: `down` must be told which
@@ -45,7 +59,8 @@ def test_up_two_machines_status_down(tmp_path):
         down = zp("down", "--router", router, env=env)
         assert down.returncode == 0 and "stopped" in down.stdout, down.stdout + down.stderr
         assert processes_mentioning(router) == []
-        assert len(processes_mentioning(other)) == 2   # the other stack's router and recorder
+        assert not os.path.exists(f"/proc/{restarted}")   # the restarted service was stopped too
+        assert len(processes_mentioning(other)) == 3   # the other stack's router, recorder and its `up`
     finally:
         zp("down", "--all", env=env)
     assert processes_mentioning(other) == []
