@@ -39,7 +39,7 @@ if TYPE_CHECKING:
 # publishes: its health and, in lockstep, its sync. tests/unit/test_security.py checks this
 # against the services' code (every rt.publisher(schemas.X) call).
 PUBLISHES: dict[str, tuple[str, ...]] = {
-    "sim": ("sim/imu", "sim/baro", "sim/mag", "sim/camera", "sim/truth", "sim/battery", "sim/clock/*"),
+    "sim": ("sim/imu", "sim/baro", "sim/mag", "sim/camera", "sim/truth", "sim/battery", "@lockstep/clock/*"),
     "motors": ("motors/pwm",),
     "attitude": ("att/command", "att/state"),
     "position": ("pos/setpoint", "pos/state"),
@@ -188,7 +188,7 @@ def router_acl(stack: "Stack", machine: str) -> dict:
             continue
         services = [n for n, s in stack.services.items() if s.machine == other]
         keys = sorted({f"{prefix}/{t}" for n in services for t in PUBLISHES.get(n, ())}
-                      | {f"{prefix}/{n}/health" for n in services} | {f"{prefix}/sync/{n}" for n in services})
+                      | {f"{prefix}/{n}/health" for n in services} | {f"{prefix}/@lockstep/sync/{n}" for n in services})
         subjects.append({"id": f"machine-{other}", "usernames": [other]})
         ids = ["declarations", "receive"]
         if keys:

@@ -35,9 +35,9 @@ QUEUE_MAX = 20000      # payloads waiting for the reader (~10 s of the whole sta
 # messages the server holds per client before dropping its oldest (the SDK's default is 1024,
 # half a second of the stack's stream): a client stalled a second or two catches up instead
 CLIENT_BACKLOG = 8192
-# keys the view leaves out: lockstep's clock and handshake (thousands a second, no data)
-# and liveliness tokens
-SKIP_PARTS = ("/alive/", "/sim/clock/", "/sync/")
+# keys the view leaves out: liveliness tokens (lockstep's clock and handshake are under a
+# verbatim @lockstep chunk, which zp/<vehicle>/** never matches)
+SKIP_PARTS = ("/alive/",)
 
 
 @dataclass

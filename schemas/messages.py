@@ -31,9 +31,9 @@ def _camera_lengths(doc: dict) -> str | None:
 
 
 CLOCK = Message(
-    "clock", "sim/clock/{service}", 1,
+    "clock", "@lockstep/clock/{service}", 1,
     "Lockstep only, one per service due at `tick`: the service runs the work due "
-    "at that simulated time, then answers on sync/<service>.",
+    "at that simulated time, then answers on @lockstep/sync/<service>.",
     (
         F("tick", "int", "tick index; t = tick / tick_rate_hz", min=0),
         F("tick_rate_hz", "float", "ticks per simulated second", "Hz", min=1.0, max=100000.0),
@@ -43,7 +43,7 @@ CLOCK = Message(
 )
 
 SYNC_DONE = Message(
-    "sync_done", "sync/{service}", 2,
+    "sync_done", "@lockstep/sync/{service}", 2,
     "Lockstep only: a service finished `tick` (its outputs for it are published) "
     "and says when it next needs to run. header.source names the service.",
     (
@@ -391,6 +391,13 @@ BY_NAME = {m.name: m for m in ALL}
 
 # Simulator topics as named in CLOCK.published and SYNC_DONE.triggers.
 SIM_TOPICS = {"imu": IMU, "baro": BARO, "mag": MAG, "camera": CAMERA, "truth": TRUTH, "battery": BATTERY}
+
+# Lockstep: the message a service publishes last in a run, stamped with the run's time. When a
+# run ends with it, it stands for the run's SYNC_DONE (no sync is sent: one message less to every
+# follower, each tick); a run that ends otherwise sends the sync. Every follower of the service
+# receives it (as an input, or on a subscription of its own).
+RUN_DONE = {"motors": MOTOR_PWM, "attitude": ATTITUDE_STATE, "position": POSITION_STATE,
+            "planner": PLANNER_SETPOINT}
 
 
 def _pattern(topic: str) -> re.Pattern:

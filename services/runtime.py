@@ -8,19 +8,22 @@ liveliness token, the 1 Hz health message and clean shutdown on SIGINT/SIGTERM.
 Lockstep protocol (deterministic; like PX4 SITL lockstep):
 
 * At tick k the simulator publishes its sensor messages, then one
-  `sim/clock/<service>` to each service due at k: rate services when k is the
+  `@lockstep/clock/<service>` to each service due at k: rate services when k is the
   `next_tick` they announced, event services (e.g. vision) when one of their
   trigger topics was published. The clock carries, for every service, the
   last tick it finished before k.
-* A service waits until it has received each upstream's `sync/<upstream>`
+* A service waits until it has received each upstream's `@lockstep/sync/<upstream>`
   for that tick, then runs once. The run sees exactly: simulator messages
   published up to k, and upstream messages produced by upstream runs before
   k (one tick of transport delay per hop, as on a real bus). Messages are
   tagged on arrival with the last sync tick seen from their producer; Zenoh
   delivers one session's messages over one link in order (callbacks run on
   the receiving thread), so the tag says which run produced them.
-* After its outputs, the service publishes `sync/<name>` with the tick done
+* After its outputs, the service publishes `@lockstep/sync/<name>` with the tick done
   and its next tick; the simulator advances once everyone due is done.
+* Both keys sit under a verbatim chunk (`@lockstep`), which `zp/<vehicle>/**` never
+  matches: the recorder and the tools that take every key are not sent the handshake
+  (~1500 messages per simulated second that carry no flight data).
 """
 
 from __future__ import annotations
@@ -176,6 +179,7 @@ class Inbox:
         self.arrived = 0
         self._next_seq: dict[str, int] = {}   # per sender: the sequence number expected next
         self.wakes = False   # set by Runtime.run(wake_on=...)
+        self.marks_done = False  # lockstep: this key is the upstream's RUN_DONE message (Runtime.inbox)
         self._takes = False  # the reader takes every message (take), not only the newest
         self._superseded = False  # unread messages went to make room: no loss for a reader of the newest
         self._decode, self._accept = message.decode, message.accept
@@ -197,7 +201,17 @@ class Inbox:
             rt.count_rejects(self.key, "malformed")
             return
         raw = self._raw
-        raw.append((rt._sync_tick(self.upstream) if rt.lockstep else 0, data))
+        if self.marks_done:   # tagged before it counts as the upstream's sync: its run's own outputs precede it
+            tag = rt._sync_tick(self.upstream)
+            try:
+                msg = self._decode(data)
+            except schemas.SchemaError:
+                raw.append((tag, data))   # diagnosed and counted by the reader; no tick taken from it
+            else:   # queued before it says "done": a reader woken by that finds it
+                raw.append((tag, msg))
+                rt._run_done(self.upstream, msg)
+        else:
+            raw.append((rt._sync_tick(self.upstream) if rt.lockstep else 0, data))
         if len(raw) > RAW_QUEUE_MAX:   # not read for a while: the oldest goes
             raw.popleft()
             if self._takes:   # a reader of every message lost one; a reader of the newest did not
@@ -225,7 +239,9 @@ class Inbox:
         while raw:
             tag, payload = raw.popleft()
             self.arrived += 1
-            if not flooded:
+            if type(payload) is dict:   # decoded on arrival (a RUN_DONE message in lockstep)
+                msg = payload
+            elif not flooded:
                 try:
                     msg = decode(payload)
                 except schemas.SchemaError as exc:
@@ -310,6 +326,8 @@ class Publisher:
         self._put = self._pub.put
         self._encode = message.encode
         self._source = runtime.name
+        self.tracked = True   # a lockstep run's last put is noted (Runtime._run_lockstep)
+        self.last_t = -1.0
 
     def put(self, values: dict[str, Any], t_s: float | None = None, repeat: bool = False) -> None:
         """Publish; invalid values (NaN, out of range) are reported, never sent.
@@ -321,6 +339,9 @@ class Publisher:
             self.runtime.problem(f"not publishing {self.key}: {exc}")
             return
         self._put(payload)
+        if self.tracked:
+            self.runtime._last_put = self
+            self.last_t = t
         if not repeat:
             self.seq += 1
 
@@ -393,7 +414,11 @@ class Runtime:
         # the liveliness token says "up"; a service whose inputs must be in place first (the
         # recorder's subscription) announces itself later (announce_alive)
         self._token = self.session.liveliness().declare_token(self.key(f"alive/{name}")) if announce else None
+        self._last_put: Publisher | None = None   # lockstep: the last tracked put of the run
+        self._done_light: dict[str, Callable] = {}   # upstream -> callback of its RUN_DONE key's own subscription
+        self._done_boxes: set[str] = set()        # ... or an inbox
         self._health = Publisher(self, schemas.HEALTH, schemas.HEALTH.key(self.vehicle_id, name))
+        self._health.tracked = False   # nobody on the clock reads health: it may follow a run's last message
         self._next_health = 0.0
         self.subscribe(schemas.PARAM_SET.key(self.vehicle_id), self._on_param_set)
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -456,15 +481,54 @@ class Runtime:
         box = Inbox(self, message, key, upstream, keep)
         if self.lockstep and not box.clocked:
             self.follow(upstream)
+            if schemas.RUN_DONE.get(upstream) is message and key == message.key(self.vehicle_id):
+                if upstream in self._done_light:   # two callbacks: the tag would depend on their order
+                    raise RuntimeError(f"{self.name}: inbox for {key} declared after its lockstep subscription")
+                box.marks_done = True
+                self._done_boxes.add(upstream)
         self.subscribe(key, box._on_sample)
         self.inboxes.append(box)
         return box
 
     def follow(self, upstream: str) -> None:
-        """Track another service's lockstep progress (its sync/<name> messages)."""
+        """Track another service's lockstep progress (its syncs and its RUN_DONE messages)."""
         if upstream not in self._upstreams:
             self._upstreams[upstream] = _Upstream()
-            self.subscribe(self.key(f"sync/{upstream}"), self._make_sync_cb(upstream))
+            self.subscribe(schemas.SYNC_DONE.key(self.vehicle_id, upstream), self._make_sync_cb(upstream))
+
+    def subscribe_run_done(self) -> None:
+        """Lockstep, once the inputs are declared: for each upstream followed whose RUN_DONE
+        message is not one of this service's inputs, a subscription that only notes its runs."""
+        for upstream in self._upstreams:
+            message = schemas.RUN_DONE.get(upstream)
+            if message is None or upstream in self._done_boxes or upstream in self._done_light:
+                continue
+            key = message.key(self.vehicle_id)
+
+            def on_done(sample: zenoh.Sample, upstream=upstream, message=message, key=key) -> None:
+                data, reason = screen(message, sample.payload)
+                if data is None:   # garbage: counted and dropped, no tick taken from it
+                    self.count_rejects(key, reason)
+                    return
+                try:
+                    msg = message.decode(data)
+                except schemas.SchemaError as exc:
+                    self.reject(key, exc)
+                    return
+                self._run_done(upstream, msg)
+            self._done_light[upstream] = on_done
+            self.subscribe(key, on_done)
+
+    def _run_done(self, upstream: str, msg: dict) -> None:
+        """A valid RUN_DONE message arrived (Zenoh's thread): its run is done, as a sync would say."""
+        header = msg["header"]
+        if header["source"] != upstream:
+            return
+        tick = round(header["t_s"] * self.tick_rate)
+        u = self._upstreams[upstream]
+        if tick > u.last_done:
+            u.last_done = tick
+            self._sync_event.set()
 
     def subscribe(self, key: str, callback: Callable[[zenoh.Sample], None]):
         """Subscribe with the callback run on Zenoh's receiving thread (indirect=False):
@@ -526,12 +590,12 @@ class Runtime:
         def on_sync(sample: zenoh.Sample) -> None:
             data, reason = screen(schemas.SYNC_DONE, sample.payload)
             if data is None:   # garbage on a sync key: counted and dropped, the clock untouched
-                self.count_rejects(f"sync/{upstream}", reason)
+                self.count_rejects(f"@lockstep/sync/{upstream}", reason)
                 return
             try:
                 msg = schemas.SYNC_DONE.decode(data)
             except schemas.SchemaError as exc:
-                self.reject(f"sync/{upstream}", exc)
+                self.reject(f"@lockstep/sync/{upstream}", exc)
                 return
             u = self._upstreams[upstream]
             u.next_tick, u.triggers, u.period_ticks = msg["next_tick"], tuple(msg["triggers"]), msg["period_ticks"]
@@ -565,12 +629,12 @@ class Runtime:
     def _on_clock(self, sample: zenoh.Sample) -> None:
         data, reason = screen(schemas.CLOCK, sample.payload)
         if data is None:   # garbage on the clock key: counted and dropped, no tick taken from it
-            self.count_rejects(self.key("sim/clock"), reason)
+            self.count_rejects(self.key("@lockstep/clock"), reason)
             return
         try:
             msg = schemas.CLOCK.decode(data)
         except schemas.SchemaError as exc:
-            self.reject(self.key("sim/clock"), exc)
+            self.reject(self.key("@lockstep/clock"), exc)
             return
         self._sim_tick = msg["tick"]
         self._clock_queue.append(msg)
@@ -724,8 +788,12 @@ class Runtime:
 
     def _run_lockstep(self, step: Callable[[float], None], triggers: tuple[str, ...]) -> None:
         period = round(self.tick_rate / self.rate_hz) if self.rate_hz > 0 else 0
-        sync = Publisher(self, schemas.SYNC_DONE, self.key(f"sync/{self.name}"))
+        sync = Publisher(self, schemas.SYNC_DONE, schemas.SYNC_DONE.key(self.vehicle_id, self.name))
+        sync.tracked = False
+        done_message = schemas.RUN_DONE.get(self.name)
+        done_key = done_message.key(self.vehicle_id) if done_message else None
         next_tick = 0 if period else -1
+        self.subscribe_run_done()
         self.subscribe(schemas.CLOCK.key(self.vehicle_id, self.name), self._on_clock)
         self.watch_participants()
         # announce readiness until the first clock tick arrives
@@ -750,10 +818,14 @@ class Runtime:
             for box in self.inboxes:
                 box.limit = k if box.clocked else done_before.get(box.upstream, -2)
             self.count_run(self._t)
+            self._last_put = None
             self._safe_step(step, self._t)
             self.publish_health()
             if period:
                 next_tick = k + period
+            last = self._last_put
+            if last is not None and last.key == done_key and last.last_t == self._t:
+                continue   # the run ended with its RUN_DONE message: that was its sync
             sync.put({"tick": k, "next_tick": next_tick, "triggers": list(triggers), "period_ticks": period},
                      t_s=self._t)
 

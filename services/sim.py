@@ -2,7 +2,7 @@
 
 Publishes sim/imu, sim/baro, sim/mag, sim/camera and sim/truth at their own
 rates; applies the motor driver's PWM. In lockstep it drives the clock: it
-publishes sim/clock for each tick and advances only when every service due
+publishes @lockstep/clock for each tick and advances only when every service due
 at that tick has reported done. It stops by itself `linger_s` after the
 mission completes (or fails), or after `max_duration_s`.
 """
@@ -98,6 +98,7 @@ class SimService:
         clocks = {p: rt.publisher(schemas.CLOCK, schemas.CLOCK.key(rt.vehicle_id, p)) for p in self.participants}
         for p in self.participants:
             rt.follow(p)
+        rt.subscribe_run_done()
         rt.watch_participants()
         # wait for every participant's "ready"
         while not rt.stop_event.is_set():

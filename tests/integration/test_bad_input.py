@@ -14,7 +14,8 @@ from .conftest import TRUTH_STATE, fly
 pytestmark = pytest.mark.integration
 
 INPUT_KEYS = ["zp/0/sim/truth", "zp/0/pos/setpoint", "zp/0/att/command", "zp/0/planner/setpoint",
-              "zp/0/motors/pwm", "zp/0/pos/state", "zp/0/sim/clock/attitude", "zp/0/sync/motors"]
+              "zp/0/motors/pwm", "zp/0/pos/state", "zp/0/@lockstep/clock/attitude",
+              "zp/0/@lockstep/sync/motors"]
 RECEIVERS = {"sim", "attitude", "position", "motors", "planner", "recorder"}
 HEADER = {"t_s": 1.0, "seq": 0, "source": "intruder"}
 BAD_PAYLOADS = {

@@ -89,7 +89,7 @@ def test_not_an_mcap_file_is_refused_with_its_name(tmp_path):
 
 def test_sorted_log_has_the_same_bytes_whatever_the_arrival_order(tmp_path):
     rows = flight()
-    ready = (P + "sync/attitude", {"version": 1, "header": {"t_s": 0.0, "seq": 0, "source": "attitude"},
+    ready = (P + "@lockstep/sync/attitude", {"version": 1, "header": {"t_s": 0.0, "seq": 0, "source": "attitude"},
                                    "tick": -1, "next_tick": 0, "triggers": [], "period_ticks": 2})
     outputs = []
     for seed in (1, 2):

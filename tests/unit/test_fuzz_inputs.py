@@ -142,6 +142,35 @@ def test_garbage_on_clock_sync_and_param_keys_is_counted_and_changes_nothing(ser
     assert rt._upstreams[name].last_done == 5
 
 
+def test_a_run_done_message_stands_for_its_sync_and_garbage_takes_no_tick(services):
+    """schemas.RUN_DONE: the motors' PWM marks their run done at the sim (an input there), the
+    attitude's state marks its run done at the sim too (a subscription of its own); garbage, or
+    a valid message from another source, moves nothing; the PWM is still tagged with the
+    motors' previous run, so the sim sees it only once that run counts as done."""
+    rt = services["sim"]
+    rt.subscribe_run_done()
+    assert "attitude" in rt._done_light and "motors" in rt._done_boxes
+    pwm_box = next(b for b in rt.inboxes if b.message is schemas.MOTOR_PWM)
+    rt._upstreams["motors"].last_done = 6
+    pool = Garbage(schemas.MOTOR_PWM, seed=5, pool=16)
+    before = _rejected(rt)
+    for _ in range(200):
+        pwm_box._on_sample(_sample(pool.next()[1]))
+    pwm_box._on_sample(_sample(schemas.MOTOR_PWM.encode(9 / rt.tick_rate, 0, "intruder", _values(schemas.MOTOR_PWM))))
+    assert rt._upstreams["motors"].last_done == 6
+    pwm_box._on_sample(_sample(schemas.MOTOR_PWM.encode(7 / rt.tick_rate, 1, "motors", _values(schemas.MOTOR_PWM))))
+    assert rt._upstreams["motors"].last_done == 7
+    pwm_box.take()
+    assert _rejected(rt) - before == 200
+    assert pwm_box._items[-1][0] == 6   # tagged with the run before it
+    # the attitude's state, on the sim's own subscription for it
+    on_state = rt._done_light["attitude"]
+    on_state(_sample(b"\xc1garbage"))
+    assert rt._upstreams["attitude"].last_done < 0
+    on_state(_sample(schemas.ATTITUDE_STATE.encode(8 / rt.tick_rate, 0, "attitude", _values(schemas.ATTITUDE_STATE))))
+    assert rt._upstreams["attitude"].last_done == 8
+
+
 def test_rejection_reasons_cover_every_kind(services):
     """Each kind of garbage is refused for the reason it deserves (where not flooded)."""
     rt = services["motors"]

@@ -434,3 +434,16 @@ def test_definitions_copy_and_pickle_with_their_codec():
     for m in (pickle.loads(pickle.dumps(schemas.IMU)), copy.deepcopy(schemas.IMU)):
         assert m == schemas.IMU and m.decode(payload) == schemas.IMU.decode(payload)
         assert reason(imu_doc(version=2), m) == "wrong_version"
+
+
+def test_the_lockstep_handshake_is_outside_every_vehicle_wide_subscription():
+    # the recorder and the tools subscribe to zp/<vehicle>/**: the clock and sync keys sit under a
+    # verbatim chunk so that they are not sent thousands of handshake messages a second
+    import zenoh
+    everything = zenoh.KeyExpr("zp/0/**")
+    for message in (schemas.CLOCK, schemas.SYNC_DONE):
+        key = zenoh.KeyExpr(message.key(0, "motors"))
+        assert not everything.intersects(key)
+        assert zenoh.KeyExpr(message.key(0, "*")).intersects(key)
+        assert schemas.message_for_key(str(key)) is message
+    assert everything.intersects(zenoh.KeyExpr(schemas.IMU.key(0)))

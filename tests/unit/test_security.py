@@ -90,7 +90,7 @@ def test_router_acl_lets_the_ground_publish_only_its_services_keys(tmp_path):
     assert ground["messages"] == ["put"] and ground["flows"] == ["ingress"]
     keys = set(ground["key_exprs"])
     assert {"zp/0/planner/setpoint", "zp/0/planner/plan", "zp/0/planner/command", "zp/0/param/set",
-            "zp/0/planner/health", "zp/0/sync/planner"} <= keys
+            "zp/0/planner/health", "zp/0/@lockstep/sync/planner"} <= keys
     for forbidden in ("zp/0/att/command", "zp/0/motors/pwm", "zp/0/pos/setpoint", "zp/0/sim/imu", "zp/0/**"):
         assert forbidden not in keys
     policies = {p["id"]: p for p in acl["policies"]}

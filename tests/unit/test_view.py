@@ -25,13 +25,10 @@ def test_malformed_and_unknown_messages_are_counted_and_dropped():
     assert v.stats.rejected == {"malformed": 1, "no_schema": 1, "missing_field": 1}
 
 
-def test_lockstep_handshake_and_liveliness_are_not_served():
+def test_liveliness_is_not_served():
     v = view()
-    v.handle("zp/0/sync/motors", b"x")
-    v.handle("zp/0/sim/clock/motors", b"x")
     v.handle("zp/0/alive/motors", b"")
-    assert v.stats.rejected == {} and v._raw == {"zp/0/sync/motors": None, "zp/0/sim/clock/motors": None,
-                                                 "zp/0/alive/motors": None}
+    assert v.stats.rejected == {} and v._raw == {"zp/0/alive/motors": None}
 
 
 def test_sequence_gaps_are_counted_and_nothing_is_sent_without_a_client():
