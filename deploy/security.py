@@ -173,13 +173,15 @@ def router_acl(stack: "Stack", machine: str) -> dict:
     liveliness of those services included), declare subscriptions and queries, and receive data.
     Default deny: an allow-list, so a put on a wildcard key (zp/0/**) is not let through."""
     prefix = f"zp/{stack.vehicle_id}"
+    # `**` never matches a verbatim chunk: the lockstep handshake's keys are named apart
+    every_key = ["**", f"{prefix}/@lockstep/**"]
     rules: list[dict] = [
         {"id": "everything", "messages": ALL_MESSAGES, "flows": ["ingress", "egress"],
-         "permission": "allow", "key_exprs": ["**"]},
+         "permission": "allow", "key_exprs": every_key},
         {"id": "declarations", "messages": DECLARATIONS, "flows": ["ingress", "egress"],
-         "permission": "allow", "key_exprs": ["**"]},
+         "permission": "allow", "key_exprs": every_key},
         {"id": "receive", "messages": ["put", "delete", "liveliness_token"], "flows": ["egress"],
-         "permission": "allow", "key_exprs": ["**"]},
+         "permission": "allow", "key_exprs": every_key},
     ]
     subjects = [{"id": f"machine-{machine}", "usernames": [machine]}]
     policies = [{"id": f"own-{machine}", "rules": ["everything"], "subjects": [f"machine-{machine}"]}]

@@ -93,6 +93,10 @@ def test_router_acl_lets_the_ground_publish_only_its_services_keys(tmp_path):
             "zp/0/planner/health", "zp/0/@lockstep/sync/planner"} <= keys
     for forbidden in ("zp/0/att/command", "zp/0/motors/pwm", "zp/0/pos/setpoint", "zp/0/sim/imu", "zp/0/**"):
         assert forbidden not in keys
+    # `**` does not match the handshake's verbatim @lockstep chunk: the machine's own sessions and
+    # what every machine receives name it apart (without it a secured lockstep stack never ticks)
+    for rule in ("everything", "declarations", "receive"):
+        assert "zp/0/@lockstep/**" in rules[rule]["key_exprs"]
     policies = {p["id"]: p for p in acl["policies"]}
     assert policies["own-vehicle"]["rules"] == ["everything"]
     assert "everything" not in policies["from-ground"]["rules"]
