@@ -111,18 +111,21 @@ def attitude_from_thrust_vector(h_world, yaw: float) -> tuple[float, float]:
 
 
 def position_law(mass, g, position, velocity, position_ref, k, alpha, yaw,
-                 max_tilt_rad: float = 0.6) -> tuple[float, float, float]:
+                 max_tilt_rad: float = 0.6, accel_bias_xy=None) -> tuple[float, float, float]:
     """Laws (10), (9), (11): desired acceleration H -> (roll_ref, pitch_ref, thrust_n).
 
     H = -(alpha+k) v - alpha k (p - p_ref) + [0, 0, g]. Hz is kept >= 0.1 g (never
     ask for upside down) and the tilt of H is clamped to max_tilt_rad by shrinking
-    its horizontal part (vertical authority is kept).
+    its horizontal part (vertical authority is kept). accel_bias_xy: a horizontal
+    acceleration added to H (the hold integral's, `hold_integral_update`).
     """
     k = np.asarray(k, dtype=np.float64)
     alpha = np.asarray(alpha, dtype=np.float64)
     p = np.asarray(position, dtype=np.float64)
     v = np.asarray(velocity, dtype=np.float64)
     h = -(alpha + k) * v - alpha * k * (p - np.asarray(position_ref, dtype=np.float64))
+    if accel_bias_xy is not None:
+        h[:2] += accel_bias_xy
     h[2] += g
     h[2] = max(h[2], 0.1 * g)
     horiz = np.hypot(h[0], h[1])
@@ -131,6 +134,22 @@ def position_law(mass, g, position, velocity, position_ref, k, alpha, yaw,
         h[:2] *= max_horiz / horiz
     roll_ref, pitch_ref = attitude_from_thrust_vector(h, yaw)
     return roll_ref, pitch_ref, float(mass * np.linalg.norm(h))
+
+
+def hold_integral_update(integral_xy, error_xy, dt: float, ki: float, limit_m_s2: float):
+    """The horizontal position-error integral of the hold (a steady wind is a steady force:
+    laws (10) alone hold it with an offset of a_wind / (alpha k)). Returns (integral, bias):
+    bias = -ki * integral is the acceleration it adds to H, its norm clamped to limit_m_s2
+    with the integral held there (no wind-up past what it may ask)."""
+    integral = np.asarray(integral_xy, dtype=np.float64) + np.asarray(error_xy, dtype=np.float64) * dt
+    if ki <= 0.0:
+        return np.zeros(2), np.zeros(2)
+    bias = -ki * integral
+    norm = float(np.hypot(bias[0], bias[1]))
+    if norm > limit_m_s2:
+        bias *= limit_m_s2 / norm
+        integral = -bias / ki
+    return integral, bias
 
 
 def altitude_law(mass, g, z, vz, z_ref, k, alpha, roll, pitch,

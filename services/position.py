@@ -29,7 +29,7 @@ from collections import deque
 import numpy as np
 
 import schemas
-from flight.control import altitude_law, position_law
+from flight.control import altitude_law, hold_integral_update, position_law
 from flight.position_ekf import LaggedMotorInput, PositionEKF, PositionEKFParams
 from flight.quat import quat_tilt, quat_to_euler
 from flight.vehicle import load_vehicle
@@ -46,6 +46,11 @@ PARAMS = {
     # (a growing oscillation, the mixer raising the collective); 20 deg held on every seed tried.
     # A vehicle file's max_tilt_deg lowers it for that airframe (Vehicle.tilt_limit_rad)
     "max_tilt_deg": 20.0,
+    # integral of the horizontal position error while the planner holds (phase "hold"), 1/s^3:
+    # a steady wind otherwise leaves an offset of a_wind / (alpha k); 8 puts the closed loop's
+    # poles at -5.2, -2 and -0.76 rad/s with k = alpha = 4. 0: laws (10) as 000 has them
+    "hold_ki": 0.0,
+    "hold_integral_limit_m_s2": 2.0,   # the most acceleration the integral may ask for
     "setpoint_timeout_s": 0.5,   # stale planner setpoint -> hold where we are
     "planner_loss_land_after_s": 5.0,  # ... then land there
     "land_speed_m_s": 0.5,
@@ -99,7 +104,8 @@ def run(args) -> None:
     k, alpha = rt.live_array("k"), rt.live_array("alpha")  # param/set applies them live
     m, g = vehicle.mass_kg, vehicle.gravity_m_s2
     allocation = vehicle.allocation
-    hold = {"position": None, "since": 0.0, "landed": False, "vision_lost": False}
+    hold = {"position": None, "since": 0.0, "landed": False, "vision_lost": False,
+            "integral": np.zeros(2), "bias": None}
     tilt_limit = {"deg": None, "rad": 0.0}  # vehicle.tilt_limit_rad of the (live) max_tilt_deg
     velocities: deque = deque(maxlen=max(2, round(ACCEL_WINDOW_S * rt.rate_hz) + 1))
 
@@ -192,6 +198,7 @@ def run(args) -> None:
             return
         if sp is not None and not stale and (sp["mode"] == "idle" or not sp["armed"]):
             ref_pos, att_ref, thrust = pos, [0.0, 0.0, yaw], 0.0
+            hold["integral"], hold["bias"] = np.zeros(2), None   # on the ground: nothing learnt stays
         elif sp is not None and not stale and sp["mode"] == "attitude":
             ref_pos, att_ref = np.asarray(sp["position_m"]), list(sp["attitude_rad"])
             thrust = altitude_law(m_eff, g, pos[2], vel[2], ref_pos[2], k[2], alpha[2], roll, pitch)
@@ -201,8 +208,13 @@ def run(args) -> None:
             if p["max_tilt_deg"] != tilt_limit["deg"]:
                 tilt_limit["deg"] = p["max_tilt_deg"]
                 tilt_limit["rad"] = vehicle.tilt_limit_rad(tilt_limit["deg"])
+            if p["hold_ki"] > 0.0:   # the integral learns while holding and is kept between holds
+                holding = not stale and sp["phase"] == "hold"
+                error = (pos[:2] - ref_pos[:2]) if holding else np.zeros(2)
+                hold["integral"], hold["bias"] = hold_integral_update(
+                    hold["integral"], error, 1.0 / rt.rate_hz, p["hold_ki"], p["hold_integral_limit_m_s2"])
             r, pt, thrust = position_law(m_eff, g, pos, vel, ref_pos, k, alpha, yaw_ref,
-                                         max_tilt_rad=tilt_limit["rad"])
+                                         max_tilt_rad=tilt_limit["rad"], accel_bias_xy=hold["bias"])
             att_ref = [r, pt, yaw_ref]
         thrust = float(min(thrust, 4 * vehicle.max_thrust_n))
         setpoint_out.put({"attitude_ref_rad": att_ref, "thrust_n": thrust}, t_s=t)

@@ -130,3 +130,33 @@ def test_attitude_law_is_the_vectorised_formula():
                            k, a, max_accel)
         assert isinstance(got, np.ndarray) and got.shape == (3,)
         np.testing.assert_array_equal(got, expected)
+
+
+def test_hold_integral_removes_a_steady_wind_offset_and_does_not_wind_up():
+    """A point mass under laws (10) and a steady horizontal push: alone they hold it off by
+    a / (alpha k); with the hold integral the offset goes to zero; the integral's acceleration
+    never exceeds its limit, and ki = 0 is laws (10) exactly."""
+    from flight.control import hold_integral_update
+    k = alpha = np.array([4.0, 4.0, 4.0])
+    wind = np.array([1.0, -0.5])   # m/s^2 of push
+
+    def settle(ki: float, seconds: float = 20.0, dt: float = 0.01) -> np.ndarray:
+        p, v, integral, bias = np.zeros(2), np.zeros(2), np.zeros(2), None
+        for _ in range(int(seconds / dt)):
+            if ki > 0:
+                integral, bias = hold_integral_update(integral, p, dt, ki, 2.0)
+            h = -(alpha[:2] + k[:2]) * v - alpha[:2] * k[:2] * p + (bias if bias is not None else 0.0)
+            v = v + (h + wind) * dt
+            p = p + v * dt
+        return p
+    assert np.allclose(settle(0.0), wind / 16.0, atol=1e-3)    # the offset laws (10) leave
+    assert np.linalg.norm(settle(16.0)) < 1e-3
+    integral, bias = hold_integral_update(np.zeros(2), np.array([100.0, 0.0]), 1.0, 16.0, 2.0)
+    assert np.isclose(np.linalg.norm(bias), 2.0) and np.allclose(-16.0 * integral, bias)
+    integral, bias = hold_integral_update(np.ones(2), np.ones(2), 0.01, 0.0, 2.0)
+    assert not integral.any() and not bias.any()
+    args = (0.4, 9.81, [0.1, 0.0, 1.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0], k, alpha, 0.0)
+    assert position_law(*args) == position_law(*args, accel_bias_xy=None)
+    assert abs(position_law(*args)[1]) > 0.1   # 0.1 m off: it tilts back
+    # a bias that cancels the offset's pull levels it: the bias enters H as an acceleration
+    assert np.allclose(position_law(*args, accel_bias_xy=np.array([1.6, 0.0]))[:2], 0.0, atol=1e-12)
