@@ -203,10 +203,9 @@ class Inbox:
         raw = self._raw
         if self.marks_done:   # tagged before it counts as the upstream's sync: its run's own outputs precede it
             tag = rt._sync_tick(self.upstream)
-            try:
-                msg = self._decode(data)
-            except schemas.SchemaError:
-                raw.append((tag, data))   # diagnosed and counted by the reader; no tick taken from it
+            msg = self._accept(data)   # garbage: None, undiagnosed (the reader diagnoses it once)
+            if msg is None:
+                raw.append((tag, data))   # counted by the reader; no tick taken from it
             else:   # queued before it says "done": a reader woken by that finds it
                 raw.append((tag, msg))
                 rt._run_done(self.upstream, msg)
@@ -326,7 +325,7 @@ class Publisher:
         self._put = self._pub.put
         self._encode = message.encode
         self._source = runtime.name
-        self.tracked = True   # a lockstep run's last put is noted (Runtime._run_lockstep)
+        self.tracked = runtime.lockstep   # a lockstep run's last put is noted (Runtime._run_lockstep)
         self.last_t = -1.0
 
     def put(self, values: dict[str, Any], t_s: float | None = None, repeat: bool = False) -> None:
