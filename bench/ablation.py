@@ -19,7 +19,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from flight.attitude_filter import FILTER_000  # noqa: E402
+from flight.estimation.attitude_filter import FILTER_000  # noqa: E402
 
 
 def _inline_table(d: dict) -> str:

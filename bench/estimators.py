@@ -17,10 +17,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from flight.attitude_filter import AttitudeFilter  # noqa: E402
-from flight.control import STOPPING_ACCEL_FRACTION, attitude_law, stopping_accel  # noqa: E402
-from flight.gyrovertical import GyroIntegrator, GyroVertical, GyroVerticalParams  # noqa: E402
-from flight.position_ekf import PositionEKF  # noqa: E402
+from flight.estimation.attitude_filter import AttitudeFilter  # noqa: E402
+from flight.control.laws import STOPPING_ACCEL_FRACTION, attitude_law, stopping_accel  # noqa: E402
+from flight.estimation.gyrovertical import GyroIntegrator, GyroVertical, GyroVerticalParams  # noqa: E402
+from flight.estimation.position_ekf import PositionEKF  # noqa: E402
 from flight.vehicle import load_vehicle  # noqa: E402
 
 

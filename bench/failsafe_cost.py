@@ -1,4 +1,4 @@
-"""Per-tick cost of the motor driver's failsafe law (flight/failsafe.py + law (8) + mixer),
+"""Per-tick cost of the motor driver's failsafe law (flight/control/failsafe.py + law (8) + mixer),
 against the normal path's mix of an attitude command: what the 400 Hz loop pays in each.
 
     python bench/failsafe_cost.py
@@ -8,9 +8,9 @@ import timeit
 
 import numpy as np
 
-from flight.control import STOPPING_ACCEL_FRACTION, attitude_law, stopping_accel
-from flight.failsafe import Descent, DescentParams, LevelEstimate
-from flight.mixer import mix, thrust_to_pwm
+from flight.control.laws import STOPPING_ACCEL_FRACTION, attitude_law, stopping_accel
+from flight.control.failsafe import Descent, DescentParams, LevelEstimate
+from flight.control.mixer import mix, thrust_to_pwm
 from flight.vehicle import load_vehicle
 
 v = load_vehicle("x250")

@@ -7,7 +7,7 @@
 
 Every flight is one real-time `zenpilot fly` of the mission (every service its own process,
 the loops at the stack's real-time priorities), one at a time. Per flight, from its
-metrics.json's `flip` object (flight.flip.flip_metrics on the simulator truth) and the
+metrics.json's `flip` object (flight.control.flip.flip_metrics on the simulator truth) and the
 planner's health: whether the flip completed (recovered, no crash) and the mission too,
 altitude loss, XY drift, recovery time, plans sent per second of the flip item and the
 re-solves lost (the item's span at 100 Hz against the plans sent: 0 when every period had

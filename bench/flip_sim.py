@@ -27,8 +27,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from flight.flip import heights
-from flight.flip import (
+from flight.control.flip import heights
+from flight.control.flip import (
     PROJECT_FLIP,
     THESIS_BASELINE,
     THESIS_FLIP,
@@ -41,7 +41,7 @@ from flight.flip import (
     RollAccumulator,
     flip_metrics,
 )
-from flight.ilqr import (
+from flight.control.ilqr import (
     PROJECT,
     THESIS,
     ILQRConfig,
@@ -50,7 +50,7 @@ from flight.ilqr import (
     motor_forces_update,
     warm_start,
 )
-from flight.mixer import pwm_to_thrust, thrust_to_pwm
+from flight.control.mixer import pwm_to_thrust, thrust_to_pwm
 from flight.vehicle import Vehicle, load_vehicle
 from simulator.config import SimConfig
 from simulator.plant import Plant
@@ -101,7 +101,7 @@ def simulate_mpc(vehicle: Vehicle, planner: Planner, flip: FlipConfig, solve_rat
                  after_recovery_s: float = 1.0, max_time_s: float = 12.0,
                  sim: SimConfig = SIM) -> FlipRun:
     """Take off from the ground, flip, recover; stop after_recovery_s into the hold that
-    follows (the phase machine's land: as the planner service (flight/flip_runner.py), a
+    follows (the phase machine's land: as the planner service (flight/control/flip_runner.py), a
     hover where it recovered, at the flip's altitude)."""
     ticks_per_solve = round(sim.tick_rate_hz / solve_rate_hz)
     kf = vehicle.thrust_coefficient_kf

@@ -6,8 +6,8 @@ simulator's plant, truth state, at other flip durations and heights than the pri
 import dataclasses, sys, time
 sys.path.insert(0, str(__import__('pathlib').Path(__file__).resolve().parents[1]))
 from bench.flip_sim import simulate_mpc, _report
-from flight.ilqr import THESIS, Planner
-from flight.flip import THESIS_FLIP
+from flight.control.ilqr import THESIS, Planner
+from flight.control.flip import THESIS_FLIP
 from flight.vehicle import load_vehicle
 v = load_vehicle("q820")
 planner = Planner(v, THESIS)

@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT))
 
 from deploy.gyrovertical_training import (ESTIMATORS, control_flight, estimate,  # noqa: E402
                                           manoeuvring, tilt_error_deg)
-from flight.gyrovertical import PAPER_PARAMS_FILE, load_trained  # noqa: E402
+from flight.estimation.gyrovertical import PAPER_PARAMS_FILE, load_trained  # noqa: E402
 
 BIAS_DEG_S = 0.05
 COLORS = {"integration": "tab:red", "fixed": "tab:orange", "adaptive": "tab:blue", "kalman-000": "tab:green"}

@@ -10,7 +10,7 @@ alternating rounds and the median of the rounds' ratios, timed two ways: on the 
 (the same device arrays in, every output computed; how the thesis's code was timed before)
 and end to end (numpy in, numpy out, as the planner service calls it), then the PROJECT configuration's
 solve time and MPC rate; then the planner's start-up in a fresh process: compiling, and
-loading from the compile cache the planner service keeps (flight.ilqr.use_compile_cache).
+loading from the compile cache the planner service keeps (flight.control.ilqr.use_compile_cache).
 """
 from __future__ import annotations
 
@@ -27,9 +27,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-# flight.ilqr first: on import it sets an XLA option that XLA reads at the process's first
+# flight.control.ilqr first: on import it sets an XLA option that XLA reads at the process's first
 # JAX operation, and bench.ilqr_thesis computes its weight matrices on import.
-from flight.ilqr import PROJECT, THESIS, Planner, hover_state, solver_compiler_options, warm_start  # noqa: I001
+from flight.control.ilqr import PROJECT, THESIS, Planner, hover_state, solver_compiler_options, warm_start  # noqa: I001
 from bench.ilqr_thesis import make_thesis_ilqr
 from flight.vehicle import load_vehicle
 
@@ -62,7 +62,7 @@ def problem(horizon: int):
 STARTUP = """
 import sys, time
 sys.path.insert(0, {root!r})
-from flight.ilqr import {config}, Planner, use_compile_cache
+from flight.control.ilqr import {config}, Planner, use_compile_cache
 from flight.vehicle import load_vehicle
 use_compile_cache({cache!r})
 vehicle = load_vehicle("q820")

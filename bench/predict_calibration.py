@@ -3,7 +3,7 @@
     .venv/bin/python bench/predict_calibration.py [--flights 20] [--rollouts 1000]
         [--rows nominal,mass+10%,wind-2m/s]
 
-For each row: the prediction (flight/predict.py: the nominal's plans and gains replayed over
+For each row: the prediction (flight/control/predict.py: the nominal's plans and gains replayed over
 --rollouts drawn cases), then --flights other cases drawn from the same uncertainty, each
 flown by the planner's full controller (flight/flip_runner.FlipController: the phase machine
 and the iLQR re-solved at 100 Hz from the state) on the simulator's plant (simulator/plant.py:
@@ -26,9 +26,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from flight.flip import Phase, RollAccumulator, flip_metrics, heights
-from flight.flip_runner import FlipController
-from flight.predict import TICK_RATE_HZ, Predictor, Uncertainty, draw_cases, fly_nominal
+from flight.control.flip import Phase, RollAccumulator, flip_metrics, heights
+from flight.control.flip_runner import FlipController
+from flight.control.predict import TICK_RATE_HZ, Predictor, Uncertainty, draw_cases, fly_nominal
 from flight.vehicle import load_vehicle
 from simulator.config import SimConfig
 from simulator.plant import Plant
@@ -104,7 +104,7 @@ def fly_case(controller: FlipController, vehicle, cases: dict, i: int, ticks: in
 
 
 def _feedback(controller, t, x, u_max):
-    from flight.ilqr import feedback_control
+    from flight.control.ilqr import feedback_control
     return feedback_control(controller.plan, t - controller.plan_t_s, x, u_max)
 
 

@@ -1,4 +1,4 @@
-"""Time per camera frame of the vision service's pose solve (flight/pnp.py), former vs current.
+"""Time per camera frame of the vision service's pose solve (flight/estimation/pnp.py), former vs current.
 
     python bench/vision.py [--frames 40] [--rounds 5] [--seed 0]
 
@@ -32,7 +32,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from flight import pnp  # noqa: E402
+from flight.estimation import pnp  # noqa: E402
 from flight.quat import quat_conjugate, quat_from_euler, quat_multiply  # noqa: E402
 from simulator.config import SimConfig  # noqa: E402
 from simulator.sensors import MarkerCamera  # noqa: E402

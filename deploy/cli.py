@@ -41,7 +41,7 @@ from deploy.progress import FlightProgress
 from deploy.report import REPORT_NAME, RUN_FILES, write_report
 from deploy.stack import StackError, load_stack, lockstep_services
 from deploy.supervisor import POLL_S, Supervisor
-from flight.mission import MissionError, available_missions, load_mission
+from flight.control.mission import MissionError, available_missions, load_mission
 
 DEFAULT_MISSION = "steps"
 STATE_DIR = Path(os.environ.get("ZENPILOT_STATE_DIR", Path.home() / ".zenpilot"))

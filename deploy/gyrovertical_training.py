@@ -3,7 +3,7 @@
 Steps (004, section "training"):
 
 1. fly ``--flights`` manoeuvre flights of ``--duration-s`` in the simulator
-   (simulator/scenarios.py, the "training" menu: steps, circles, yaw turns,
+   (deploy/manoeuvres.py, the "training" menu: steps, circles, yaw turns,
    attitude steps, a flip), seeds drawn from ``--seed``;
 2. from each, the 9 sequences of 004: the 8 sign combinations of
    +-``--bias-deg-s`` on the three gyros, plus the exact one;
@@ -24,10 +24,10 @@ import sys
 import time
 from pathlib import Path
 
-from flight.gyrovertical import (DT_REF, GyroVerticalParams, TrainedParams, TrainingSequence,
+from flight.estimation.gyrovertical import (DT_REF, GyroVerticalParams, TrainedParams, TrainingSequence,
                                  make_training_sequences, train)
 from flight.vehicle import load_vehicle
-from simulator.scenarios import FlightData, record
+from deploy.manoeuvres import FlightData, record
 
 def training_flights(vehicle_name: str, seed: int, flights: int, duration_s: float) -> list[FlightData]:
     """``flights`` training-menu flights, cut to exactly ``duration_s`` (equal lengths batch together)."""
@@ -84,7 +84,7 @@ def run_training(vehicle: str, seed: int, flights: int, duration_s: float, bias_
         log(f"training the {name} filter (up to {maxiter} iterations) ...")
         results[adaptive] = train(seqs, GyroVerticalParams(), DT_REF, maxiter=maxiter, seed=seed,
                                   progress=progress, adaptive=adaptive)
-    from flight.gyrovertical_jax import BatchEvaluator
+    from flight.estimation.gyrovertical_jax import BatchEvaluator
     costs = {a: BatchEvaluator(seqs, adaptive=a)(results[a].to_vector()) for a in (True, False)}
     default_cost = BatchEvaluator(seqs)(GyroVerticalParams().to_vector())
     log(f"criterion (10) on the training sequences: default {default_cost:.4f}, "
@@ -148,7 +148,7 @@ def estimate(flight: FlightData, estimator: str, trained: TrainedParams,
     """
     import numpy as np
 
-    from flight.gyrovertical import GyroIntegrator, run_sequence
+    from flight.estimation.gyrovertical import GyroIntegrator, run_sequence
     from flight.quat import quat_from_euler
 
     gyro = flight.gyro_rad_s + np.asarray(bias_rad_s, dtype=np.float64)
@@ -158,14 +158,14 @@ def estimate(flight: FlightData, estimator: str, trained: TrainedParams,
     if estimator in ("fixed", "adaptive"):
         import jax.numpy as jnp
 
-        from flight.gyrovertical_jax import run_batch
+        from flight.estimation.gyrovertical_jax import run_batch
         params = trained.adaptive if estimator == "adaptive" else trained.fixed
         r, p = run_batch(jnp.asarray(params.to_vector()), jnp.asarray(gyro[None]),
                          jnp.asarray(flight.accel_m_s2[None]), jnp.asarray(q0[None]),
                          adaptive=estimator == "adaptive")
         return np.asarray(r[0], dtype=np.float64), np.asarray(p[0], dtype=np.float64)
     if estimator == "kalman-000":
-        from flight.attitude_filter import AttitudeFilter
+        from flight.estimation.attitude_filter import AttitudeFilter
         filt = AttitudeFilter(load_vehicle(vehicle_name).inertia_kg_m2)
         roll, pitch = np.empty(len(gyro)), np.empty(len(gyro))
         for i in range(1, len(gyro), 2):   # one 200 Hz call per two IMU samples, estimate at the newer one
@@ -193,5 +193,5 @@ def tilt_error_deg(flight: FlightData, roll, pitch):
     """Per-sample (roll, pitch) errors, degrees, wrapped."""
     import numpy as np
 
-    from flight.gyrovertical import wrap
+    from flight.estimation.gyrovertical import wrap
     return np.degrees(wrap(roll - flight.roll_rad)), np.degrees(wrap(pitch - flight.pitch_rad))

@@ -408,9 +408,9 @@ FLIP_PHASES = {"flip": "flip", "flip-recovery": "recovery"}  # setpoint phase ->
 
 
 def _flip(log, p, sp, truth, truth_t, sp_idx) -> dict:
-    """The flip object: flight.flip.flip_metrics on the truth (its first flip), the method,
+    """The flip object: flight.control.flip.flip_metrics on the truth (its first flip), the method,
     and the planner's re-solves as they ran (rate, compute time, failures)."""
-    from flight.flip import flip_metrics
+    from flight.control.flip import flip_metrics
 
     phases = [FLIP_PHASES.get(sp[i]["phase"], "idle") for i in sp_idx]
     fm = flip_metrics(truth_t, [x["position_m"] for x in truth], [x["quaternion_wxyz"] for x in truth],
@@ -439,8 +439,8 @@ def _flip(log, p, sp, truth, truth_t, sp_idx) -> dict:
 
 
 def _turn_loss(fm, truth, truth_t, phases) -> float | None:
-    """The height lost from the turn's start (flight.flip.heights), None without a completed flip."""
-    from flight.flip import RollAccumulator, heights
+    """The height lost from the turn's start (flight.control.flip.heights), None without a completed flip."""
+    from flight.control.flip import RollAccumulator, heights
     if not fm.completed:
         return None
     start = phases.index("flip")

@@ -1,4 +1,4 @@
-"""`zenpilot predict`: a mission's flips predicted before they are flown (flight/predict.py).
+"""`zenpilot predict`: a mission's flips predicted before they are flown (flight/control/predict.py).
 
 For each flip item of the mission: the flip flown once on the planner's model by the
 planner's own controller, then N closed-loop rollouts of its plans and feedback gains on
@@ -25,7 +25,7 @@ FIGURES = (("loss_from_turn_m", "altitude loss from the turn's start", "m"),
 
 
 def add_parser(sub) -> None:
-    from flight.predict import Uncertainty
+    from flight.control.predict import Uncertainty
     d = Uncertainty()
     p = sub.add_parser("predict", help="predict a mission's flips before flying them (batched JAX rollouts)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -52,8 +52,8 @@ def add_parser(sub) -> None:
 
 
 def cmd_predict(args) -> int:
-    from flight.mission import load_mission
-    from flight.predict import PredictError, Uncertainty, build_predictor
+    from flight.control.mission import load_mission
+    from flight.control.predict import PredictError, Uncertainty, build_predictor
     from flight.vehicle import load_vehicle
 
     if args.rollouts < 1:

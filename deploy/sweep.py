@@ -554,7 +554,7 @@ def run_sweep(grid: Grid, out: Path, workers: int = 2, scheduler: str | None = N
 
 
 def cmd_sweep(args) -> int:
-    from flight.mission import load_mission
+    from flight.control.mission import load_mission
 
     if args.workers < 1:
         raise StackError(f"--workers {args.workers}: at least 1")

@@ -28,7 +28,7 @@ whose rotors lag in speed, it drifted 8.5 mm over 3 s on the x250 and 4.8 cm and
 on the q820; this one agrees to ~1e-9 m, tests/unit/test_motor_model.py.)
 
 Pure numpy and math; the functions taking `sqrt` work on JAX arrays too when given a
-jnp square root (flight/ilqr.py).
+jnp square root (flight/control/ilqr.py).
 """
 from __future__ import annotations
 

@@ -342,7 +342,7 @@ PLANNER_PLAN = Message(
 
 PLANNER_FLIP_PREDICTION = Message(
     "planner_flip_prediction", "planner/flip_prediction", 1,
-    "A flip item's predicted envelope (flight/predict.py), sent once on the planner's first "
+    "A flip item's predicted envelope (flight/control/predict.py), sent once on the planner's first "
     "tick for each iLQR flip item of its mission: N closed-loop rollouts of the planner's plans "
     "and gains over drawn mass, inertia, thrust, motor lag, wind, gusts, delay and start error. "
     "Each figure is [p5, p50, p95], or [] where no case defines it (none turned, none "

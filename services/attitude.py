@@ -31,16 +31,16 @@ from operator import itemgetter
 import numpy as np
 
 import schemas
-from flight.attitude_filter import (
+from flight.estimation.attitude_filter import (
     AttitudeFilter,
     AttitudeFilterParams,
     CameraLevel,
     GyroCarrier,
     accel_roll_pitch,
 )
-from flight.control import STOPPING_ACCEL_FRACTION, attitude_law, stopping_accel
-from flight.failsafe import Descent, DescentParams
-from flight.gyrovertical import DEFAULT_PARAMS_FILE, GyroVertical, load_trained
+from flight.control.laws import STOPPING_ACCEL_FRACTION, attitude_law, stopping_accel
+from flight.control.failsafe import Descent, DescentParams
+from flight.estimation.gyrovertical import DEFAULT_PARAMS_FILE, GyroVertical, load_trained
 from flight.quat import quat_from_euler, quat_to_euler, quat_to_rotation, rotate_vector
 from flight.vehicle import load_vehicle
 from services.runtime import Runtime, main_guard, service_parser
@@ -59,7 +59,7 @@ PARAMS = {
     "setpoint_timeout_s": 0.1,
     "state_timeout_s": 0.05,      # newest IMU sample (truth) older than this -> no command
     "failsafe_descent": {},       # flight/failsafe.DescentParams overrides
-    "filter": {},                 # AttitudeFilterParams overrides (flight/attitude_filter.py)
+    "filter": {},                 # AttitudeFilterParams overrides (flight/estimation/attitude_filter.py)
     # Subtract the position level's acceleration estimate from the accelerometer
     # (the V' terms of 004's observation (5)) before deriving roll and pitch: a
     # multirotor's accelerometer reads "level" whenever it tilts to accelerate, so

@@ -7,7 +7,7 @@ command yet) it holds every motor at the minimum pulse.
 
 Plans (the flip of 001): while the planner's setpoint is in mode `plan` and a
 plan (planner/plan) is valid at t (t0_s <= t < t0_s + horizon dt_s), the driver
-applies u = u_plan(t) + K(t) (x - x_plan(t)) (flight/plan.py) on the latest
+applies u = u_plan(t) + K(t) (x - x_plan(t)) (flight/control/plan.py) on the latest
 estimate x (pos/state position/velocity and att/state quaternion/rates, each
 carried forward over its age; with a 17-state plan, the rotor forces its own
 commands imply through the motor lag), clipped to the rotor limits, as thrust
@@ -20,7 +20,7 @@ Stale commands and the failsafe: an attitude command is judged by its sample tim
 the driver's clock (its header's, and the IMU sample behind it: a controller resumed after a
 freeze publishes "now" from old samples); one older than `command_timeout_s` (50 ms) is never
 mixed (counted per message: "stale_att_command"). Armed and flying with no fresh command, the
-driver flies on its own (flight/failsafe.py, counted "failsafe_engaged"): it subscribes to the
+driver flies on its own (flight/control/failsafe.py, counted "failsafe_engaged"): it subscribes to the
 IMU then (nothing of it costs the 400 Hz path before), keeps the vehicle level with law (8) on a
 complementary estimate started from the last att/state, descends on a thrust ramp to a slow
 sink from the last thrust, and disarms past the estimated ground (latched until the planner
@@ -37,10 +37,10 @@ from __future__ import annotations
 import numpy as np
 
 import schemas
-from flight.control import STOPPING_ACCEL_FRACTION, attitude_law, stopping_accel
-from flight.failsafe import Descent, DescentParams, LevelEstimate
-from flight.mixer import mix, pwm_to_thrust, thrust_to_pwm
-from flight.plan import RotorPlan, body_state, motor_forces_update, scale_collective
+from flight.control.laws import STOPPING_ACCEL_FRACTION, attitude_law, stopping_accel
+from flight.control.failsafe import Descent, DescentParams, LevelEstimate
+from flight.control.mixer import mix, pwm_to_thrust, thrust_to_pwm
+from flight.control.plan import RotorPlan, body_state, motor_forces_update, scale_collective
 from flight.vehicle import load_vehicle
 from services.runtime import Runtime, main_guard, service_parser
 

@@ -1,7 +1,7 @@
 """zenpilot-planner: flies a mission file (arm, take off, hold, go to points, flip, land).
 
 Publishes planner/setpoint at its rate from the phase machine in
-flight/mission.py, fed by the position level's state. It also follows
+flight/control/mission.py, fed by the position level's state. It also follows
 planner/command (from the MAVLink bridge): a command replaces whatever is
 being flown, and planner/mission (the bridge's uploaded MAVLink mission): a list
 of items flown from the next tick. Mission "none" (or ""): idle on the ground,
@@ -11,14 +11,14 @@ Flip items (document 001): when the mission has one, the flip controller of each
 method it names is built at start-up (the iLQR compiled and warmed up before the
 first tick, never in flight; the executable is kept in `compile_cache_dir`, so
 a restart loads it instead of compiling) and the loop runs at least at the re-solve rate
-(`mpc_rate_hz`, 0: the method's default, see flight/flip_runner.py). While a flip
+(`mpc_rate_hz`, 0: the method's default, see flight/control/flip_runner.py). While a flip
 item runs, the setpoint's mode is `plan` and every re-solve from the latest
 estimate (pos/state + att/state, and the rotor forces implied by motors/pwm)
 goes out on planner/plan for the motor driver.
 
 Real time (bench/flip_realtime.py): the stack gives the planner a real-time priority below
 the control loops and vision; the solver is built at normal scheduling and then runs on one
-XLA thread, dispatched synchronously (flight.ilqr.use_one_solver_thread); at the position
+XLA thread, dispatched synchronously (flight.control.ilqr.use_one_solver_thread); at the position
 level's rate the loop runs on each new position state.
 """
 
@@ -30,8 +30,8 @@ from dataclasses import replace
 import numpy as np
 
 import schemas
-from flight.mission import FLIP_METHODS, MissionError, Planner, load_mission, mission_items
-from flight.plan import body_state, motor_forces_update, scale_collective
+from flight.control.mission import FLIP_METHODS, MissionError, Planner, load_mission, mission_items
+from flight.control.plan import body_state, motor_forces_update, scale_collective
 from services.runtime import Runtime, main_guard, service_parser
 
 NAME = "planner"
@@ -42,7 +42,7 @@ PARAMS = {
     # where compiled iLQR solvers are kept between starts ("": compile every start)
     "compile_cache_dir": "~/.cache/zenpilot/jax",
     # before the first tick, each iLQR flip item is predicted over this many uncertain cases
-    # (flight/predict.py; `zenpilot predict` prints the same); 0: no check
+    # (flight/control/predict.py; `zenpilot predict` prints the same); 0: no check
     "flip_predict_rollouts": 256,
     # ... and refused when its 95th-percentile loss from the hover leaves less than this, m
     "flip_clearance_m": 0.5,
@@ -58,16 +58,16 @@ def flip_controllers(rt: Runtime, mission) -> dict:
     methods = sorted({item["method"] for item in mission.items if item["type"] == "flip"}) if mission else []
     if not methods:
         return {}
-    from flight.flip_runner import FlipController, loop_rate_hz
+    from flight.control.flip_runner import FlipController, loop_rate_hz
     from flight.vehicle import load_vehicle
     vehicle = load_vehicle(rt.vehicle_name)
     rate = rt.params["mpc_rate_hz"] or None
     if any(m != "baseline" for m in methods):
-        from flight.ilqr import use_one_solver_thread
+        from flight.control.ilqr import use_one_solver_thread
         if not use_one_solver_thread():
-            rt.problem("JAX started before the solver's thread settings (flight.ilqr.use_one_solver_thread)")
+            rt.problem("JAX started before the solver's thread settings (flight.control.ilqr.use_one_solver_thread)")
     if rt.params["compile_cache_dir"]:
-        from flight.ilqr import use_compile_cache
+        from flight.control.ilqr import use_compile_cache
         try:
             use_compile_cache(rt.params["compile_cache_dir"])
         except OSError as exc:
@@ -78,7 +78,7 @@ def flip_controllers(rt: Runtime, mission) -> dict:
         t0 = time.monotonic()
         controllers[m] = FlipController(vehicle, m, rate)
         print(f"zenpilot-planner: {m}: built (JAX compile and warm-up) in {time.monotonic() - t0:.2f} s", flush=True)
-        if controllers[m].planner is not None:  # XLA's small-loop option took (flight/ilqr.py), or not
+        if controllers[m].planner is not None:  # XLA's small-loop option took (flight/control/ilqr.py), or not
             whole = controllers[m].planner.loops_compiled_whole()
             print(f"zenpilot-planner: {m}: {whole} of the solver's loops compiled whole", flush=True)
     loop = loop_rate_hz(rt.rate_hz, rt.tick_rate, [c.solve_rate_hz for c in controllers.values()])
@@ -97,7 +97,7 @@ def predict_flips(rt: Runtime, mission, controllers: dict) -> tuple[dict, list]:
         raise ValueError(f"{rt.where()} flip_predict_rollouts: must be >= 0 (got {n})")
     if n == 0 or not controllers:
         return {}, []
-    from flight.predict import FIGURES, PredictError, build_predictor
+    from flight.control.predict import FIGURES, PredictError, build_predictor
     refused, messages = {}, []
     items = {(i["method"], float(i["altitude_m"])) for i in mission.items if i["type"] == "flip"}
     for method, altitude in sorted(items):

@@ -4,7 +4,7 @@ State source `estimate` (default): an extended Kalman filter on the
 12-state model (1)-(2) with the thrust/torque input, fed with the attitude
 level's angles and rates (200 Hz) and the vision poses (20 Hz, about 50 ms
 old: fused at their exposure time and predicted forward, see
-flight/position_ekf.py). Gated measurements are counted, never fused.
+flight/estimation/position_ekf.py). Gated measurements are counted, never fused.
 State source `truth`: the simulator's ground truth (an explicit ablation).
 In `position` mode laws (10), (9), (11) turn the planner's reference into an
 attitude reference and collective thrust; in `attitude` mode the altitude
@@ -29,8 +29,8 @@ from collections import deque
 import numpy as np
 
 import schemas
-from flight.control import altitude_law, hold_integral_update, position_law
-from flight.position_ekf import LaggedMotorInput, PositionEKF, PositionEKFParams
+from flight.control.laws import altitude_law, hold_integral_update, position_law
+from flight.estimation.position_ekf import LaggedMotorInput, PositionEKF, PositionEKFParams
 from flight.quat import quat_tilt, quat_to_euler
 from flight.vehicle import load_vehicle
 from services.runtime import Runtime, main_guard, service_parser
@@ -71,7 +71,7 @@ PARAMS = {
     # past this tilt (a flip) the attitude level's angles are not fused but pinned into the
     # EKF (PositionEKF.pin_attitude; counted as attitude_pinned_tilted)
     "attitude_pin_tilt_deg": 60.0,
-    "ekf": {},                   # PositionEKFParams overrides (flight/position_ekf.py)
+    "ekf": {},                   # PositionEKFParams overrides (flight/estimation/position_ekf.py)
 }
 STATE_SOURCES = ("truth", "estimate")
 ACCEL_WINDOW_S = 0.1  # acceleration = slope of the velocity over this window

@@ -1,7 +1,7 @@
 """zenpilot-vision: vehicle pose from the camera's marker corners (20 Hz, on each frame).
 
 Runs on every sim/camera frame: a perspective-n-point solve against the
-known marker map (flight/pnp.py) gives position, attitude and their
+known marker map (flight/estimation/pnp.py) gives position, attitude and their
 covariance, stamped with the frame's exposure time. Degenerate or
 inconsistent solutions are counted by reason (health `rejected`) and not
 published. Detection (pixels from an image) is not done here: the frame
@@ -14,7 +14,7 @@ import numpy as np
 
 import schemas
 from flight.camera import Camera
-from flight.pnp import MarkerMap, solve_pose
+from flight.estimation.pnp import MarkerMap, solve_pose
 from services.runtime import Runtime, main_guard, service_parser
 from simulator.config import SimConfig
 

@@ -158,7 +158,7 @@ def test_project_flip_completes_on_estimates_10_percent_heavier(tmp_path):
 
 
 def test_a_flip_predicted_to_lose_more_than_the_height_available_is_refused_before_it_starts(tmp_path):
-    """The planner predicts each flip item at start-up (flight/predict.py, 256 rollouts); asked
+    """The planner predicts each flip item at start-up (flight/control/predict.py, 256 rollouts); asked
     to keep 4.98 m of a 5 m hover clear of the ground, the flip's predicted 95th-percentile loss
     does not fit: the item is refused with that reason and never started, and the vehicle holds
     where it was."""

@@ -13,7 +13,7 @@ from pymavlink import mavutil  # noqa: E402
 import schemas  # noqa: E402
 from deploy.launcher import ZENOH_RUNTIME, client_session, free_port, wait_port  # noqa: E402
 from flight.mavframes import actuator_controls  # noqa: E402
-from flight.mixer import mix  # noqa: E402
+from flight.control.mixer import mix  # noqa: E402
 from flight.vehicle import load_vehicle  # noqa: E402
 
 from .conftest import ROOT  # noqa: E402

@@ -1,4 +1,4 @@
-"""Attitude level of document 000 (flight/attitude_filter.py).
+"""Attitude level of document 000 (flight/estimation/attitude_filter.py).
 
 A synthetic vehicle: per axis the double integrator I w' = u of 000 (roll,
 pitch, yaw independent, body rate = Euler rate), integrated exactly between
@@ -15,7 +15,7 @@ from collections import deque
 import numpy as np
 import pytest
 
-from flight.attitude_filter import (
+from flight.estimation.attitude_filter import (
     AF,
     FILTER_000,
     G_REF,
@@ -34,7 +34,7 @@ from flight.attitude_filter import (
     rotation_zyx,
     wrap,
 )
-from flight.control import attitude_law
+from flight.control.laws import attitude_law
 from flight.quat import quat_from_euler, quat_to_rotation
 
 INERTIA = np.array([7.5e-3, 7.5e-3, 14.2e-3])   # the x250 of 000
@@ -336,7 +336,7 @@ def test_reset_and_free_fall():
 
 # ------------------------------------------------------------------ the flip: gyro carrier
 def test_quat_integrate_turns_by_the_body_rate():
-    from flight.attitude_filter import quat_integrate
+    from flight.estimation.attitude_filter import quat_integrate
     from flight.quat import quat_to_euler
     q = np.array([1.0, 0.0, 0.0, 0.0])
     for _ in range(200):   # 0.5 s at 2 pi rad/s about body x: half a turn
@@ -348,7 +348,7 @@ def test_quat_integrate_turns_by_the_body_rate():
 
 
 def test_gyro_carrier_carries_a_full_roll_flip_and_hands_back():
-    from flight.attitude_filter import GyroCarrier, quat_tilt
+    from flight.estimation.attitude_filter import GyroCarrier, quat_tilt
     from flight.quat import quat_to_euler
     c = GyroCarrier()
     dt, t = 1.0 / 400, 0.0
@@ -382,7 +382,7 @@ def test_gyro_carrier_carries_a_full_roll_flip_and_hands_back():
 
 
 def test_gyro_carrier_rejects_bad_thresholds():
-    from flight.attitude_filter import GyroCarrier
+    from flight.estimation.attitude_filter import GyroCarrier
     with pytest.raises(ValueError):
         GyroCarrier(enter_tilt_deg=20.0, exit_tilt_deg=30.0)
 
@@ -425,7 +425,7 @@ def test_bias_state_converges_to_a_constant_gyro_bias():
 
 # ------------------------------------------------------------------ Euler kinematics
 def test_euler_rate_excess_matches_the_quaternion_kinematics():
-    from flight.attitude_filter import euler_rate_excess, quat_integrate
+    from flight.estimation.attitude_filter import euler_rate_excess, quat_integrate
     from flight.quat import quat_to_euler
     rng = np.random.default_rng(0)
     for _ in range(20):
@@ -943,9 +943,9 @@ def test_stacked_filter_equals_the_per_axis_filterpy_filter(overrides, mag_first
     """The filter (floats, closed-form discretisation) against the per-axis filterpy code it
     replaced: the same estimate, states and covariances to rounding on a manoeuvring flight.
     Half the cases move the a_model integral's origin at every sample (a long flight's case)."""
-    import flight.attitude_filter
+    import flight.estimation.attitude_filter
     if mag_first:
-        monkeypatch.setattr(flight.attitude_filter, "_AMODEL_REBASE", 0.0)
+        monkeypatch.setattr(flight.estimation.attitude_filter, "_AMODEL_REBASE", 0.0)
     params = AttitudeFilterParams.from_dict(overrides)
     new, ref = AttitudeFilter(INERTIA, params, gravity_m_s2=9.8), _PerAxisReference(INERTIA, params, 9.8)
     aided = capped = 0
@@ -973,7 +973,7 @@ def test_no_filterpy_or_scipy_on_import():
     """The flight code imports neither (filterpy pulls scipy.stats: half a second at start-up)."""
     import subprocess
     import sys
-    code = ("import sys, flight.attitude_filter, services.attitude; "
+    code = ("import sys, flight.estimation.attitude_filter, services.attitude; "
             "print(sorted(m for m in sys.modules if m.split('.')[0] in ('filterpy', 'scipy')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"

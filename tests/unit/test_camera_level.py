@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from flight.attitude_filter import CameraLevel
+from flight.estimation.attitude_filter import CameraLevel
 from flight.quat import quat_from_euler
 
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from deploy.stack import SERVICE_MODULES, StackError, load_stack, resolve_params
-from flight.mission import MissionError, MissionRunner, available_missions, load_mission
+from flight.control.mission import MissionError, MissionRunner, available_missions, load_mission
 
 ROOT = Path(__file__).resolve().parents[2]
 

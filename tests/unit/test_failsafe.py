@@ -2,7 +2,7 @@ import math
 
 import pytest
 
-from flight.failsafe import Descent, DescentParams, LevelEstimate
+from flight.control.failsafe import Descent, DescentParams, LevelEstimate
 from flight.quat import quat_from_euler, quat_to_rotation
 
 G = 9.81

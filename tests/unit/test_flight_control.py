@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from flight.control import (altitude_law, attitude_from_thrust_vector, attitude_law,
+from flight.control.laws import (altitude_law, attitude_from_thrust_vector, attitude_law,
                             position_law, wrap_angle)
 from flight.quat import quat_from_euler, quat_to_rotation
 
@@ -65,7 +65,7 @@ def test_altitude_law_tilted_keeps_vertical_thrust():
 
 
 def test_stopping_rate_is_linear_near_zero_and_stoppable_beyond():
-    from flight.control import stopping_rate
+    from flight.control.laws import stopping_rate
     gain, accel = 8.0, 10.9
     edge = accel / gain ** 2
     small = np.linspace(-edge, edge, 21)
@@ -111,7 +111,7 @@ def test_vehicle_max_angular_accel():
 def test_attitude_law_is_the_vectorised_formula():
     """attitude_law works per axis in floats; it is the array formula of its docstring (with
     stopping_rate) to the last bit, for gains and limits given as numbers or per axis."""
-    from flight.control import stopping_rate
+    from flight.control.laws import stopping_rate
     rng = np.random.default_rng(7)
     inertia = np.array([7.5e-3, 7.5e-3, 14.2e-3])
     for n in range(500):
@@ -136,7 +136,7 @@ def test_hold_integral_removes_a_steady_wind_offset_and_does_not_wind_up():
     """A point mass under laws (10) and a steady horizontal push: alone they hold it off by
     a / (alpha k); with the hold integral the offset goes to zero; the integral's acceleration
     never exceeds its limit, and ki = 0 is laws (10) exactly."""
-    from flight.control import hold_integral_update
+    from flight.control.laws import hold_integral_update
     k = alpha = np.array([4.0, 4.0, 4.0])
     wind = np.array([1.0, -0.5])   # m/s^2 of push
 

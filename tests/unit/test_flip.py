@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flight.flip import (
+from flight.control.flip import (
     BASELINE_CLIMB_M,
     BaselineConfig,
     BaselineFlip,
@@ -18,7 +18,7 @@ from flight.flip import (
     flip_metrics,
     quat_from_roll,
 )
-from flight.ilqr import hover_state
+from flight.control.ilqr import hover_state
 from flight.quat import quat_from_euler, quat_to_euler
 from flight.vehicle import load_vehicle
 
@@ -266,7 +266,7 @@ def test_closed_loop_project_flip_meets_targets():
     0.43), the climb (PROJECT_FLIP.climb_m) peaking ~1.6 m above the start. Drift is the
     lateral impulse of the rolling rotor pair (see PROJECT's horizontal weights)."""
     from bench.flip_sim import PROJECT_FLIP, PROJECT_SOLVE_RATE_HZ, simulate_mpc
-    from flight.ilqr import PROJECT, Planner
+    from flight.control.ilqr import PROJECT, Planner
     vehicle = load_vehicle("q820")
     run = simulate_mpc(vehicle, Planner(vehicle, PROJECT), PROJECT_FLIP, PROJECT_SOLVE_RATE_HZ / 2)
     m = run.metrics
@@ -288,7 +288,7 @@ def test_flip_phase_targets_the_climb_and_recovery_the_start_altitude():
 
 
 def test_flip_reference_winds_up_then_turns():
-    from flight.flip import flip_reference
+    from flight.control.flip import flip_reference
     c = FlipConfig(lookahead=True, flip_duration_s=0.9, windup_rad=0.3, windup_s=0.3)
     roll, rate = flip_reference(np.array([0.0, 0.15, 0.3, 0.3 + 0.45, 0.3 + 0.9, 2.0]), c)
     np.testing.assert_allclose(roll, [0.0, -0.3, 0.0, math.pi, 2 * math.pi, 2 * math.pi], atol=1e-9)
@@ -296,7 +296,7 @@ def test_flip_reference_winds_up_then_turns():
 
 
 def test_thesis_take_off_checks_the_altitude_only():
-    from flight.flip import THESIS_FLIP
+    from flight.control.flip import THESIS_FLIP
     m = FlipPhaseMachine(THESIS_FLIP, horizon=10, dt_s=0.1)
     m.start(0.0, state(z=0.0))
     assert m.update(0.1, state(z=5.05, v=(0, 0, 1.0))) == Phase.FLIP
@@ -306,7 +306,7 @@ def _fly_baseline_item(climb_m: float = BASELINE_CLIMB_M, max_s: float = 12.0):
     """The planner service's baseline flip item (FlipController) from a 5 m hover on the truth
     plant, its controller at 200 Hz: yields (t_s, step, plant) at every controller step."""
     from bench.flip_sim import _plant_command, _tick, SIM
-    from flight.flip_runner import FlipController
+    from flight.control.flip_runner import FlipController
     from simulator.plant import Plant
     vehicle = load_vehicle("q820")
     hover = vehicle.hover_thrust_per_motor_n

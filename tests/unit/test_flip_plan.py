@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 import schemas
-from flight.flip_runner import loop_rate_hz
-from flight.mission import MissionError, MissionRunner, Planner, load_mission
-from flight.plan import RotorPlan, body_state, propagate_attitude
+from flight.control.flip_runner import loop_rate_hz
+from flight.control.mission import MissionError, MissionRunner, Planner, load_mission
+from flight.control.plan import RotorPlan, body_state, propagate_attitude
 from flight.quat import quat_from_euler, quat_to_euler
 
 
@@ -58,7 +58,7 @@ def test_body_state_carries_the_translation_by_the_model():
     the model's acceleration: matches the plant integrated over the same age (inverted,
     collective 2 g: the body falls at 3 g; at constant velocity it would be 3 cm/s off
     per ms of age)."""
-    from flight.plan import thrust_acceleration
+    from flight.control.plan import thrust_acceleration
     from flight.vehicle import load_vehicle
     from simulator.plant import Plant
     vehicle = load_vehicle("q820")
@@ -121,7 +121,7 @@ def test_flip_item_refuses_a_low_altitude_and_unknown_method(tmp_path):
 
 
 def test_scale_collective_keeps_torques_and_inverts():
-    from flight.plan import scale_collective
+    from flight.control.plan import scale_collective
     from flight.vehicle import load_vehicle
     veh = load_vehicle("q820")
     forces = np.array([4.0, 5.0, 6.0, 4.5])

@@ -1,4 +1,4 @@
-"""Adaptive gyro-vertical of document 004 (flight/gyrovertical.py).
+"""Adaptive gyro-vertical of document 004 (flight/estimation/gyrovertical.py).
 
 Synthetic, exactly consistent IMU data: the truth attitude is given as Euler
 angles on a time grid; the gyro is the body rate that carries q_{k-1} to q_k
@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from flight.gyrovertical import (DT_REF, FLU_TO_DOC, G, GyroIntegrator, GyroVertical,
+from flight.estimation.gyrovertical import (DT_REF, FLU_TO_DOC, G, GyroIntegrator, GyroVertical,
                                  GyroVerticalParams, doc_jacobian, doc_observation, doc_to_flu,
                                  evaluate, flu_to_doc, make_training_sequences, piecewise_variance,
                                  rms_error_deg, run_sequence, train, wrap)

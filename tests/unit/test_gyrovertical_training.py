@@ -16,12 +16,12 @@ import pytest
 
 from deploy.gyrovertical_training import (control_flight, estimate, manoeuvring, run_training, save,
                                           tilt_error_deg)
-from flight.gyrovertical import (PAPER_PARAMS_FILE, GyroVertical, GyroVerticalParams, load_trained,
+from flight.estimation.gyrovertical import (PAPER_PARAMS_FILE, GyroVertical, GyroVerticalParams, load_trained,
                                  run_sequence)
-from flight.gyrovertical_jax import run_batch
+from flight.estimation.gyrovertical_jax import run_batch
 from flight.quat import quat_from_euler
 from flight.vehicle import load_vehicle
-from simulator.scenarios import FLIP_ALTITUDE_M, Segment, fly, manoeuvres
+from deploy.manoeuvres import FLIP_ALTITUDE_M, Segment, fly, manoeuvres
 
 ROOT = Path(__file__).resolve().parents[2]
 BIAS = np.radians([0.05, 0.05, 0.05])

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from flight.ilqr import (
+from flight.control.ilqr import (
     THESIS,
     _backward_pass,
     _solve_spd,
@@ -273,7 +273,7 @@ def test_planner_with_motor_model_pads_13_state_inputs():
 def test_solver_compiler_options_leave_the_plan_unchanged(planner, monkeypatch):
     """The CPU options (YNNPACK's small-dot fusion off) change how XLA runs the solve, not
     what it computes: the same plan, to float32 rounding, as XLA's defaults."""
-    import flight.ilqr as ilqr
+    import flight.control.ilqr as ilqr
     if jax.default_backend() == "cpu":
         assert solver_compiler_options() == ilqr.CPU_SOLVER_OPTIONS
     x0 = hover_state([0.3, -0.2, 4.6])
@@ -289,7 +289,7 @@ def test_solver_compiler_options_leave_the_plan_unchanged(planner, monkeypatch):
 
 PLAN_IN_A_FRESH_PROCESS = """
 import json, numpy as np
-from flight.ilqr import THESIS, Planner, hover_state
+from flight.control.ilqr import THESIS, Planner, hover_state
 from flight.vehicle import load_vehicle
 planner = Planner(load_vehicle("q820"), THESIS)
 x0 = hover_state([0.3, -0.2, 4.6])
@@ -301,7 +301,7 @@ print(json.dumps({"whole": planner.loops_compiled_whole(), "controls": plan.cont
 
 @pytest.mark.skipif(jax.default_backend() != "cpu", reason="XLA's CPU runtime option")
 def test_small_loop_hoisting_compiles_the_thesis_solve_whole_and_plans_the_same():
-    """flight.ilqr asks XLA (XLA_FLAGS, on import) to compile small while loops as one
+    """flight.control.ilqr asks XLA (XLA_FLAGS, on import) to compile small while loops as one
     function each: a fresh process that imports it gets the THESIS solve's loops so, and
     plans as a process left at XLA's defaults (ZENPILOT_XLA_DEFAULTS=1) does."""
     import json

@@ -87,7 +87,7 @@ def test_geodetic_offsets():
 
 
 def test_actuator_controls_normalise_in_frd():
-    from flight.mixer import mix
+    from flight.control.mixer import mix
     from flight.vehicle import load_vehicle
     v = load_vehicle("x250")
     hover = mf.actuator_controls(v.allocation, v.max_thrust_n, [v.hover_thrust_per_motor_n] * 4)

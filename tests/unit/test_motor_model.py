@@ -11,7 +11,7 @@ import pytest
 
 from flight import motor_model
 from flight.motor_model import MotorModel
-from flight.plan import motor_forces_update
+from flight.control.plan import motor_forces_update
 from flight.vehicle import load_vehicle
 from simulator.plant import Plant
 

@@ -2,7 +2,7 @@
 
 import pytest
 
-from flight.mission import MissionError, Planner, load_mission
+from flight.control.mission import MissionError, Planner, load_mission
 
 
 def fly(planner, t0, t1, z_of_t, dt=0.02):
@@ -47,7 +47,7 @@ def test_disarm_and_refused_commands():
 
 
 def test_uploaded_mission_flies_waypoints_by_acceptance_then_lands():
-    from flight.mission import mission_items
+    from flight.control.mission import mission_items
     msg = {"types": ["takeoff", "goto", "goto", "land"],
            "position_m": [0, 0, 2.0, 1.0, 0, 2.0, 1.0, 1.0, 2.0, 0, 0, 0], "yaw_rad": [0.0, 0.0, 0.5, 0.0],
            "hold_s": [0.0, 1.0, 0.0, 0.0], "acceptance_m": [0.3] * 4, "origin": "test"}

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from flight import pnp
+from flight.estimation import pnp
 from flight.camera import Camera
-from flight.pnp import MarkerMap, PoseSolution, solve_pose
+from flight.estimation.pnp import MarkerMap, PoseSolution, solve_pose
 from flight.quat import quat_from_euler, quat_multiply, quat_to_rotation
 from tests.unit import pnp_reference as ref
 

@@ -1,4 +1,4 @@
-"""Position-level EKF of document 000 (flight/position_ekf.py)."""
+"""Position-level EKF of document 000 (flight/estimation/position_ekf.py)."""
 from __future__ import annotations
 
 import dataclasses
@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from flight.position_ekf import (
+from flight.estimation.position_ekf import (
     LaggedMotorInput,
     PositionEKF,
     PositionEKFError,
@@ -840,7 +840,7 @@ def test_filter_equals_the_reference_through_a_flight():
 def test_gate_thresholds_equal_scipys_chi_square_quantiles():
     from scipy.stats import chi2
 
-    from flight.position_ekf import _chi2_ppf
+    from flight.estimation.position_ekf import _chi2_ppf
     for dof in range(1, 9):
         for p in (0.5, 0.9, 0.95, 0.99, 0.999, 0.9999, 1 - 1e-7):
             assert _chi2_ppf(p, dof) == pytest.approx(float(chi2.ppf(p, dof)), rel=1e-12), (dof, p)
@@ -853,7 +853,7 @@ def test_gate_thresholds_equal_scipys_chi_square_quantiles():
 def test_filter_module_does_not_import_scipy_stats():
     import subprocess
     import sys
-    code = "import sys, flight.position_ekf; sys.exit('scipy.stats' in sys.modules)"
+    code = "import sys, flight.estimation.position_ekf; sys.exit('scipy.stats' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
 
 

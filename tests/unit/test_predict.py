@@ -1,4 +1,4 @@
-"""The flip's predicted envelope (flight/predict.py, `zenpilot predict`)."""
+"""The flip's predicted envelope (flight/control/predict.py, `zenpilot predict`)."""
 import json
 import math
 import subprocess
@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from flight.flip import flip_metrics, heights
-from flight.predict import (
+from flight.control.flip import flip_metrics, heights
+from flight.control.predict import (
     PredictError,
     Predictor,
     Uncertainty,
@@ -39,7 +39,7 @@ def test_rollouts_without_uncertainty_replay_the_nominal_flight(predictor):
 
 
 def test_vectorised_metrics_are_flip_metrics(predictor):
-    """metrics_from_series gives flight.flip.flip_metrics' figures for the nominal flight."""
+    """metrics_from_series gives flight.control.flip.flip_metrics' figures for the nominal flight."""
     nominal = predictor.nominal
     series, _, _ = Predictor(nominal, Uncertainty.none()).series(1, seed=0)
     m = metrics_from_series(series, nominal.flip_tick, nominal.tick_s, nominal.altitude_m)

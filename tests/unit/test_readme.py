@@ -164,7 +164,7 @@ def _check_param(service: str, key: str, where: str, problems: list[str]) -> Non
 
 
 def _check_zenpilot(tokens: list[str], where: str, problems: list[str]) -> None:
-    from flight.mission import available_missions
+    from flight.control.mission import available_missions
     parser, chain = _cli(), "zenpilot"
     args = iter(tokens[1:])
     for tok in args:
@@ -270,7 +270,7 @@ def readme_problems(text: str) -> list[str]:
                 _check_path(word, problems)
         dotted = re.fullmatch(r"([a-z_]+)((?:\.[A-Za-z_][\w*]*)+)(=.*)?", span)
         if dotted and not FILE_EXT_RE.search(span.split("=")[0]):
-            if (ROOT / dotted[1] / "__init__.py").is_file():   # flight.quat, flight.control.stopping_rate
+            if (ROOT / dotted[1] / "__init__.py").is_file():   # flight.quat, flight.control.laws.stopping_rate
                 if not _resolves(dotted[1] + dotted[2]):
                     problems.append(f"{where}: no such module or attribute in the repository")
             else:
@@ -326,7 +326,7 @@ no_such_key = 1
                      "services.attitude.params.no_such_key is not in deploy/stacks/default.toml"):
         assert expected in found, f"not reported: {expected}\n{found}"
     assert readme_problems("""
-`attitude.k`, `flight.quat`, `flight.control.stopping_rate`, `services/attitude.py`, `--lockstep`, [messages](docs/messages.md), `metrics.json`
+`attitude.k`, `flight.quat`, `flight.control.laws.stopping_rate`, `services/attitude.py`, `--lockstep`, [messages](docs/messages.md), `metrics.json`
 
     zenpilot fly --lockstep --mission flip --set planner.mpc_rate_hz=200
     zenpilot-attitude -e tcp/127.0.0.1:7447 --param k=[12,12,12]

@@ -3,8 +3,8 @@ import numpy as np
 from flight.camera import marker_grid
 import pytest
 
-from flight.control import attitude_law, position_law
-from flight.mixer import mix, thrust_to_pwm
+from flight.control.laws import attitude_law, position_law
+from flight.control.mixer import mix, thrust_to_pwm
 from flight.quat import quat_from_euler, quat_to_euler
 from flight.vehicle import load_vehicle
 from simulator import SimConfig, Simulator

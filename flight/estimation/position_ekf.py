@@ -957,7 +957,7 @@ class LaggedMotorInput:
     w2 = (tau / 2h)(1 - exp(-2h / tau))).
 
     Kept in plain floats (four of them, several times a step); the lag is that of
-    flight.motor_model.thrust_step (flight.plan.motor_forces_update)."""
+    flight.motor_model.thrust_step (flight.control.plan.motor_forces_update)."""
 
     def __init__(self, time_constant_s: float):
         if not (math.isfinite(time_constant_s) and time_constant_s > 0):

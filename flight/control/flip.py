@@ -2,7 +2,7 @@
 
 Phases idle -> takeoff -> flip -> recovery -> land -> done change on feedback only
 (altitude, vertical speed, accumulated roll, tilt, body rates). For each phase the
-machine gives the iLQR its target states (H+1, 13) (flight/ilqr.py's x layout).
+machine gives the iLQR its target states (H+1, 13) (flight/control/ilqr.py's x layout).
 
 Accumulated roll is the ZYX Euler roll from the quaternion, unwrapped sample to
 sample (as the thesis's Appendix И does with roll_diff): unlike integrating the
@@ -26,8 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flight.control import STOPPING_ACCEL_FRACTION, attitude_law, position_law, stopping_accel, wrap_angle
-from flight.mixer import mix
+from flight.control.laws import STOPPING_ACCEL_FRACTION, attitude_law, position_law, stopping_accel, wrap_angle
+from flight.control.mixer import mix
 from flight.quat import quat_multiply, quat_to_euler
 from flight.quat import quat_tilt as tilt_rad  # the name its users here know it by
 from flight.vehicle import Vehicle
@@ -160,7 +160,7 @@ class FlipConfig:
 
 
 THESIS_FLIP = FlipConfig(takeoff_hover_check=False)
-# the project's flip (the one source: flight/flip_runner.py and bench/flip_sim.py fly it): a
+# the project's flip (the one source: flight/control/flip_runner.py and bench/flip_sim.py fly it): a
 # look-ahead quintic turn of 0.9 s, 0.3 s after the phase starts, with the altitude target 1.5 m
 # above the start: the plan climbs in those 0.3 s and carries the upward speed through the
 # inverted half (stack on estimates, seeds 0/1/2/15: altitude loss 0.93-0.97 m without a climb,

@@ -2,7 +2,7 @@
 
 Training (004's criterion (10)) runs the filter over 9 sequences per flight
 for every parameter vector the optimiser tries; the reference
-implementation (:class:`flight.gyrovertical.GyroVertical`, one sample per
+implementation (:class:`flight.estimation.gyrovertical.GyroVertical`, one sample per
 Python call, ~30 us) would take seconds per evaluation.  This module is the
 same per-sample step as a pure function, ``lax.scan`` over time and ``vmap``
 over sequences under one ``jit``: one evaluation of (10) on a minute of
@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from flight.gyrovertical import DT_REF, G, TrainingSequence
+from flight.estimation.gyrovertical import DT_REF, G, TrainingSequence
 from flight.quat import quat_from_euler
 
 LOG_CLIP = (-60.0, 30.0)   # as GyroVerticalParams.from_vector: exp() finite and positive

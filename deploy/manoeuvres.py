@@ -20,8 +20,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from flight.control import altitude_law, attitude_law, position_law, wrap_angle
-from flight.mixer import mix, thrust_to_pwm
+from flight.control.laws import altitude_law, attitude_law, position_law, wrap_angle
+from flight.control.mixer import mix, thrust_to_pwm
 from flight.quat import quat_to_euler
 from flight.vehicle import Vehicle
 from simulator.config import SimConfig

@@ -46,7 +46,7 @@ SMALL_LOOP_BYTES = 1_000_000
 
 def _request_small_loop_hoisting() -> None:
     """Add the small-loop threshold to XLA_FLAGS. XLA reads XLA_FLAGS once, at the process's
-    first JAX operation, and it has no per-jit form, so this runs when flight.ilqr is imported
+    first JAX operation, and it has no per-jit form, so this runs when flight.control.ilqr is imported
     (the planner service, the bench and the tests import it before computing anything); after
     an earlier JAX operation it has no effect (slower, same plans). Left alone when XLA_FLAGS
     already sets backend options, or with ZENPILOT_XLA_DEFAULTS=1."""
@@ -139,7 +139,7 @@ THESIS = ILQRConfig(
 
 # Horizontal position weighted 900: the flip's drift is the lateral impulse of the one
 # rotor pair that rolls a plus frame, and the plan keeps it small at the price of height,
-# which the flip's climb (PROJECT_FLIP.climb_m, flight/flip.py) buys back (closed loop on
+# which the flip's climb (PROJECT_FLIP.climb_m, flight/control/flip.py) buys back (closed loop on
 # the plant, bench/flip_sim.py, climb 1 m: weight 250 -> 600 -> 900, loss 0.00 / 0.00 /
 # 0.12 m, drift 0.39 / 0.25 / 0.23 m; without the climb, 250 lost 0.89 m; the project's
 # 1.5 m climb: 900 loses none, drift 0.23 m).
@@ -183,7 +183,7 @@ def _thrust_coefficient(vehicle: Vehicle) -> float:
 def rigid_body_derivative(x, forces_n, mass, inertia, allocation, drag, gravity, wind=None):
     """xdot (13,) of the rigid body under rotor forces (4,): the model of 001 with the
     vehicle's allocation and linear drag against the air (wind (3,), world; None: still).
-    The vehicle's numbers are arguments so that flight/predict.py can draw them per case."""
+    The vehicle's numbers are arguments so that flight/control/predict.py can draw them per case."""
     v, q, w = x[VEL], x[QUAT], x[RATE]
     thrust_torque = jnp.sum(allocation * forces_n, axis=1)  # allocation @ forces, fusible
     air = v if wind is None else v - wind
@@ -714,6 +714,6 @@ def feedback_control(plan: Plan, elapsed_s: float, x, u_max_rad_s: float) -> np.
     gains are held over each step, the planned state interpolated linearly. The
     quaternion of x is sign-aligned with the plan's (q and -q are the same attitude).
     x has the plan's state size (with the motor model: body state + rotor forces)."""
-    from flight.plan import plan_feedback   # the motor driver's law: one implementation
+    from flight.control.plan import plan_feedback   # the motor driver's law: one implementation
     return plan_feedback(np.asarray(plan.states), np.asarray(plan.controls), np.asarray(plan.gains),
                          plan.dt_s, elapsed_s, x, u_max_rad_s)

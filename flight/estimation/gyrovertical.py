@@ -99,10 +99,10 @@ import numpy as np
 from flight.quat import quat_from_euler, quat_normalize
 
 # 004's training (+-0.05 deg/s gyro biases): the figures and tests of 004
-PAPER_PARAMS_FILE = Path(__file__).resolve().parent / "params" / "gyrovertical_x250.toml"
+PAPER_PARAMS_FILE = Path(__file__).resolve().parent.parent / "params" / "gyrovertical_x250.toml"
 # trained alike with +-0.2 deg/s, the bias the simulated MEMS gyro has (SimConfig.gyro_bias_var):
 # the file the attitude service reads by default (a filter must be trained for the gyro it runs on)
-DEFAULT_PARAMS_FILE = Path(__file__).resolve().parent / "params" / "gyrovertical_x250_mems.toml"
+DEFAULT_PARAMS_FILE = Path(__file__).resolve().parent.parent / "params" / "gyrovertical_x250_mems.toml"
 G = 9.80665                 # m/s^2, normalises specific force to the load factor
 DT_REF = 1.0 / 400.0        # s, rate at which the parameters are per-sample variances
 
@@ -519,7 +519,7 @@ def train(sequences: Sequence[TrainingSequence], initial: GyroVerticalParams | N
     adaptive=True: the 12 parameters of (7).  adaptive=False: the fixed-variance
     baseline, trained the same way over its 4 free parameters (the ``*_var0``;
     the result has ``var2 = var0``).  Sequences of one length are evaluated by
-    the batched JAX filter (:mod:`flight.gyrovertical_jax`, tested equal to
+    the batched JAX filter (:mod:`flight.estimation.gyrovertical_jax`, tested equal to
     :class:`GyroVertical`), others by the reference one sample at a time.
     The Nelder-Mead initial simplex is the initial point plus one vertex per
     free coordinate displaced by +-``step`` (natural log) with signs drawn from
@@ -543,7 +543,7 @@ def train(sequences: Sequence[TrainingSequence], initial: GyroVerticalParams | N
         return full
 
     if len({len(s.roll) for s in sequences}) == 1:
-        from flight.gyrovertical_jax import BatchEvaluator
+        from flight.estimation.gyrovertical_jax import BatchEvaluator
         batch = BatchEvaluator(sequences, dt, weights, adaptive)
         evaluate_full = batch
     else:

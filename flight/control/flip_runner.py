@@ -2,9 +2,9 @@
 
 FlipController is one mission `flip` item's controller for one method:
 
-* "ilqr-project" / "ilqr-thesis": the feedback phase machine of flight/flip.py
+* "ilqr-project" / "ilqr-thesis": the feedback phase machine of flight/control/flip.py
   (take-off -> flip -> recovery; transitions on the state estimate only) with its
-  adaptive roll targets, and the iLQR of flight/ilqr.py re-solved from the latest
+  adaptive roll targets, and the iLQR of flight/control/ilqr.py re-solved from the latest
   estimate every 1 / solve_rate_hz (model-predictive control). The solver is
   compiled when the controller is built (at service start-up, never in flight).
   A solve that is not usable (non-finite, or neither converged nor better than its
@@ -25,7 +25,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from flight.flip import (
+from flight.control.flip import (
     PROJECT_FLIP,
     THESIS_FLIP,
     BASELINE_CLIMB_M,
@@ -76,7 +76,7 @@ class FlipController:
         self.solve_rate_hz = float(solve_rate_hz or DEFAULT_RATE_HZ[method])
         self.planner = None
         if method != "baseline":
-            from flight.ilqr import PROJECT, THESIS, Planner  # JAX: only when an iLQR flies
+            from flight.control.ilqr import PROJECT, THESIS, Planner  # JAX: only when an iLQR flies
             self.ilqr_config = PROJECT if method == "ilqr-project" else THESIS
             self.flip_config = PROJECT_FLIP if method == "ilqr-project" else THESIS_FLIP
             self.planner = Planner(vehicle, self.ilqr_config)  # compiles and warms up here
@@ -148,7 +148,7 @@ class FlipController:
         return np.array([x[0], x[1], float(z)])
 
     def _ilqr_step(self, t_s, x, settle_s, solve) -> Step:
-        from flight.ilqr import warm_start
+        from flight.control.ilqr import warm_start
         phase = self.machine.update(t_s, x[:13])
         done = False
         if phase in (Phase.LAND, Phase.DONE):

@@ -38,9 +38,9 @@ from pathlib import Path
 
 import numpy as np
 
-from flight.flip import BASELINE_CLIMB_M
+from flight.control.flip import BASELINE_CLIMB_M
 
-MISSIONS_DIR = Path(__file__).resolve().parent.parent / "deploy" / "missions"
+MISSIONS_DIR = Path(__file__).resolve().parents[2] / "deploy" / "missions"
 
 ITEM_KEYS: dict[str, dict] = {
     "arm": {"wait_s": 0.5},

@@ -28,7 +28,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from flight.flip import TURN_START_RAD
+from flight.control.flip import TURN_START_RAD
 from flight.vehicle import Vehicle
 
 # the flip's metric thresholds (flight/flip.flip_metrics' defaults)
@@ -175,11 +175,11 @@ class Prediction:
 def fly_nominal(vehicle: Vehicle, method: str = "ilqr-project", altitude_m: float = 5.0,
                 settle_s: float = 1.0, controller=None) -> NominalFlip:
     """The flip item flown on the planner's model, no uncertainty: its policy per tick.
-    controller: a built flight.flip_runner.FlipController for this vehicle and method (the
+    controller: a built flight.control.flip_runner.FlipController for this vehicle and method (the
     planner service passes its own; built here otherwise, which compiles the iLQR)."""
-    from flight.flip import Phase
-    from flight.flip_runner import FlipController
-    from flight.ilqr import hover_state
+    from flight.control.flip import Phase
+    from flight.control.flip_runner import FlipController
+    from flight.control.ilqr import hover_state
 
     if method == "baseline":
         raise PredictError("the baseline flip has no plan to predict from (it is a fixed rate "
@@ -251,7 +251,7 @@ def _plant_step(vehicle: Vehicle, dt_s: float, controller_tau: float | None):
     model, flight/ilqr.make_dynamics). Returns a jitted step(body, forces, command, params)."""
     import jax
     import jax.numpy as jnp
-    from flight.ilqr import rigid_body_derivative
+    from flight.control.ilqr import rigid_body_derivative
 
     allocation = jnp.asarray(vehicle.allocation, jnp.float32)
     drag = float(vehicle.drag_n_per_m_s)
@@ -316,7 +316,7 @@ def make_rollouts(nominal: NominalFlip, uncertainty: Uncertainty, max_delay_tick
     body-rate norm."""
     import jax
     import jax.numpy as jnp
-    from flight.ilqr import _quat_multiply
+    from flight.control.ilqr import _quat_multiply
 
     vehicle = nominal.vehicle
     dt_s = nominal.tick_s

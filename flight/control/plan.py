@@ -1,13 +1,13 @@
 """Executing a rotor-speed plan (pure numpy; no JAX, no I/O): what the motor driver needs.
 
-A plan (flight/ilqr.py's Plan, carried on planner/plan) starts at t0_s from the
+A plan (flight/control/ilqr.py's Plan, carried on planner/plan) starts at t0_s from the
 state it was solved from: states (H+1, n), controls (H, 4) rotor speeds rad/s,
 gains (H, 4, n), n = 13 (body state) or 17 (body state + rotor forces, when the
 solver models the motors' lag). At time t the driver applies
 
     u = u_plan(t) + K(t) (x - x_plan(t)),   clipped to [0, max_rotor_speed]
 
-(the same law as flight.ilqr.feedback_control, repeated here so that the 400 Hz
+(the same law as flight.control.ilqr.feedback_control, repeated here so that the 400 Hz
 driver does not import JAX), and the rotor forces kf u^2 go to the motor map.
 
 x is built from the latest estimates: position and velocity (pos/state) and
@@ -118,7 +118,7 @@ def body_state(t_s: float, att: dict, pos: dict, vehicle=None, rotor_forces_n=No
 def thrust_acceleration(vehicle, q, rotor_forces_n, velocity_m_s) -> np.ndarray:
     """World acceleration (3,) of the rigid body under these rotor forces at attitude q:
     the collective along body z over the mass, gravity and the linear drag (the model of
-    flight/ilqr.py and the simulator's plant)."""
+    flight/control/ilqr.py and the simulator's plant)."""
     collective_n = float(np.sum(np.asarray(rotor_forces_n, dtype=np.float64)))
     body_z = quat_to_rotation(q)[:, 2]
     drag = vehicle.drag_n_per_m_s * np.asarray(velocity_m_s, dtype=np.float64)
@@ -127,7 +127,7 @@ def thrust_acceleration(vehicle, q, rotor_forces_n, velocity_m_s) -> np.ndarray:
 
 def motor_forces_update(forces_n, command_n, dt_s: float, motor_time_constant_s: float) -> np.ndarray:
     """Rotor forces after dt_s under a held command: flight/motor_model.py's motors (the
-    rotor speed's first-order lag, thrust kf w^2; as flight.ilqr.motor_forces_update and
+    rotor speed's first-order lag, thrust kf w^2; as flight.control.ilqr.motor_forces_update and
     the simulator's plant). On 4 floats without numpy's per-call cost (the 400 Hz driver)."""
     d = math.exp(-dt_s / motor_time_constant_s)
     f, c = np.asarray(forces_n, dtype=np.float64), np.asarray(command_n, dtype=np.float64)
