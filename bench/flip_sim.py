@@ -45,7 +45,7 @@ from flight.control.ilqr import (
     PROJECT,
     THESIS,
     ILQRConfig,
-    Planner,
+    ILQRSolver,
     feedback_control,
     motor_forces_update,
     warm_start,
@@ -97,7 +97,7 @@ def _tick(plant: Plant, sim: SimConfig, cmd) -> None:
         plant.step(dt_s, cmd, np.zeros(3))
 
 
-def simulate_mpc(vehicle: Vehicle, planner: Planner, flip: FlipConfig, solve_rate_hz: float,
+def simulate_mpc(vehicle: Vehicle, planner: ILQRSolver, flip: FlipConfig, solve_rate_hz: float,
                  after_recovery_s: float = 1.0, max_time_s: float = 12.0,
                  sim: SimConfig = SIM) -> FlipRun:
     """Take off from the ground, flip, recover; stop after_recovery_s into the hold that
@@ -181,7 +181,7 @@ def _report(name: str, run: FlipRun) -> str:
 
 
 def run_mpc(vehicle: Vehicle, config: ILQRConfig, flip: FlipConfig, rate_hz: float) -> FlipRun:
-    return simulate_mpc(vehicle, Planner(vehicle, config), flip, rate_hz)
+    return simulate_mpc(vehicle, ILQRSolver(vehicle, config), flip, rate_hz)
 
 
 def main(argv=None) -> None:

@@ -6,11 +6,11 @@ simulator's plant, truth state, at other flip durations and heights than the pri
 import dataclasses, sys, time
 sys.path.insert(0, str(__import__('pathlib').Path(__file__).resolve().parents[1]))
 from bench.flip_sim import simulate_mpc, _report
-from flight.control.ilqr import THESIS, Planner
+from flight.control.ilqr import THESIS, ILQRSolver
 from flight.control.flip import THESIS_FLIP
 from flight.vehicle import load_vehicle
 v = load_vehicle("q820")
-planner = Planner(v, THESIS)
+planner = ILQRSolver(v, THESIS)
 for arg in sys.argv[1:]:
     T, H = (float(x) for x in arg.split(","))
     flip = dataclasses.replace(THESIS_FLIP, flip_duration_s=T, flip_altitude_m=H)

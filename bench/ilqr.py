@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 # flight.control.ilqr first: on import it sets an XLA option that XLA reads at the process's first
 # JAX operation, and bench.ilqr_thesis computes its weight matrices on import.
-from flight.control.ilqr import PROJECT, THESIS, Planner, hover_state, solver_compiler_options, warm_start  # noqa: I001
+from flight.control.ilqr import PROJECT, THESIS, ILQRSolver, hover_state, solver_compiler_options, warm_start  # noqa: I001
 from bench.ilqr_thesis import make_thesis_ilqr
 from flight.vehicle import load_vehicle
 
@@ -62,18 +62,18 @@ def problem(horizon: int):
 STARTUP = """
 import sys, time
 sys.path.insert(0, {root!r})
-from flight.control.ilqr import {config}, Planner, use_compile_cache
+from flight.control.ilqr import {config}, ILQRSolver, use_compile_cache
 from flight.vehicle import load_vehicle
 use_compile_cache({cache!r})
 vehicle = load_vehicle("q820")
 t0 = time.perf_counter()
-Planner(vehicle, {config})
+ILQRSolver(vehicle, {config})
 print(time.perf_counter() - t0)
 """
 
 
 def startup_s(config: str, cache_dir: str) -> float:
-    """Seconds to build and warm up a Planner in a fresh process with this cache."""
+    """Seconds to build and warm up an ILQRSolver in a fresh process with this cache."""
     code = STARTUP.format(root=str(Path(__file__).resolve().parents[1]), config=config, cache=cache_dir)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     return float(out.stdout.split()[-1])
@@ -86,7 +86,7 @@ def main() -> None:
     fixed_thesis = dataclasses.replace(THESIS, relative_tolerance=0.0)
 
     t0 = time.perf_counter()
-    planner = Planner(vehicle, fixed_thesis)
+    planner = ILQRSolver(vehicle, fixed_thesis)
     compile_project_s = time.perf_counter() - t0
     x0, targets = problem(THESIS.horizon)
     u_hover = planner.hover_controls()
@@ -100,7 +100,7 @@ def main() -> None:
         *_, cost = thesis_solve(*args, tol=0.0)
         cost.block_until_ready()
 
-    def thesis_host():  # numpy in, numpy out, as Planner.solve
+    def thesis_host():  # numpy in, numpy out, as ILQRSolver.solve
         host_args = [np.asarray(a, np.float32) for a in (x0, u_hover, targets, u_hover)]
         states, controls, _, cost = thesis_solve(*host_args, tol=0.0)
         return np.asarray(states, np.float64), np.asarray(controls, np.float64), float(cost)
@@ -125,7 +125,7 @@ def main() -> None:
     print(f"  compile: project {compile_project_s:.1f} s (target < 5 s), thesis code {compile_thesis_s:.1f} s")
     print(f"  solve on the device (device arrays in, outputs ready, as the thesis code is timed): project "
           f"{1e3 * project_s:.2f} ms, thesis code {1e3 * thesis_s:.2f} ms, ratio {ratio:.1f}x (target >= 10x)")
-    print(f"  solve end to end (numpy in, numpy out: Planner.solve): project {1e3 * project_host_s:.2f} ms, "
+    print(f"  solve end to end (numpy in, numpy out: ILQRSolver.solve): project {1e3 * project_host_s:.2f} ms, "
           f"thesis code {1e3 * thesis_host_s:.2f} ms, ratio {ratio_host:.1f}x")
     print("  (medians over 15 alternating rounds of 40 calls; the machine's load drifts within seconds)")
     if options:
@@ -133,7 +133,7 @@ def main() -> None:
               f"({tuned_ratio:.2f}x its defaults' speed), project ratio against it {tuned_s / project_s:.1f}x")
 
     t0 = time.perf_counter()
-    project = Planner(vehicle, PROJECT)
+    project = ILQRSolver(vehicle, PROJECT)
     compile_s = time.perf_counter() - t0
     x0, targets = problem(PROJECT.horizon)
     plan = project.solve(x0, targets)

@@ -24,10 +24,11 @@ import sys
 import time
 from pathlib import Path
 
-from flight.estimation.gyrovertical import (DT_REF, GyroVerticalParams, TrainedParams, TrainingSequence,
-                                 make_training_sequences, train)
-from flight.vehicle import load_vehicle
 from deploy.manoeuvres import FlightData, record
+from flight.estimation.gyrovertical import (DT_REF, GyroVerticalParams, TrainedParams, TrainingSequence,
+                                            make_training_sequences)
+from flight.estimation.gyrovertical_training import train
+from flight.vehicle import load_vehicle
 
 def training_flights(vehicle_name: str, seed: int, flights: int, duration_s: float) -> list[FlightData]:
     """``flights`` training-menu flights, cut to exactly ``duration_s`` (equal lengths batch together)."""

@@ -30,7 +30,7 @@ from dataclasses import replace
 import numpy as np
 
 import schemas
-from flight.control.mission import FLIP_METHODS, MissionError, Planner, load_mission, mission_items
+from flight.control.mission import FLIP_METHODS, MissionError, MissionPlanner, load_mission, mission_items
 from flight.control.plan import body_state, motor_forces_update, scale_collective
 from services.runtime import Runtime, main_guard, service_parser
 
@@ -185,9 +185,9 @@ def run(args) -> None:
         return np.concatenate([body_state(t, att, pos, vehicle, n), n if n is not None else np.zeros(4)])
 
     if controllers:
-        planner = Planner(mission, fly_flip)
+        planner = MissionPlanner(mission, fly_flip)
     else:
-        planner = Planner(mission)
+        planner = MissionPlanner(mission)
 
     def follow_commands() -> None:
         for c in commands.take():

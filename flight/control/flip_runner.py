@@ -76,10 +76,10 @@ class FlipController:
         self.solve_rate_hz = float(solve_rate_hz or DEFAULT_RATE_HZ[method])
         self.planner = None
         if method != "baseline":
-            from flight.control.ilqr import PROJECT, THESIS, Planner  # JAX: only when an iLQR flies
+            from flight.control.ilqr import PROJECT, THESIS, ILQRSolver  # JAX: only when an iLQR flies
             self.ilqr_config = PROJECT if method == "ilqr-project" else THESIS
             self.flip_config = PROJECT_FLIP if method == "ilqr-project" else THESIS_FLIP
-            self.planner = Planner(vehicle, self.ilqr_config)  # compiles and warms up here
+            self.planner = ILQRSolver(vehicle, self.ilqr_config)  # compiles and warms up here
             self.state_dim = self.planner.state_dim
             self.motor_time_constant_s = self.planner.motor_time_constant_s
         else:

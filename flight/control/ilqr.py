@@ -12,7 +12,7 @@ Contracts (trajax style, stated once here):
 
 Everything over the horizon is lax.scan (rollout, backward pass, forward pass)
 and the iterations are one lax.while_loop, so a solve is one jitted call that
-is compiled once when the Planner is built. Rotor limits [0, max_rotor_speed]
+is compiled once when the ILQRSolver is built. Rotor limits [0, max_rotor_speed]
 are enforced by clamping in the forward pass rather than inside f (the thesis
 clips inside f, which zeroes f's Jacobian at the limits and stalls the solver).
 """
@@ -83,7 +83,7 @@ def use_one_solver_thread() -> bool:
 
 
 BODY_DIM = 13
-STATE_DIM = BODY_DIM  # without the motor model; Planner.state_dim is 17 with it
+STATE_DIM = BODY_DIM  # without the motor model; ILQRSolver.state_dim is 17 with it
 CONTROL_DIM = 4
 POS, VEL, QUAT, RATE = slice(0, 3), slice(3, 6), slice(6, 10), slice(10, 13)
 MOTOR = slice(13, 17)  # rotor forces, N, when ILQRConfig.models_motors
@@ -624,7 +624,7 @@ class Plan:
         return finite and (self.converged or self.cost < self.initial_cost)
 
 
-class Planner:
+class ILQRSolver:
     """iLQR for one vehicle and config; compiles at construction (the warm-up), so that
     solve() in flight never compiles (same shapes every call)."""
 

@@ -324,7 +324,7 @@ def mission_items(msg: dict) -> list[dict]:
     return items
 
 
-class Planner:
+class MissionPlanner:
     """A mission file (or none: idle, waiting for commands) plus commands from
     outside (MAVLink) that replace whatever is being flown."""
 

@@ -266,9 +266,9 @@ def test_closed_loop_project_flip_meets_targets():
     0.43), the climb (PROJECT_FLIP.climb_m) peaking ~1.6 m above the start. Drift is the
     lateral impulse of the rolling rotor pair (see PROJECT's horizontal weights)."""
     from bench.flip_sim import PROJECT_FLIP, PROJECT_SOLVE_RATE_HZ, simulate_mpc
-    from flight.control.ilqr import PROJECT, Planner
+    from flight.control.ilqr import PROJECT, ILQRSolver
     vehicle = load_vehicle("q820")
-    run = simulate_mpc(vehicle, Planner(vehicle, PROJECT), PROJECT_FLIP, PROJECT_SOLVE_RATE_HZ / 2)
+    run = simulate_mpc(vehicle, ILQRSolver(vehicle, PROJECT), PROJECT_FLIP, PROJECT_SOLVE_RATE_HZ / 2)
     m = run.metrics
     assert m.completed
     assert max(p[2] for p in run.position_m) >= 5.0 - 0.1

@@ -7,7 +7,7 @@ import pytest
 
 import schemas
 from flight.control.flip_runner import loop_rate_hz
-from flight.control.mission import MissionError, MissionRunner, Planner, load_mission
+from flight.control.mission import MissionError, MissionRunner, MissionPlanner, load_mission
 from flight.control.plan import RotorPlan, body_state, propagate_attitude
 from flight.quat import quat_from_euler, quat_to_euler
 
@@ -109,7 +109,7 @@ def test_flip_mission_item_and_hook():
     bare.index = runner.index - 1
     assert bare.update(0.0, [0, 0, 5], [0, 0, 0]).mission_state == "failed"
     with pytest.raises(MissionError):
-        Planner(None).command("flip")
+        MissionPlanner(None).command("flip")
 
 
 def test_flip_item_refuses_a_low_altitude_and_unknown_method(tmp_path):

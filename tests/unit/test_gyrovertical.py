@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 
 from flight.estimation.gyrovertical import (DT_REF, FLU_TO_DOC, G, GyroIntegrator, GyroVertical,
-                                 GyroVerticalParams, doc_jacobian, doc_observation, doc_to_flu,
-                                 evaluate, flu_to_doc, make_training_sequences, piecewise_variance,
-                                 rms_error_deg, run_sequence, train, wrap)
+                                            GyroVerticalParams, doc_jacobian, doc_observation, doc_to_flu,
+                                            evaluate, flu_to_doc, make_training_sequences, piecewise_variance,
+                                            rms_error_deg, run_sequence, wrap)
+from flight.estimation.gyrovertical_training import train
 from flight.quat import quat_from_euler, quat_to_euler, quat_to_rotation
 
 BIAS = math.radians(0.05)  # 0.05 deg/s = 180 deg/h, the document's bias

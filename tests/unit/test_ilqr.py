@@ -11,7 +11,7 @@ from flight.control.ilqr import (
     THESIS,
     _backward_pass,
     _solve_spd,
-    Planner,
+    ILQRSolver,
     attitude_error_sq_rad2,
     feedback_control,
     hover_rotor_speed_rad_s,
@@ -32,7 +32,7 @@ VEHICLE = load_vehicle("q820")
 
 @pytest.fixture(scope="module")
 def planner():
-    return Planner(VEHICLE, THESIS)
+    return ILQRSolver(VEHICLE, THESIS)
 
 
 def test_hover_is_an_equilibrium_of_both_integrators():
@@ -70,7 +70,7 @@ def test_solver_cost_decreases_monotonically_with_iterations(planner):
     targets = np.repeat(hover_state([0, 0, 5])[None], THESIS.horizon + 1, axis=0)
     costs = []
     for iterations in range(1, 6):
-        p = Planner(VEHICLE, dataclasses.replace(THESIS, max_iterations=iterations, relative_tolerance=0.0),
+        p = ILQRSolver(VEHICLE, dataclasses.replace(THESIS, max_iterations=iterations, relative_tolerance=0.0),
                     warm_up=False)
         costs.append(p.solve(x0, targets).cost)
     initial = planner.solve(x0, targets).initial_cost
@@ -89,7 +89,7 @@ def test_gains_of_the_last_pass_or_of_the_returned_plan():
     def solve(iterations, refresh):
         config = dataclasses.replace(THESIS, max_iterations=iterations, relative_tolerance=0.0,
                                      gains_at_returned_plan=refresh)
-        return Planner(VEHICLE, config, warm_up=False).solve(x0, targets)
+        return ILQRSolver(VEHICLE, config, warm_up=False).solve(x0, targets)
     last_pass, refreshed_before, refreshed = solve(3, False), solve(2, True), solve(3, True)
     scale = np.abs(refreshed.gains).max()
     assert np.abs(last_pass.gains - refreshed_before.gains).max() <= 1e-6 * scale
@@ -113,7 +113,7 @@ def test_converges_to_hover_thrust_from_a_perturbed_state(planner):
 def test_gains_have_shape_and_stabilise_the_linearisation():
     """With the thesis's motor-node horizon (50) the first gain is close to the stationary one."""
     config = dataclasses.replace(THESIS, horizon=50)
-    planner = Planner(VEHICLE, config, warm_up=False)
+    planner = ILQRSolver(VEHICLE, config, warm_up=False)
     targets = np.repeat(hover_state([0, 0, 5])[None], config.horizon + 1, axis=0)
     plan = planner.solve(hover_state([0, 0, 5]), targets)
     assert plan.gains.shape == (config.horizon, 4, 13) and plan.feedforward.shape == (config.horizon, 4)
@@ -260,7 +260,7 @@ def test_motor_lag_model_forces_follow_the_command_exactly():
 
 def test_planner_with_motor_model_pads_13_state_inputs():
     config = dataclasses.replace(THESIS, models_motors=True, max_iterations=2)
-    p = Planner(VEHICLE, config, warm_up=False)
+    p = ILQRSolver(VEHICLE, config, warm_up=False)
     targets = np.repeat(hover_state([0, 0, 5])[None], config.horizon + 1, axis=0)
     plan = p.solve(hover_state([0, 0, 4.9]), targets)
     assert p.state_dim == 17 and plan.states.shape == (config.horizon + 1, 17)
@@ -279,7 +279,7 @@ def test_solver_compiler_options_leave_the_plan_unchanged(planner, monkeypatch):
     x0 = hover_state([0.3, -0.2, 4.6])
     targets = np.repeat(hover_state([0.0, 0.0, 5.0])[None], THESIS.horizon + 1, axis=0)
     monkeypatch.setattr(ilqr, "solver_compiler_options", lambda: {})
-    default = Planner(VEHICLE, THESIS, warm_up=False).solve(x0, targets)
+    default = ILQRSolver(VEHICLE, THESIS, warm_up=False).solve(x0, targets)
     tuned = planner.solve(x0, targets)
     assert tuned.iterations == default.iterations
     np.testing.assert_allclose(tuned.controls, default.controls, rtol=1e-4, atol=1e-2)
@@ -289,9 +289,9 @@ def test_solver_compiler_options_leave_the_plan_unchanged(planner, monkeypatch):
 
 PLAN_IN_A_FRESH_PROCESS = """
 import json, numpy as np
-from flight.control.ilqr import THESIS, Planner, hover_state
+from flight.control.ilqr import THESIS, ILQRSolver, hover_state
 from flight.vehicle import load_vehicle
-planner = Planner(load_vehicle("q820"), THESIS)
+planner = ILQRSolver(load_vehicle("q820"), THESIS)
 x0 = hover_state([0.3, -0.2, 4.6])
 plan = planner.solve(x0, np.repeat(hover_state([0.0, 0.0, 5.0])[None], THESIS.horizon + 1, axis=0))
 print(json.dumps({"whole": planner.loops_compiled_whole(), "controls": plan.controls.tolist(),

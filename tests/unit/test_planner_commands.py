@@ -2,7 +2,7 @@
 
 import pytest
 
-from flight.control.mission import MissionError, Planner, load_mission
+from flight.control.mission import MissionError, MissionPlanner, load_mission
 
 
 def fly(planner, t0, t1, z_of_t, dt=0.02):
@@ -16,7 +16,7 @@ def fly(planner, t0, t1, z_of_t, dt=0.02):
 
 
 def test_no_mission_waits_idle_until_commanded():
-    p = Planner(None)
+    p = MissionPlanner(None)
     sp = p.update(0.0, [0, 0, 0], [0, 0, 0])
     assert (sp.mode, sp.armed, sp.phase, sp.mission_state) == ("idle", False, "waiting", "waiting")
     p.command("arm")
@@ -37,7 +37,7 @@ def test_no_mission_waits_idle_until_commanded():
 
 
 def test_disarm_and_refused_commands():
-    p = Planner(load_mission("hover"))
+    p = MissionPlanner(load_mission("hover"))
     p.update(0.0, [0, 0, 0], [0, 0, 0])
     p.command("disarm")
     sp = p.update(0.1, [0, 0, 0], [0, 0, 0])
@@ -51,7 +51,7 @@ def test_uploaded_mission_flies_waypoints_by_acceptance_then_lands():
     msg = {"types": ["takeoff", "goto", "goto", "land"],
            "position_m": [0, 0, 2.0, 1.0, 0, 2.0, 1.0, 1.0, 2.0, 0, 0, 0], "yaw_rad": [0.0, 0.0, 0.5, 0.0],
            "hold_s": [0.0, 1.0, 0.0, 0.0], "acceptance_m": [0.3] * 4, "origin": "test"}
-    p = Planner(None)
+    p = MissionPlanner(None)
     p.command("arm")
     fly(p, 0.0, 0.5, lambda sp: 0.0)
     p.fly(mission_items(msg))
