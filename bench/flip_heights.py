@@ -28,8 +28,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from deploy.flightlog import read_log  # noqa: E402
 from flight.control.flip import Phase, RollAccumulator, heights  # noqa: E402
+from schemas.flightlog import read_log  # noqa: E402
 
 FIELDS = ("roll+3", "peak", "lowest", "turn_loss", "fall", "excursion")
 

@@ -43,7 +43,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench.realtime import descendants  # noqa: E402
-from deploy.flightlog import read_log  # noqa: E402
+from schemas.flightlog import read_log  # noqa: E402
 
 TICK = os.sysconf("SC_CLK_TCK")
 TARGETS = {"altitude_loss_m": 1.0, "xy_drift_m": 0.27, "recovery_s": 0.5}

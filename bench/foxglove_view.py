@@ -7,12 +7,12 @@ Replays the messages of a flight log (LOG: a flight.mcap) through each step the 
 
   decode     schemas' strict msgpack decode (the payload re-encoded from the log first)
   json       json.dumps of the decoded message (the raw JSON channel)
-  convert    FoxgloveMap.convert (deploy/foxglove_map.py): the well-known messages it makes
+  convert    FoxgloveMap.convert (services/foxglove_map.py): the well-known messages it makes
   encode     .encode() of those well-known messages (protobuf, what the SDK sends)
 
 and prints microseconds per message (median over --repeat passes) with each kind's rate in
 the log, then the CPU share of one core the whole stream costs at those rates. Then the
-lockstep recorder's end-of-flight rewrite (deploy.flightlog.sort_log) of the log's bus
+lockstep recorder's end-of-flight rewrite (schemas.flightlog.sort_log) of the log's bus
 channels, without and with the well-known channels made from them (FoxgloveMap.encoded_stored). Wall-clock
 figures depend on the machine and its load (other processes on a shared machine inflate them).
 """
@@ -31,9 +31,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import schemas  # noqa: E402
-from deploy.flightlog import FlightLogWriter, LogScan, read_log, scan, sort_log  # noqa: E402
-from deploy.foxglove_map import FoxgloveMap, MarkerGrid  # noqa: E402
 from flight.vehicle import load_vehicle  # noqa: E402
+from schemas.flightlog import FlightLogWriter, LogScan, read_log, scan, sort_log  # noqa: E402
+from services.foxglove_map import FoxgloveMap, MarkerGrid  # noqa: E402
 
 SKIP = ("/sim/clock/", "/sync/")
 

@@ -3,7 +3,7 @@
     PYTHONPATH=. python bench/fuzz.py [--messages 1000000] [--rate 600] [--realtime] [--estimators]
 
 Flies a hover whose hold lasts as long as the fuzz (a mission written to the output folder)
-while tests/integration/fuzzer.py publishes invalid messages (schemas/fuzz.py) round-robin to
+while bench/support/fuzzer.py publishes invalid messages (schemas/fuzz.py) round-robin to
 every key a service subscribes to, lockstep clock and sync keys included. Reports: messages
 sent and the rate achieved, whether the flight completed and crashed, the rejections each
 service counted (the recorder's total must equal the messages sent), non-finite motor
@@ -29,10 +29,10 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
-from deploy.flightlog import read_log  # noqa: E402
+from bench.support.fuzzer import Fuzzer  # noqa: E402
 from deploy.launcher import free_port  # noqa: E402
 from schemas import REASONS  # noqa: E402
-from tests.integration.fuzzer import Fuzzer  # noqa: E402
+from schemas.flightlog import read_log  # noqa: E402
 
 TRUTH_STATE = ("--set", "attitude.state_source=truth", "--set", "position.state_source=truth",
                "--set", "sim.truth_rate_hz=200")

@@ -29,7 +29,7 @@ os.environ.setdefault("MAVLINK_DIALECT", "common")
 
 from deploy.launcher import free_port  # noqa: E402
 from services.mavlink_logic import mavutil  # noqa: E402
-from tests.integration.test_mavlink import Gcs, free_udp_port, takeoff  # noqa: E402
+from bench.support.gcs import Gcs, free_udp_port, takeoff  # noqa: E402
 
 mavlink = mavutil.mavlink
 TRUTH_STATE = ["--set", "attitude.state_source=truth", "--set", "position.state_source=truth",

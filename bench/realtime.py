@@ -28,7 +28,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from deploy.flightlog import read_log  # noqa: E402
+from schemas.flightlog import read_log  # noqa: E402
 
 NOMINAL_HZ = {"sim": 400, "motors": 400, "attitude": 200, "position": 100, "vision": 20, "planner": 50}
 VEHICLE = ("attitude", "position", "vision", "motors")

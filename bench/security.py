@@ -46,10 +46,10 @@ sys.path.insert(0, str(ROOT))
 
 import zenoh  # noqa: E402
 
-from deploy import security  # noqa: E402
 from deploy.launcher import ZENOH_RUNTIME, free_port, wait_port  # noqa: E402
-from deploy.stack import load_stack  # noqa: E402
+from services import security  # noqa: E402
 from services.runtime import service_parser, zenoh_config  # noqa: E402
+from services.stack import load_stack  # noqa: E402
 
 PATHS = ("local", "local-secure", "split-open", "split-tcp", "split-tls", "split-secure")
 SERVICES = "\n".join(f'[services.{n}]\nmachine = "{m}"\nrate_hz = {r}\n' for n, m, r in (

@@ -7,7 +7,7 @@ Per tick: Simulator.outputs() + Simulator.step() (5 RK4 substeps, the sensors du
 tick, the truth, the battery; no Zenoh), hovering in the air and resting on the ground.
 Per call: the mixer and the helpers services/motors.py calls every step. Each figure is the
 best of --rounds rounds (mean per tick or call within a round); "old" is
-tests/unit/sim_reference.py (the numpy code before the float rewrite), run in the same
+bench/support/sim_reference.py (the numpy code before the float rewrite), run in the same
 process on the same inputs, the two alternating round by round.
 """
 from __future__ import annotations
@@ -22,13 +22,19 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.support.sim_reference import (  # noqa: E402
+    RefPlant,
+    RefSimulator,
+    ref_mix,
+    ref_motor_forces_update,
+    ref_scale_collective,
+    ref_thrust_to_pwm,
+)
 from flight.control.mixer import mix, thrust_to_pwm  # noqa: E402
 from flight.control.plan import motor_forces_update, scale_collective  # noqa: E402
 from flight.vehicle import load_vehicle  # noqa: E402
 from simulator import SimConfig, Simulator  # noqa: E402
 from simulator.plant import Plant  # noqa: E402
-from tests.unit.sim_reference import (RefPlant, RefSimulator, ref_mix, ref_motor_forces_update,  # noqa: E402
-                                      ref_scale_collective, ref_thrust_to_pwm)
 
 PERIOD_US = 1e6 / 400.0
 

@@ -46,10 +46,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from deploy.flightlog import LOG_NAME, read_log  # noqa: E402
 from deploy.metrics import compute_metrics  # noqa: E402
-from deploy.stack import load_stack  # noqa: E402
-from flight.control.mission import MissionError, load_mission  # noqa: E402
+from flight.control.mission import MissionError  # noqa: E402
+from schemas.flightlog import LOG_NAME, read_log  # noqa: E402
+from services.stack import load_mission, load_stack  # noqa: E402
 
 STACK = ROOT / "tests" / "integration" / "stacks" / "two-hosts.toml"
 TEST_MISSIONS = ROOT / "tests" / "integration" / "missions"

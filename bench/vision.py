@@ -11,7 +11,7 @@ camera and the map are the same for both vehicles; the vehicle only names the ca
 Each solver gets the same frames, as the vision service passes them (Python lists of ids
 and corner pixels, no prior). Times are CPU time of this process per frame (the best of
 --rounds passes over the frames), with one BLAS thread like the services (deploy/launcher.py).
-"old" is the solver as it was (tests/unit/pnp_reference.py, verbatim); the last columns
+"old" is the solver as it was (bench/support/pnp_reference.py, verbatim); the last columns
 are the largest differences between the two poses over the frames.
 """
 
@@ -32,11 +32,11 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.support import pnp_reference as ref  # noqa: E402
 from flight.estimation import pnp  # noqa: E402
 from flight.quat import quat_conjugate, quat_from_euler, quat_multiply  # noqa: E402
 from simulator.config import SimConfig  # noqa: E402
 from simulator.sensors import MarkerCamera  # noqa: E402
-from tests.unit import pnp_reference as ref  # noqa: E402
 
 CASES = [  # (vehicle, what, altitude m, tilt deg)
     ("x250", "hover", 1.0, 0.0),

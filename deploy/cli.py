@@ -34,14 +34,14 @@ import zenoh
 
 import schemas
 from deploy import gyrovertical_training, predict_cli, sweep
-from deploy.flightlog import LOG_NAME, LogError, LogScan, log_is_complete, read_log, recover, scan
 from deploy.launcher import (DELIVERY_S, STOP_GRACE_S, Launcher, alive_services, client_session, free_port,
                              recorder_grace_s, stop_groups, wait_port)
 from deploy.progress import FlightProgress
 from deploy.report import REPORT_NAME, RUN_FILES, write_report
-from deploy.stack import StackError, load_stack, lockstep_services
 from deploy.supervisor import POLL_S, Supervisor
-from flight.control.mission import MissionError, available_missions, load_mission
+from flight.control.mission import MissionError
+from schemas.flightlog import LOG_NAME, LogError, LogScan, log_is_complete, read_log, recover, scan
+from services.stack import StackError, available_missions, load_mission, load_stack, lockstep_services
 
 DEFAULT_MISSION = "steps"
 STATE_DIR = Path(os.environ.get("ZENPILOT_STATE_DIR", Path.home() / ".zenpilot"))
@@ -574,7 +574,7 @@ def cmd_down(args) -> int:
 
 
 def cmd_certs(args) -> int:
-    from deploy.security import make_keys
+    from services.security import make_keys
     stack = load_stack(args.stack)
     made = make_keys(Path(args.dir), stack, days=args.days)
     print(f"zenpilot: keys for machines {', '.join(stack.machines)} in {args.dir} ({len(made)} files; "
@@ -584,9 +584,9 @@ def cmd_certs(args) -> int:
 
 
 def cmd_view(args) -> int:
-    from deploy.foxglove_map import MarkerGrid
     from deploy.view import serve
     from flight.vehicle import load_vehicle
+    from services.foxglove_map import MarkerGrid
 
     stack = load_stack(args.stack)
     if not 0 <= args.port < 65536:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import foxglove.layouts as fl
 
-from deploy.foxglove_map import BODY, WORLD, topic
+from services.foxglove_map import BODY, WORLD, topic
 
 LAYOUT_PATH = Path(__file__).resolve().parents[1] / "docs" / "foxglove-layout.json"
 HEALTH_OF = ("sim", "motors", "attitude", "position", "vision", "planner", "mavlink")

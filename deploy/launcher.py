@@ -20,9 +20,9 @@ from pathlib import Path
 
 import zenoh
 
-from deploy.flightlog import LOG_NAME
-from deploy import security
-from deploy.stack import SERVICE_MODULES, Stack, StackError
+from schemas.flightlog import LOG_NAME
+from services import security
+from services.stack import SERVICE_MODULES, Stack, StackError
 
 ROUTER_START_TIMEOUT_S = 10.0
 STOP_GRACE_S = 5.0        # a service's time to finish after SIGTERM before SIGKILL

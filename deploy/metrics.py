@@ -1,4 +1,4 @@
-"""Flight metrics from a flight log (see deploy.flightlog.read_log).
+"""Flight metrics from a flight log (see schemas.flightlog.read_log).
 
 Everything is computed from header.t_s (sample time) and the simulator truth;
 the result is a plain JSON-serialisable dict (no NaN: missing values are None).

@@ -1,4 +1,4 @@
-"""Flight plots (PNG) from a flight log (see deploy.flightlog.read_log)."""
+"""Flight plots (PNG) from a flight log (see schemas.flightlog.read_log)."""
 
 from __future__ import annotations
 

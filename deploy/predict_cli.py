@@ -52,9 +52,9 @@ def add_parser(sub) -> None:
 
 
 def cmd_predict(args) -> int:
-    from flight.control.mission import load_mission
     from flight.control.predict import PredictError, Uncertainty, build_predictor
     from flight.vehicle import load_vehicle
+    from services.stack import load_mission
 
     if args.rollouts < 1:
         raise ValueError(f"predict: --rollouts must be >= 1 (got {args.rollouts})")

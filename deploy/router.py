@@ -6,7 +6,7 @@
 With --machine it listens exactly where the stack file says (the machine's `router`
 endpoint and its `listen` endpoints), links to its `connect` routers and, with a [security]
 table, requires TLS client certificates and the machine's users, and enforces the access
-control of deploy/security.py.
+control of services/security.py.
 """
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ import threading
 
 import zenoh
 
-from deploy import security
-from deploy.stack import StackError, load_stack
+from services import security
+from services.stack import StackError, load_stack
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 

@@ -29,10 +29,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
-RESTART_POLICIES = ("on-failure", "always", "never")
-DEFAULT_RESTART = {"sim": "never", "recorder": "never"}   # every other service: "on-failure"
-DEFAULT_RESTART_LIMIT = 3
-NEVER_RESTARTED = ("sim",)
+from services.stack import NEVER_RESTARTED
+
 POLL_S = 0.1
 BACKOFF_S = 0.5
 BACKOFF_MAX_S = 8.0

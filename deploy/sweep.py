@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from deploy.stack import SERVICE_MODULES, StackError, load_stack, parse_overrides, resolve_params
+from services.stack import SERVICE_MODULES, StackError, load_stack, parse_overrides, resolve_params
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -554,7 +554,7 @@ def run_sweep(grid: Grid, out: Path, workers: int = 2, scheduler: str | None = N
 
 
 def cmd_sweep(args) -> int:
-    from flight.control.mission import load_mission
+    from services.stack import load_mission
 
     if args.workers < 1:
         raise StackError(f"--workers {args.workers}: at least 1")

@@ -8,7 +8,7 @@ it) and serves, with foxglove-sdk, on loopback by default:
   flight.mcap uses (deploy/flightlog.json_schema): the same topics and fields as the log, so
   one layout (docs/foxglove-layout.json) serves both; plots of setpoints, attitude, rates,
   motor outputs and each service's health come from these;
-- the well-known channels of deploy/foxglove_map.py (poses and transforms of truth and
+- the well-known channels of services/foxglove_map.py (poses and transforms of truth and
   estimate, the scene).
 
 Zenoh's callback only queues the payload; decoding, conversion and encoding run on the
@@ -28,8 +28,8 @@ import foxglove
 from foxglove import channels as fg_channels
 
 import schemas
-from deploy.flightlog import json_schema
-from deploy.foxglove_map import FoxgloveMap, MarkerGrid
+from schemas.flightlog import json_schema
+from services.foxglove_map import FoxgloveMap, MarkerGrid
 
 QUEUE_MAX = 20000      # payloads waiting for the reader (~10 s of the whole stack's traffic)
 # messages the server holds per client before dropping its oldest (the SDK's default is 1024,

@@ -82,3 +82,20 @@ def marker_grid(size_m: float, spacing_m: float, half_extent_m: float):
     corners = np.zeros((n * n, 4, 3))
     corners[:, :, :2] = centres[:, None, :] + offsets[None, :, :]
     return np.arange(n * n), corners
+
+
+@dataclass(frozen=True)
+class MarkerGridLayout:
+    """Square markers on the floor, on a square grid centred at the origin."""
+
+    size_m: float
+    spacing_m: float
+    half_extent_m: float
+
+
+# What both the simulator's camera and the vision service assume unless told otherwise (a real
+# deployment sets the vision service's from its calibration and its floor).
+DEFAULT_CAMERA = Camera(width_px=640, height_px=480, focal_px=400.0)
+DEFAULT_PIXEL_NOISE_PX = 0.5  # std per coordinate
+# dense enough that ~6 markers are in view at 1 m (one marker alone gives ~3 cm fixes)
+DEFAULT_MARKERS = MarkerGridLayout(size_m=0.2, spacing_m=0.5, half_extent_m=5.0)

@@ -25,19 +25,10 @@ from pathlib import Path
 import zenoh
 
 import schemas
-from deploy.stack import SERVICE_MODULES
-from services.mavlink_logic import (
-    BRIDGE_PARAM_DEFAULTS,
-    STREAMS,
-    TUNABLE,
-    Bridge,
-    BridgeConfig,
-    ParamTable,
-    latency_summary,
-    mavutil,
-    is_loopback_endpoint,
-)
+from services.mavlink_logic import (BRIDGE_PARAM_DEFAULTS, STREAMS, TUNABLE, Bridge, BridgeConfig, ParamTable,
+                                    is_loopback_endpoint, latency_summary, mavutil)
 from services.runtime import Inbox, Runtime, main_guard, service_parser
+from services.stack import SERVICE_MODULES
 
 NAME = "mavlink"
 PARAMS = {

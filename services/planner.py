@@ -30,9 +30,10 @@ from dataclasses import replace
 import numpy as np
 
 import schemas
-from flight.control.mission import FLIP_METHODS, MissionError, MissionPlanner, load_mission, mission_items
+from flight.control.mission import FLIP_METHODS, MissionError, MissionPlanner, mission_items
 from flight.control.plan import body_state, motor_forces_update, scale_collective
 from services.runtime import Runtime, main_guard, service_parser
+from services.stack import load_mission
 
 NAME = "planner"
 PARAMS = {

@@ -13,7 +13,7 @@ depends on the machine. The rewrite goes to a temporary file that replaces the l
 when done, so the log is complete at every moment of it.
 
 Beside the bus messages (JSON, one channel per key) the log holds Foxglove's well-known
-messages made from them (deploy/foxglove_map.py: transforms, poses, the 3D scene), so
+messages made from them (services/foxglove_map.py: transforms, poses, the 3D scene), so
 Foxglove shows the flight without configuration: written as the messages come in real time,
 made from the sorted stream in lockstep (the conversion keeps state, e.g. the newest
 attitude: it must see the messages in a deterministic order).
@@ -32,9 +32,9 @@ from typing import Callable
 import zenoh
 
 import schemas
-from deploy.flightlog import LOG_NAME, FlightLogWriter, sort_log
-from deploy.foxglove_map import FoxgloveMap, MarkerGrid
 from flight.vehicle import load_vehicle
+from schemas.flightlog import LOG_NAME, FlightLogWriter, sort_log
+from services.foxglove_map import FoxgloveMap, MarkerGrid
 from services.runtime import Runtime, main_guard, service_parser
 
 NAME = "recorder"

@@ -43,9 +43,9 @@ from typing import Any, Callable
 import zenoh
 
 import schemas
-from deploy import security
-from deploy.stack import (LOCKSTEP_PARTICIPANTS, SERVICES_LISTEN, Stack, StackError, load_stack, parse_overrides,
-                          resolve_params)
+from services import security
+from services.stack import (LOCKSTEP_PARTICIPANTS, SERVICES_LISTEN, Stack, StackError, load_stack, parse_overrides,
+                            resolve_params)
 
 HEALTH_PERIOD_S = 1.0
 READY_RESEND_S = 0.2
@@ -105,7 +105,7 @@ def zenoh_config(args: argparse.Namespace, stack: Stack | None = None, machine: 
     """The session's configuration: the flags, then the stack file's word on where the
     service listens (its machine's services_listen: loopback unless the stack says otherwise;
     Zenoh's own default would be every interface) and, with a [security] table, the machine's
-    login and certificates (deploy/security.py)."""
+    login and certificates (services/security.py)."""
     conf = zenoh.Config.from_file(args.config) if args.config else zenoh.Config()
     conf.insert_json5("mode", json.dumps(args.mode))
     if args.connect:

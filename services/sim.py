@@ -13,9 +13,9 @@ import dataclasses
 import time
 
 import schemas
-from deploy.stack import LOCKSTEP_PARTICIPANTS
 from flight.vehicle import VehicleError, load_vehicle
 from services.runtime import Runtime, main_guard, service_parser
+from services.stack import LOCKSTEP_PARTICIPANTS
 from simulator.config import SimConfig
 from simulator.world import Simulator
 

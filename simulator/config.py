@@ -5,6 +5,8 @@ import math
 import typing
 from dataclasses import dataclass, fields
 
+from flight.camera import DEFAULT_CAMERA, DEFAULT_MARKERS, DEFAULT_PIXEL_NOISE_PX
+
 Vec3 = tuple[float, float, float]
 
 
@@ -22,13 +24,13 @@ class SimConfig:
     camera_drop_rate: float = 0.0       # probability a frame is lost
     camera_outage_start_s: float = -1.0  # the camera is silent from here (negative: never) ...
     camera_outage_s: float = 0.0        # ... for this long (fault injection)
-    camera_pixel_noise_px: float = 0.5  # std of the pixel noise per coordinate
-    camera_width_px: int = 640
-    camera_height_px: int = 480
-    camera_focal_px: float = 400.0
-    marker_size_m: float = 0.2
-    marker_spacing_m: float = 0.5      # dense enough that ~6 markers are in view at 1 m (one marker: ~3 cm fixes)
-    marker_grid_half_extent_m: float = 5.0
+    camera_pixel_noise_px: float = DEFAULT_PIXEL_NOISE_PX  # std of the pixel noise per coordinate
+    camera_width_px: int = DEFAULT_CAMERA.width_px
+    camera_height_px: int = DEFAULT_CAMERA.height_px
+    camera_focal_px: float = DEFAULT_CAMERA.focal_px
+    marker_size_m: float = DEFAULT_MARKERS.size_m
+    marker_spacing_m: float = DEFAULT_MARKERS.spacing_m
+    marker_grid_half_extent_m: float = DEFAULT_MARKERS.half_extent_m
     gyro_noise_var: float = 1e-5        # rad^2/s^2 per sample (001)
     accel_noise_var: float = 1e-4       # m^2/s^4 per sample (001)
     gyro_bias_var: float = 1e-5         # initial constant bias variance, rad^2/s^2

@@ -32,15 +32,11 @@ Item types and their keys (defaults in ITEM_KEYS):
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 from flight.control.flip import BASELINE_CLIMB_M
-
-MISSIONS_DIR = Path(__file__).resolve().parents[2] / "deploy" / "missions"
 
 ITEM_KEYS: dict[str, dict] = {
     "arm": {"wait_s": 0.5},
@@ -73,26 +69,8 @@ class Mission:
     path: str = ""
 
 
-def mission_path(name_or_path: str) -> Path:
-    p = Path(name_or_path)
-    if p.suffix == ".toml":
-        return p
-    return MISSIONS_DIR / f"{name_or_path}.toml"
-
-
-def available_missions() -> list[str]:
-    return sorted(p.stem for p in MISSIONS_DIR.glob("*.toml"))
-
-
-def load_mission(name_or_path: str) -> Mission:
-    path = mission_path(name_or_path)
-    try:
-        doc = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise MissionError(f"mission {name_or_path!r}: no file {path} "
-                           f"(shipped: {', '.join(available_missions())})") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise MissionError(f"{path}: not valid TOML: {exc}") from None
+def parse_mission(doc: dict, path: str = "<mission>") -> Mission:
+    """A mission from its parsed TOML document; errors name `path` and the item."""
     head = doc.get("mission", {})
     for key in ("name", "vehicle"):
         if not isinstance(head.get(key), str):

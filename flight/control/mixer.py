@@ -3,7 +3,7 @@
 The 400 Hz paths (mix, thrust_to_pwm, pwm_to_thrust) work on Python floats with the
 vehicle's M^-1 and limits read once per vehicle: numpy's ~1 us per call on 4-vectors was
 most of their time. tests/unit/test_mixer_fast.py checks them against the former numpy
-versions (tests/unit/sim_reference.py), saturation cases included.
+versions (bench/support/sim_reference.py), saturation cases included.
 """
 from __future__ import annotations
 

@@ -35,7 +35,7 @@ SVD deciding near-degenerate cases (the former full SVD also built a 2N x 2N U: 
 and tens of ms at 700 corners). The Gauss-Newton normal equations are formed in the
 camera frame, J^T J = B^T (K^T K) B with B = diag(R_cw, R_cw), from the normalised
 image coordinates, in a buffer made once per frame. Same algorithm, iterations and
-decisions as before: tests/unit/pnp_reference.py keeps the former implementation and
+decisions as before: bench/support/pnp_reference.py keeps the former implementation and
 tests/unit/test_pnp.py holds the two equal.
 """
 from __future__ import annotations

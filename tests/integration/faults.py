@@ -24,10 +24,9 @@ from pathlib import Path
 
 import schemas
 from deploy.cli import _param_overrides, analyse
-from deploy.flightlog import LOG_NAME, read_log
 from deploy.launcher import Launcher, client_session, free_port
-from deploy.stack import load_stack, lockstep_services
-from flight.control.mission import load_mission
+from schemas.flightlog import LOG_NAME, read_log
+from services.stack import load_mission, load_stack, lockstep_services
 
 TRUTH_STATE = ("attitude.state_source=truth", "position.state_source=truth", "sim.truth_rate_hz=200")
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from deploy.flightlog import read_log
+from schemas.flightlog import read_log
 
 from .conftest import fly
 

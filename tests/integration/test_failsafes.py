@@ -8,7 +8,7 @@ vision gone -> the EKF coasts, then the attitude level lands."""
 
 import pytest
 
-from deploy.flightlog import LOG_NAME, read_log
+from schemas.flightlog import LOG_NAME, read_log
 
 from .faults import TRUTH_STATE, fly_with_fault
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from deploy.flightlog import LogScan, read_log
+from schemas.flightlog import LogScan, read_log
 
 from .conftest import ROOT, TRUTH_STATE, fly, processes_mentioning
 

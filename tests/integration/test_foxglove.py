@@ -122,7 +122,7 @@ def check_log_for_foxglove(path, truth_hz):
     from mcap.reader import make_reader
     from mcap_protobuf.decoder import DecoderFactory
 
-    from deploy.flightlog import read_log
+    from schemas.flightlog import read_log
 
     with open(path, "rb") as fh:
         reader = make_reader(fh, decoder_factories=[DecoderFactory()])

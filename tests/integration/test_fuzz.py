@@ -1,5 +1,5 @@
 """Fuzz every input during a lockstep hover (issue 22, item 9): a publisher sends invalid
-messages (tests/integration/fuzzer.py) round-robin to every key a service subscribes to,
+messages (bench/support/fuzzer.py) round-robin to every key a service subscribes to,
 the lockstep clock and sync keys included. No service crashes, every rejection is counted,
 no NaN reaches the motors, the hover holds, and the flight is the very flight flown without
 the garbage (same truth, same motor outputs, message for message): garbage on a clock or
@@ -11,12 +11,12 @@ import math
 import numpy as np
 import pytest
 
-from deploy.flightlog import read_log
+from bench.support.fuzzer import Fuzzer
 from deploy.launcher import free_port
 from schemas import REASONS
+from schemas.flightlog import read_log
 
 from .conftest import TRUTH_STATE, fly
-from .fuzzer import Fuzzer
 
 pytestmark = pytest.mark.integration
 

@@ -17,7 +17,7 @@ from flight.control.mixer import mix  # noqa: E402
 from flight.vehicle import load_vehicle  # noqa: E402
 
 from .conftest import ROOT  # noqa: E402
-from .test_mavlink import free_udp_port  # noqa: E402
+from bench.support.gcs import free_udp_port  # noqa: E402
 
 pytestmark = pytest.mark.integration
 

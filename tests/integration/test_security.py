@@ -22,10 +22,10 @@ import pytest
 import zenoh
 
 import schemas
-from deploy import security
 from deploy.launcher import ZENOH_RUNTIME, alive_services, client_session, free_port, wait_port
-from deploy.stack import DEFAULT_STACK, SERVICE_MODULES, load_stack
+from services import security
 from services.runtime import service_parser, zenoh_config
+from services.stack import DEFAULT_STACK, SERVICE_MODULES, load_stack
 
 from .conftest import ROOT
 

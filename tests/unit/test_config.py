@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from deploy.stack import SERVICE_MODULES, StackError, load_stack, resolve_params
-from flight.control.mission import MissionError, MissionRunner, available_missions, load_mission
+from flight.control.mission import MissionError, MissionRunner
+from services.stack import SERVICE_MODULES, StackError, available_missions, load_mission, load_stack, resolve_params
 
 ROOT = Path(__file__).resolve().parents[2]
 

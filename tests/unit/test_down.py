@@ -11,7 +11,7 @@ import sys
 import pytest
 
 from deploy import cli
-from deploy.stack import StackError
+from services.stack import StackError
 
 
 def started(router):

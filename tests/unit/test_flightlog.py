@@ -6,8 +6,7 @@ import random
 import pytest
 from mcap.reader import make_reader
 
-from deploy.flightlog import (FlightLogWriter, LogError, LogScan, log_is_complete, read_log, recover, scan,
-                              sort_log)
+from schemas.flightlog import FlightLogWriter, LogError, LogScan, log_is_complete, read_log, recover, scan, sort_log
 
 P = "zp/0/"
 

@@ -7,9 +7,10 @@ import pytest
 
 import schemas
 from flight.control.flip_runner import loop_rate_hz
-from flight.control.mission import MissionError, MissionRunner, MissionPlanner, load_mission
+from flight.control.mission import MissionError, MissionPlanner, MissionRunner
 from flight.control.plan import RotorPlan, body_state, propagate_attitude
 from flight.quat import quat_from_euler, quat_to_euler
+from services.stack import load_mission
 
 
 def _plan_msg(h=3, n=17, t0=1.0, dt=0.1):

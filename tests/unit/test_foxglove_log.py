@@ -1,5 +1,5 @@
 """The flight log's Foxglove well-known channels: made from the sorted stream (lockstep's
-rewrite, deploy.flightlog.sort_log with FoxgloveMap.encoded_stored), read back with the `mcap`
+rewrite, schemas.flightlog.sort_log with FoxgloveMap.encoded_stored), read back with the `mcap`
 reader and mcap-protobuf-support's decoder, beside the bus channels every reader keeps using."""
 
 import random
@@ -8,10 +8,10 @@ from foxglove.messages import FrameTransform, SceneUpdate
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
-from deploy.flightlog import FlightLogWriter, read_log, sort_log
-from deploy.foxglove_map import FoxgloveMap
 from flight.quat import quat_from_euler
 from flight.vehicle import load_vehicle
+from schemas.flightlog import FlightLogWriter, read_log, sort_log
+from services.foxglove_map import FoxgloveMap
 
 
 def stream():

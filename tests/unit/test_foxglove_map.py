@@ -1,4 +1,4 @@
-"""deploy/foxglove_map.py: decoded zenpilot messages -> Foxglove well-known messages.
+"""services/foxglove_map.py: decoded zenpilot messages -> Foxglove well-known messages.
 
 The messages are checked as Foxglove reads them: encoded by the SDK, decoded with
 protobuf from the schema the SDK ships (not through the SDK's own objects)."""
@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
-from deploy.foxglove_map import BODY, BODY_TRUTH, CHANNELS, WORLD, FoxgloveMap, MarkerGrid, timestamp
 from flight.camera import marker_grid
 from flight.quat import quat_from_euler, rotate_vector
 from flight.vehicle import load_vehicle
+from services.foxglove_map import BODY, BODY_TRUTH, CHANNELS, WORLD, FoxgloveMap, MarkerGrid, timestamp
 
 _classes = {}
 
@@ -166,7 +166,7 @@ def test_wants_says_which_stored_messages_to_decode(fmap):
 
 
 def test_marker_grid_follows_the_stack_vision_parameters():
-    from deploy.stack import load_stack
+    from services.stack import load_stack
     from simulator.config import SimConfig
 
     grid = MarkerGrid.for_stack(load_stack())

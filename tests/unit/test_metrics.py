@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from deploy.flightlog import read_log, write_log
 from deploy.metrics import compute_metrics, format_table, step_response
 from deploy.plots import make_plots
 from flight.quat import quat_from_euler
+from schemas.flightlog import read_log, write_log
 
 INFO = {"mission": "test", "mode": "lockstep", "seed": 7, "vehicle": "x250"}
 P = "zp/0/"

@@ -1,15 +1,16 @@
 """The float mixer, PWM map and flight/plan helpers against their former numpy versions
-(tests/unit/sim_reference.py): the same forces and saturation flags, saturation included."""
+(bench/support/sim_reference.py): the same forces and saturation flags, saturation included."""
 import math
 
 import numpy as np
 import pytest
 
-from flight.control.mixer import mix, mix_floats, pwm_to_thrust, pwm_to_thrust_floats, thrust_to_pwm, thrust_to_pwm_floats
+from bench.support.sim_reference import (ref_mix, ref_motor_forces_update, ref_pwm_to_thrust, ref_scale_collective,
+                                         ref_thrust_to_pwm)
+from flight.control.mixer import (mix, mix_floats, pwm_to_thrust, pwm_to_thrust_floats, thrust_to_pwm,
+                                  thrust_to_pwm_floats)
 from flight.control.plan import motor_forces_update, scale_collective
 from flight.vehicle import load_vehicle
-from tests.unit.sim_reference import (ref_mix, ref_motor_forces_update, ref_pwm_to_thrust, ref_scale_collective,
-                                      ref_thrust_to_pwm)
 
 
 @pytest.fixture(params=["x250", "q820"])

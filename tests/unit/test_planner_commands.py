@@ -2,7 +2,8 @@
 
 import pytest
 
-from flight.control.mission import MissionError, MissionPlanner, load_mission
+from flight.control.mission import MissionError, MissionPlanner
+from services.stack import load_mission
 
 
 def fly(planner, t0, t1, z_of_t, dt=0.02):

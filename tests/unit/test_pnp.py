@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from flight.estimation import pnp
+from bench.support import pnp_reference as ref
 from flight.camera import Camera
+from flight.estimation import pnp
 from flight.estimation.pnp import MarkerMap, PoseSolution, solve_pose
 from flight.quat import quat_from_euler, quat_multiply, quat_to_rotation
-from tests.unit import pnp_reference as ref
 
 CAM = Camera(640, 480, 400.0)
 MAP = MarkerMap.grid(0.2, 1.0, 5.0)

@@ -36,7 +36,7 @@ FLAG_RE = re.compile(r"(?<![\w-])(--?[A-Za-z][\w-]*)")
 # ---------------------------------------------------------------- what the code declares
 @cache
 def _services() -> dict[str, str]:
-    from deploy.stack import SERVICE_MODULES
+    from services.stack import SERVICE_MODULES
     return dict(SERVICE_MODULES)
 
 
@@ -94,7 +94,7 @@ def _all_flags() -> frozenset[str]:
 @cache
 def _written_names() -> str:
     """Source of the code that writes a flight's files (file names a run makes, e.g. metrics.json)."""
-    return "".join(p.read_text() for d in ("deploy", "services") for p in sorted((ROOT / d).glob("*.py")))
+    return "".join(p.read_text() for d in ("deploy", "services", "schemas") for p in sorted((ROOT / d).glob("*.py")))
 
 
 # ---------------------------------------------------------------- reading the README
@@ -164,7 +164,7 @@ def _check_param(service: str, key: str, where: str, problems: list[str]) -> Non
 
 
 def _check_zenpilot(tokens: list[str], where: str, problems: list[str]) -> None:
-    from flight.control.mission import available_missions
+    from services.stack import available_missions
     parser, chain = _cli(), "zenpilot"
     args = iter(tokens[1:])
     for tok in args:

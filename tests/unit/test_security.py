@@ -1,4 +1,4 @@
-"""deploy/security.py and the stack file's [security] table, machine endpoints (no Zenoh session)."""
+"""services/security.py and the stack file's [security] table, machine endpoints (no Zenoh session)."""
 
 import re
 from pathlib import Path
@@ -6,8 +6,8 @@ from pathlib import Path
 import pytest
 
 import schemas
-from deploy import security
-from deploy.stack import DEFAULT_STACK, StackError, load_stack
+from services import security
+from services.stack import DEFAULT_STACK, StackError, load_stack
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -1,11 +1,12 @@
 """The float rewrites of the plant, the sensors and the simulator's tick against the former
-numpy implementation (tests/unit/sim_reference.py): the same physics to rounding, the same
+numpy implementation (bench/support/sim_reference.py): the same physics to rounding, the same
 noise draws in the same order."""
 import math
 
 import numpy as np
 import pytest
 
+from bench.support.sim_reference import RefImu, RefMagnetometer, RefPlant, RefSimulator
 from flight.control.laws import attitude_law, position_law
 from flight.control.mixer import mix, thrust_to_pwm
 from flight.quat import quat_from_euler, quat_to_euler, quat_to_rotation
@@ -13,7 +14,6 @@ from flight.vehicle import load_vehicle
 from simulator import SimConfig, Simulator
 from simulator.plant import Plant
 from simulator.sensors import Imu, Magnetometer
-from tests.unit.sim_reference import RefImu, RefMagnetometer, RefPlant, RefSimulator
 
 RTOL, ATOL = 1e-9, 1e-10  # "equal to rounding" over seconds of flight
 DT = 1.0 / 2000.0

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from deploy.stack import StackError, load_stack
 from deploy.supervisor import BACKOFF_S, HEALTH_SILENCE_S, Supervisor, process_state
+from services.stack import StackError, load_stack
 
 
 class FakeProc:

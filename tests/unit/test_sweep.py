@@ -6,9 +6,9 @@ import json
 import pytest
 
 from deploy.cli import build_parser
-from deploy.stack import StackError
-from deploy.sweep import (SCENARIOS, Flight, expand_grid, flatten, flight_status, make_row, parse_seeds,
-                          split_values, write_tables)
+from deploy.sweep import (SCENARIOS, Flight, expand_grid, flatten, flight_status, make_row, parse_seeds, split_values,
+                          write_tables)
+from services.stack import StackError
 
 
 def test_seeds_ranges_and_lists():

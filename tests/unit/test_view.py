@@ -3,9 +3,9 @@
 import foxglove
 
 import schemas
-from deploy.foxglove_map import FoxgloveMap
 from deploy.view import LiveView
 from flight.vehicle import load_vehicle
+from services.foxglove_map import FoxgloveMap
 
 
 def view():

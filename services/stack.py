@@ -14,7 +14,7 @@ A stack file is TOML:
     connect = []              # routers of other hosts its router links to
     services_listen = ["tcp/127.0.0.1:0"]  # where its services listen (default: loopback only)
 
-    [security]                # optional: TLS, passwords and access control (deploy/security.py)
+    [security]                # optional: TLS, passwords and access control (services/security.py)
     dir = "keys"              # made by `zenpilot certs keys --stack FILE`; relative to this file
 
     [services.attitude]
@@ -37,12 +37,21 @@ from __future__ import annotations
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from deploy.security import Security, endpoint_host, is_loopback, parse_security
-from deploy.supervisor import DEFAULT_RESTART, DEFAULT_RESTART_LIMIT, NEVER_RESTARTED, RESTART_POLICIES
+from services.security import Security, SecurityError, endpoint_host, is_loopback, parse_security
 
-STACKS_DIR = Path(__file__).parent / "stacks"
+if TYPE_CHECKING:
+    from flight.control.mission import Mission
+
+# the deployment's files: services read them by path (never import deploy/)
+STACKS_DIR = Path(__file__).resolve().parents[1] / "deploy" / "stacks"
+MISSIONS_DIR = STACKS_DIR.parent / "missions"
+# what the supervisor (deploy/supervisor.py) does when a service dies; a stack file may say otherwise
+RESTART_POLICIES = ("on-failure", "always", "never")
+DEFAULT_RESTART = {"sim": "never", "recorder": "never"}   # every other service: "on-failure"
+DEFAULT_RESTART_LIMIT = 3
+NEVER_RESTARTED = ("sim",)  # a new world mid-flight
 DEFAULT_STACK = STACKS_DIR / "default.toml"
 
 # service name -> python module that runs it (console script zenpilot-<name>)
@@ -163,7 +172,10 @@ def load_stack(path: str | Path | None = None) -> Stack:
         )
     if not machines:
         raise StackError(f"{path}: no [machines.*] table")
-    security = parse_security(doc["security"], path) if "security" in doc else None
+    try:
+        security = parse_security(doc["security"], path) if "security" in doc else None
+    except SecurityError as exc:
+        raise StackError(str(exc)) from None
     if security:
         _check_secure_links(path, machines)
     services = {}
@@ -292,3 +304,32 @@ def resolve_params(defaults: dict[str, Any], given: dict[str, Any], where: str) 
                      for i, (v, d) in enumerate(zip(value, default))]
         out[key] = value
     return out
+
+
+def mission_path(name_or_path: str) -> Path:
+    """A shipped mission's file by name (deploy/missions/NAME.toml), or a .toml path as given."""
+    p = Path(name_or_path)
+    if p.suffix == ".toml":
+        return p
+    return MISSIONS_DIR / f"{name_or_path}.toml"
+
+
+def available_missions() -> list[str]:
+    return sorted(p.stem for p in MISSIONS_DIR.glob("*.toml"))
+
+
+def load_mission(name_or_path: str) -> Mission:
+    """Read and check a mission file (by shipped name or path); MissionError names the file."""
+    from flight.control.mission import MissionError, parse_mission  # only where missions are read
+
+    path = mission_path(name_or_path)
+    try:
+        doc = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise MissionError(f"mission {name_or_path!r}: no file {path} "
+                           f"(shipped: {', '.join(available_missions())})") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise MissionError(f"{path}: cannot read: {exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise MissionError(f"{path}: not valid TOML: {exc}") from None
+    return parse_mission(doc, str(path))

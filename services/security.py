@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from deploy.stack import Stack
+    from services.stack import Stack
 
 # What each service publishes (topics below zp/<vehicle>/), besides what every service
 # publishes: its health and, in lockstep, its sync. tests/unit/test_security.py checks this
@@ -97,16 +97,16 @@ class Security:
 
 
 def parse_security(table: object, stack_path: Path) -> Security:
-    from deploy.stack import StackError
+    """The [security] table of a stack file; SecurityError names the file and the key."""
     where = f"{stack_path}: [security]"
     if not isinstance(table, dict):
-        raise StackError(f"{where}: expected a table")
+        raise SecurityError(f"{where}: expected a table")
     unknown = set(table) - {"dir", "description"}
     if unknown:
-        raise StackError(f"{where}: unknown key(s) {sorted(unknown)} (known: dir)")
+        raise SecurityError(f"{where}: unknown key(s) {sorted(unknown)} (known: dir)")
     d = table.get("dir")
     if not isinstance(d, str) or not d:
-        raise StackError(f"{where} dir: expected the folder `zenpilot certs` wrote, e.g. dir = \"keys\"")
+        raise SecurityError(f"{where} dir: expected the folder `zenpilot certs` wrote, e.g. dir = \"keys\"")
     path = Path(os.path.expanduser(d))
     return Security(path if path.is_absolute() else stack_path.parent / path)
 

@@ -12,8 +12,8 @@ import zenoh
 
 import schemas
 from deploy.launcher import alive_services, client_session
-from deploy.stack import LOCKSTEP_PARTICIPANTS
 from schemas.fuzz import Garbage
+from services.stack import LOCKSTEP_PARTICIPANTS
 
 # a huge array in a flight: ~180 KB, over every bound but the plan's, mission's and camera's
 # (those get 1.8 MB arrays in tests/unit/test_fuzz_inputs.py); 1.8 MB at 60/s to every

@@ -20,21 +20,10 @@ import json
 import math
 from dataclasses import dataclass
 
-from foxglove.messages import (
-    ArrowPrimitive,
-    Color,
-    CubePrimitive,
-    CylinderPrimitive,
-    FrameTransform,
-    Pose,
-    PoseInFrame,
-    Quaternion,
-    SceneEntity,
-    SceneUpdate,
-    Timestamp,
-    Vector3,
-)
+from foxglove.messages import (ArrowPrimitive, Color, CubePrimitive, CylinderPrimitive, FrameTransform, Pose,
+                               PoseInFrame, Quaternion, SceneEntity, SceneUpdate, Timestamp, Vector3)
 
+from flight.camera import DEFAULT_MARKERS
 from flight.quat import quat_from_euler
 
 WORLD = "world"
@@ -101,10 +90,10 @@ def _pose(position, q_wxyz) -> Pose:
 @dataclass(frozen=True)
 class MarkerGrid:
     """The floor's marker grid as flight.camera.marker_grid lays it (ids row-major from
-    (-extent, -extent)); defaults: the simulator's (simulator/config.py)."""
-    size_m: float = 0.2
-    spacing_m: float = 0.5
-    half_extent_m: float = 5.0
+    (-extent, -extent)); defaults: flight.camera.DEFAULT_MARKERS."""
+    size_m: float = DEFAULT_MARKERS.size_m
+    spacing_m: float = DEFAULT_MARKERS.spacing_m
+    half_extent_m: float = DEFAULT_MARKERS.half_extent_m
 
     @property
     def per_row(self) -> int:
@@ -112,13 +101,12 @@ class MarkerGrid:
 
     @classmethod
     def for_stack(cls, stack) -> "MarkerGrid":
-        """The grid a stack's vision service uses: its parameters over the simulator's defaults."""
-        from simulator.config import SimConfig
-
-        defaults, spec = SimConfig(), stack.services.get("vision")
+        """The grid a stack's vision service uses: its parameters over the defaults."""
+        spec = stack.services.get("vision")
         params = spec.params if spec else {}
-        return cls(*(float(params.get(k, getattr(defaults, k)))
-                     for k in ("marker_size_m", "marker_spacing_m", "marker_grid_half_extent_m")))
+        return cls(float(params.get("marker_size_m", DEFAULT_MARKERS.size_m)),
+                   float(params.get("marker_spacing_m", DEFAULT_MARKERS.spacing_m)),
+                   float(params.get("marker_grid_half_extent_m", DEFAULT_MARKERS.half_extent_m)))
 
     def centre(self, marker_id: int) -> tuple[float, float] | None:
         n = self.per_row
@@ -193,7 +181,7 @@ class FoxgloveMap:
 
     def encoded_stored(self, key: str, t_ns: int, data: bytes) -> list[tuple[str, str, bytes, bytes]]:
         """encoded() for a message stored as JSON (a flight log's bus channel), decoding only
-        the messages the conversion uses (deploy.flightlog.sort_log's `derive`)."""
+        the messages the conversion uses (schemas.flightlog.sort_log's `derive`)."""
         if not self.wants(key, t_ns * 1e-9):
             return []
         return self.encoded(key, json.loads(data))
