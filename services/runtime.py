@@ -95,8 +95,8 @@ def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("-l", "--listen", action="append", default=[], metavar="ENDPOINT",
                    help="endpoint to listen on (repeatable)")
     g.add_argument("-c", "--config", metavar="FILE", help="Zenoh JSON5 configuration file")
-    g.add_argument("--no-multicast-scouting", action="store_true", default=True,
-                   help="disable multicast scouting (always on here: routers are given explicitly)")
+    g.add_argument("--multicast-scouting", action=argparse.BooleanOptionalAction, default=False,
+                   help="find peers and routers by UDP multicast (default: off, the stack names its routers)")
     g.add_argument("--cfg", action="append", default=[], metavar="KEY:VALUE",
                    help="Zenoh config entry, VALUE in JSON5, e.g. --cfg 'transport/shared_memory/enabled:false'")
 
@@ -122,7 +122,7 @@ def zenoh_config(args: argparse.Namespace, stack: Stack | None = None, machine: 
         if m is None:
             raise StackError(f"{stack.path}: [security] is set but this session's machine is unknown")
         security.apply_session(conf, stack.security, m.name)
-    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(args.multicast_scouting)))
     # No Zenoh shared memory unless asked for (--cfg): the first message over its size threshold
     # (a flip's plan, 26 KB; camera frames at altitude) creates the pool, 16 MB and three threads,
     # ~11 ms inside that put with the session's receiving thread blocked (measured in a real-time

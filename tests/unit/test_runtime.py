@@ -170,3 +170,15 @@ def test_lockstep_wait_drops_a_silent_participant_after_the_timeout(monkeypatch)
     clock = FakeClock("position")
     assert clock.wait_synced({"position": 3}, 4)   # frozen: dropped after 0.6 s (checked every 0.5 s)
     assert clock.gone == {"position"} and clock.rejected == {"lockstep_dropped_position": 1}
+
+
+def test_multicast_scouting_is_off_unless_asked_for():
+    import json
+
+    def scouting(*argv):
+        args = runtime.service_parser("attitude", "").parse_args(["-e", "tcp/127.0.0.1:7447", *argv])
+        return json.loads(str(runtime.zenoh_config(args)))["scouting"]["multicast"]["enabled"]
+
+    assert scouting() is False
+    assert scouting("--no-multicast-scouting") is False
+    assert scouting("--multicast-scouting") is True
