@@ -43,12 +43,11 @@ from typing import Any, Callable
 import zenoh
 
 import schemas
-from services import security
+from services import lockstep, security
 from services.stack import (LOCKSTEP_PARTICIPANTS, SERVICES_LISTEN, Stack, StackError, load_stack, parse_overrides,
                             resolve_params)
 
 HEALTH_PERIOD_S = 1.0
-READY_RESEND_S = 0.2
 LATE_S = 0.005        # a wake-up later than this past its deadline counts as late
 RAW_QUEUE_MAX = 256   # payloads per key waiting to be read; beyond, the oldest is lost (counted)
 # Rejecting must stay cheap under a flood of garbage (issue 22): beyond this many diagnosed
@@ -77,11 +76,6 @@ def screen(message: schemas.Message, payload: zenoh.ZBytes) -> tuple[bytes | Non
 # A loop woken by its input (run(..., wake_on=inbox)) runs at the input's arrival, at most
 # once per `min_gap` periods; without input it runs on its own timer this much past a period.
 WAKE_TIMER_MARGIN = 0.25
-# Lockstep: a participant whose liveliness token is gone (killed), or that has not reported a
-# tick it owes for this long of wall time (frozen), is dropped from the clock: the rest fly on
-# (the failsafes act) instead of all waiting for it for ever. Generous: a slow but live run of
-# any service on a loaded 2-core machine stays far below it.
-LOCKSTEP_DROP_AFTER_S = 15.0
 
 
 # ---------------------------------------------------------------- CLI and Zenoh
@@ -345,16 +339,6 @@ class Publisher:
             self.seq += 1
 
 
-class _Upstream:
-    """What a service knows of another service's lockstep progress."""
-
-    def __init__(self):
-        self.last_done = -2  # -1: ready, nothing run yet
-        self.next_tick = 0
-        self.triggers: tuple[str, ...] = ()
-        self.period_ticks = 0
-
-
 # ---------------------------------------------------------------- runtime
 class Runtime:
     def __init__(self, name: str, args: argparse.Namespace, param_defaults: dict[str, Any] | None = None,
@@ -393,13 +377,7 @@ class Runtime:
         self._run_times: deque[float] = deque()
         self._periods: deque[float] = deque(maxlen=2000)
         self._t = 0.0
-        self._upstreams: dict[str, _Upstream] = {}
-        self.gone: set[str] = set()   # lockstep participants dropped from the clock (dead or frozen)
-        self._gone_why: dict[str, str] = {}   # dropped, not reported yet
-        self._sim_tick = -1
-        self._clock_queue: deque[dict] = deque()
-        self._clock_event = threading.Event()
-        self._sync_event = threading.Event()
+        self.progress = lockstep.Progress(self.stop_event, self._report_dropped)   # lockstep: the others
         self._arrival = threading.Event()
         self._wake = threading.Event()
         self._wake_t = 0.0
@@ -491,14 +469,13 @@ class Runtime:
 
     def follow(self, upstream: str) -> None:
         """Track another service's lockstep progress (its syncs and its RUN_DONE messages)."""
-        if upstream not in self._upstreams:
-            self._upstreams[upstream] = _Upstream()
+        if self.progress.follow(upstream):
             self.subscribe(schemas.SYNC_DONE.key(self.vehicle_id, upstream), self._make_sync_cb(upstream))
 
     def subscribe_run_done(self) -> None:
         """Lockstep, once the inputs are declared: for each upstream followed whose RUN_DONE
         message is not one of this service's inputs, a subscription that only notes its runs."""
-        for upstream in self._upstreams:
+        for upstream in self.progress.upstreams:
             message = schemas.RUN_DONE.get(upstream)
             if message is None or upstream in self._done_boxes or upstream in self._done_light:
                 continue
@@ -523,11 +500,7 @@ class Runtime:
         header = msg["header"]
         if header["source"] != upstream:
             return
-        tick = round(header["t_s"] * self.tick_rate)
-        u = self._upstreams[upstream]
-        if tick > u.last_done:
-            u.last_done = tick
-            self._sync_event.set()
+        self.progress.on_run_done(upstream, round(header["t_s"] * self.tick_rate))
 
     def subscribe(self, key: str, callback: Callable[[zenoh.Sample], None]):
         """Subscribe with the callback run on Zenoh's receiving thread (indirect=False):
@@ -578,12 +551,17 @@ class Runtime:
             cb(new)
         print(f"zenpilot-{self.name}: param {key} = {new} (from {msg['header']['source']})", flush=True)
 
-    # -- lockstep bookkeeping (called from Zenoh threads) ---------------------
+    # -- lockstep wiring (services/lockstep.py; callbacks on Zenoh's threads) ---------
+    @property
+    def gone(self) -> set[str]:
+        """Lockstep participants dropped from the clock (dead or frozen)."""
+        return self.progress.gone
+
     def _sync_tick(self, upstream: str) -> int:
+        """The lockstep tag of a message from `upstream` arriving now (Inbox visibility)."""
         if upstream == "sim" or upstream not in LOCKSTEP_PARTICIPANTS:
-            return self._sim_tick
-        u = self._upstreams.get(upstream)
-        return u.last_done if u else -2
+            return self.progress.sim_tick
+        return self.progress.last_done(upstream)
 
     def _make_sync_cb(self, upstream: str) -> Callable:
         def on_sync(sample: zenoh.Sample) -> None:
@@ -596,10 +574,7 @@ class Runtime:
             except schemas.SchemaError as exc:
                 self.reject(f"@lockstep/sync/{upstream}", exc)
                 return
-            u = self._upstreams[upstream]
-            u.next_tick, u.triggers, u.period_ticks = msg["next_tick"], tuple(msg["triggers"]), msg["period_ticks"]
-            u.last_done = max(u.last_done, msg["tick"])
-            self._sync_event.set()
+            self.progress.on_sync(upstream, msg)
         return on_sync
 
     def watch_participants(self) -> None:
@@ -608,22 +583,17 @@ class Runtime:
 
         def on_token(sample: zenoh.Sample) -> None:
             name = str(sample.key_expr)[len(prefix):]
-            if sample.kind == zenoh.SampleKind.DELETE and name in self._upstreams:
-                self._drop(name, "its liveliness token is gone")
+            if sample.kind == zenoh.SampleKind.DELETE and name in self.progress.upstreams:
+                self.progress.drop(name, "its liveliness token is gone")
         self.session.liveliness().declare_subscriber(self.key("alive/*"), on_token)
 
-    def _drop(self, name: str, why: str) -> None:
-        """Stop waiting for `name`; reported when a wait skips it (report_gone): a service that
-        merely stops after the flight is waited for by nobody, and the log stays the same."""
-        if name not in self.gone:
-            self._gone_why[name] = why
-            self.gone.add(name)
-            self._sync_event.set()
+    def _report_dropped(self, name: str, why: str) -> None:
+        self.rejected[f"lockstep_dropped_{name}"] = 1
+        self.problem(f"lockstep: {name} dropped from the clock ({why}); the others run on")
 
-    def report_gone(self, name: str) -> None:
-        if name in self._gone_why:
-            self.rejected[f"lockstep_dropped_{name}"] = 1
-            self.problem(f"lockstep: {name} dropped from the clock ({self._gone_why.pop(name)}); the others run on")
+    def subscribe_clock(self) -> None:
+        """The simulator's clocks addressed to this service."""
+        self.subscribe(schemas.CLOCK.key(self.vehicle_id, self.name), self._on_clock)
 
     def _on_clock(self, sample: zenoh.Sample) -> None:
         data, reason = screen(schemas.CLOCK, sample.payload)
@@ -635,9 +605,7 @@ class Runtime:
         except schemas.SchemaError as exc:
             self.reject(self.key("@lockstep/clock"), exc)
             return
-        self._sim_tick = msg["tick"]
-        self._clock_queue.append(msg)
-        self._clock_event.set()
+        self.progress.on_clock(msg)
 
     # -- health ------------------------------------------------------------
     def count_run(self, t: float) -> None:
@@ -685,7 +653,7 @@ class Runtime:
         waiting per hop. Lockstep runs on the ticks as always."""
         try:
             if self.lockstep:
-                self._run_lockstep(step, triggers)
+                lockstep.follow_clock(self, step, triggers)
             elif wake_on is not None and self.rate_hz > 0:
                 wake_on.wakes = True
                 self._run_woken(step, min_gap, wake_on)
@@ -784,85 +752,6 @@ class Runtime:
             self.problem(f"step failed at t={t:.3f}: {type(exc).__name__}: {exc}")
         self.step_s += time.perf_counter() - t0
         self.cycles += 1
-
-    def _run_lockstep(self, step: Callable[[float], None], triggers: tuple[str, ...]) -> None:
-        period = round(self.tick_rate / self.rate_hz) if self.rate_hz > 0 else 0
-        sync = Publisher(self, schemas.SYNC_DONE, schemas.SYNC_DONE.key(self.vehicle_id, self.name))
-        sync.tracked = False
-        done_message = schemas.RUN_DONE.get(self.name)
-        done_key = done_message.key(self.vehicle_id) if done_message else None
-        next_tick = 0 if period else -1
-        self.subscribe_run_done()
-        self.subscribe(schemas.CLOCK.key(self.vehicle_id, self.name), self._on_clock)
-        self.watch_participants()
-        # announce readiness until the first clock tick arrives
-        while not self.stop_event.is_set() and not self._clock_queue:
-            sync.put({"tick": -1, "next_tick": next_tick, "triggers": list(triggers), "period_ticks": period},
-                     t_s=0.0, repeat=True)
-            self._clock_event.wait(READY_RESEND_S)
-        sync.seq += 1
-        self.state = "running"
-        self.enter_loop()
-        while not self.stop_event.is_set():
-            self._clock_event.clear()
-            if not self._clock_queue:
-                self._clock_event.wait(0.2)
-                continue
-            clock = self._clock_queue.popleft()  # a clock for us: we are due at this tick
-            k = clock["tick"]
-            self._t = k / self.tick_rate
-            done_before = clock["done"]
-            if not self._wait_upstreams(k, done_before):
-                break
-            for box in self.inboxes:
-                box.limit = k if box.clocked else done_before.get(box.upstream, -2)
-            self.count_run(self._t)
-            self._last_put = None
-            self._safe_step(step, self._t)
-            self.publish_health()
-            if period:
-                next_tick = k + period
-            last = self._last_put
-            if last is not None and last.key == done_key and last.last_t == self._t:
-                continue   # the run ended with its RUN_DONE message: that was its sync
-            sync.put({"tick": k, "next_tick": next_tick, "triggers": list(triggers), "period_ticks": period},
-                     t_s=self._t)
-
-    def _wait_upstreams(self, k: int, done_before: dict[str, int]) -> bool:
-        """Wait until every upstream's sync for its last run before k has arrived
-        (and with it, over the same link, that run's outputs)."""
-        start = time.perf_counter()
-        try:
-            return self.wait_synced({n: done_before.get(n, -2) for n in self._upstreams}, k)
-        finally:
-            self.wait_s += time.perf_counter() - start
-
-    def wait_synced(self, ticks: dict[str, int], k: int) -> bool:
-        """Lockstep: wait until each service named has reported its run at the tick given done
-        (False: stopped meanwhile); after 5 s, say who is missing at tick k. A participant
-        dropped from the clock (watch_participants; or silent for LOCKSTEP_DROP_AFTER_S) is
-        not waited for."""
-        warned = False
-        start = time.monotonic()
-        while not self.stop_event.is_set():
-            self._sync_event.clear()  # clear before checking, so a sync arriving now is not lost
-            waiting = [n for n, t in ticks.items() if self._upstreams[n].last_done < t]
-            if self.gone.intersection(waiting):
-                for n in self.gone.intersection(waiting):
-                    self.report_gone(n)
-                waiting = [n for n in waiting if n not in self.gone]
-            if not waiting:
-                return True
-            self._sync_event.wait(0.5)
-            waited = time.monotonic() - start
-            if not warned and waited > 5.0:
-                self.problem(f"lockstep: tick {k} still waiting for {', '.join(waiting)}")
-                warned = True
-            if waited > LOCKSTEP_DROP_AFTER_S:
-                for n in waiting:
-                    self._drop(n, f"no sync for tick {k} in {LOCKSTEP_DROP_AFTER_S:.0f} s")
-                    self.report_gone(n)
-        return False
 
     def close(self) -> None:
         if self.state != "stopping":

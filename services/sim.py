@@ -14,6 +14,7 @@ import time
 
 import schemas
 from flight.vehicle import VehicleError, load_vehicle
+from services import lockstep
 from services.runtime import Runtime, main_guard, service_parser
 from services.stack import LOCKSTEP_PARTICIPANTS
 from simulator.config import SimConfig
@@ -26,7 +27,6 @@ EXTRA_PARAMS = {
     "max_duration_s": 600.0,  # hard stop, simulated seconds
     "mass_scale": 1.0,  # the plant's mass = this x the airframe file's (robustness: the services keep the file's)
 }
-START_GRACE_S = 0.5  # lockstep: let subscriptions propagate before tick 0
 BEHIND_WARN_TICKS = 4  # real time: this many ticks behind the wall clock is reported
 
 
@@ -85,69 +85,33 @@ class SimService:
             return False
         return self.end_t is None or t < self.end_t
 
-    # -- lockstep: this service drives the clock ------------------------------
+    # -- lockstep: this service drives the clock (services/lockstep.py) ----------
     def run_lockstep(self) -> None:
-        """Pipelined lockstep. Every participant's runs are fixed by the schedule (the period it
-        announced when ready, or the simulator topics that trigger it), so the clock can say,
-        before anything has run, which run of each upstream a service must wait for (the last
-        one due before its tick). The simulator itself waits only for the services whose
-        outputs it applies (the motors' PWM, the planner's mission state) before stepping the
-        physics; the others run beside it, each waiting for its own upstreams. Every service
-        sees exactly what the unpipelined handshake showed it, so a seed gives the same log."""
         rt = self.rt
-        clocks = {p: rt.publisher(schemas.CLOCK, schemas.CLOCK.key(rt.vehicle_id, p)) for p in self.participants}
-        for p in self.participants:
-            rt.follow(p)
-        rt.subscribe_run_done()
-        rt.watch_participants()
-        # wait for every participant's "ready"
-        while not rt.stop_event.is_set():
-            missing = [p for p in self.participants if rt._upstreams[p].last_done < -1]
-            if not missing:
-                break
-            rt._sync_event.wait(0.2)
-            rt._sync_event.clear()
-        time.sleep(START_GRACE_S)
+        clock = lockstep.Clock(rt, self.participants, applied={self.pwm.upstream, self.mission.upstream})
+        if not clock.start():
+            return
         rt.state = "running"
-        # each participant's own period, as it announced it ready (the planner runs faster for a flip)
-        period = {p: rt._upstreams[p].period_ticks for p in self.participants}
-        next_due = {p: rt._upstreams[p].next_tick for p in self.participants}
-        triggers = {p: set(rt._upstreams[p].triggers) for p in self.participants}
-        last_due = {p: -1 for p in self.participants}   # the last tick each was due at (-1: none yet)
-        applied = {self.pwm.upstream, self.mission.upstream}
         rt.enter_loop()
         print(f"zenpilot-sim: first tick at {time.time():.3f}", flush=True)
-        clock = time.perf_counter
+        timer = time.perf_counter
         while not rt.stop_event.is_set():
-            t0 = clock()
+            t0 = timer()
             k = self.sim.tick
             rt._t = self.sim.t
-            published = self.publish_outputs()
-            if rt.gone:   # dropped from the clock (killed or frozen): no more clocks for them
-                for p in rt.gone.intersection(self.participants):
-                    rt.report_gone(p)
-            due = [p for p in self.participants if p not in rt.gone
-                   and (next_due[p] == k or (next_due[p] < 0 and triggers[p].intersection(published)))]
-            done = dict(last_due)
-            for p in due:
-                clocks[p].put({"tick": k, "tick_rate_hz": rt.tick_rate, "published": published,
-                               "done": done}, t_s=rt._t)
-                last_due[p] = k
-                if period[p]:
-                    next_due[p] = k + period[p]
-            t1 = clock()
-            if not rt.wait_synced({p: k for p in due if p in applied}, k):
+            due = clock.tick(k, rt._t, self.publish_outputs())
+            t1 = timer()
+            if not clock.wait_applied(due, k):
                 break
-            t2 = clock()
+            t2 = timer()
             rt.count_run(rt._t)
             rt.publish_health()
             more = self.advance()
-            rt.step_s += (t1 - t0) + (clock() - t2)   # physics and publishing; wait_s: the services
+            rt.step_s += (t1 - t0) + (timer() - t2)   # physics and publishing; wait_s: the services
             rt.wait_s += t2 - t1
             rt.cycles += 1
             if not more:
-                # the runs still going finish before the simulator says it is done: the log holds them all
-                rt.wait_synced({p: t for p, t in last_due.items() if t >= 0}, k)
+                clock.finish(k)
                 break
 
     # -- real time -------------------------------------------------------------

@@ -122,8 +122,8 @@ def test_garbage_on_clock_sync_and_param_keys_is_counted_and_changes_nothing(ser
     before = _rejected(rt)
     pools = {m.name: Garbage(m, seed=7, pool=16) for m in (schemas.SYNC_DONE, schemas.CLOCK, schemas.PARAM_SET)}
     sent = 0
-    upstreams = {name: rt._make_sync_cb(name) for name in rt._upstreams}
-    done_before = {name: u.last_done for name, u in rt._upstreams.items()}
+    upstreams = {name: rt._make_sync_cb(name) for name in rt.progress.upstreams}
+    done_before = {name: u.last_done for name, u in rt.progress.upstreams.items()}
     for _ in range(4000):
         for name, on_sync in upstreams.items():
             on_sync(_sample(pools["sync_done"].next()[1]))
@@ -133,13 +133,13 @@ def test_garbage_on_clock_sync_and_param_keys_is_counted_and_changes_nothing(ser
         sent += 2
     assert _rejected(rt) - before == sent
     # the lockstep bookkeeping did not move: no tick taken, no upstream's progress changed
-    assert not rt._clock_queue and rt._sim_tick == -1
-    assert {name: u.last_done for name, u in rt._upstreams.items()} == done_before
+    assert not rt.progress.clocks and rt.progress.sim_tick == -1
+    assert {name: u.last_done for name, u in rt.progress.upstreams.items()} == done_before
     # and a valid sync after the garbage is taken as it comes
     name, on_sync = next(iter(upstreams.items()))
     on_sync(_sample(schemas.SYNC_DONE.encode(0.0, 0, name, {"tick": 5, "next_tick": 10, "triggers": [],
                                                               "period_ticks": 5})))
-    assert rt._upstreams[name].last_done == 5
+    assert rt.progress.upstreams[name].last_done == 5
 
 
 def test_a_run_done_message_stands_for_its_sync_and_garbage_takes_no_tick(services):
@@ -151,24 +151,24 @@ def test_a_run_done_message_stands_for_its_sync_and_garbage_takes_no_tick(servic
     rt.subscribe_run_done()
     assert "attitude" in rt._done_light and "motors" in rt._done_boxes
     pwm_box = next(b for b in rt.inboxes if b.message is schemas.MOTOR_PWM)
-    rt._upstreams["motors"].last_done = 6
+    rt.progress.upstreams["motors"].last_done = 6
     pool = Garbage(schemas.MOTOR_PWM, seed=5, pool=16)
     before = _rejected(rt)
     for _ in range(200):
         pwm_box._on_sample(_sample(pool.next()[1]))
     pwm_box._on_sample(_sample(schemas.MOTOR_PWM.encode(9 / rt.tick_rate, 0, "intruder", _values(schemas.MOTOR_PWM))))
-    assert rt._upstreams["motors"].last_done == 6
+    assert rt.progress.upstreams["motors"].last_done == 6
     pwm_box._on_sample(_sample(schemas.MOTOR_PWM.encode(7 / rt.tick_rate, 1, "motors", _values(schemas.MOTOR_PWM))))
-    assert rt._upstreams["motors"].last_done == 7
+    assert rt.progress.upstreams["motors"].last_done == 7
     pwm_box.take()
     assert _rejected(rt) - before == 200
     assert pwm_box._items[-1][0] == 6   # tagged with the run before it
     # the attitude's state, on the sim's own subscription for it
     on_state = rt._done_light["attitude"]
     on_state(_sample(b"\xc1garbage"))
-    assert rt._upstreams["attitude"].last_done < 0
+    assert rt.progress.upstreams["attitude"].last_done < 0
     on_state(_sample(schemas.ATTITUDE_STATE.encode(8 / rt.tick_rate, 0, "attitude", _values(schemas.ATTITUDE_STATE))))
-    assert rt._upstreams["attitude"].last_done == 8
+    assert rt.progress.upstreams["attitude"].last_done == 8
 
 
 def test_rejection_reasons_cover_every_kind(services):

@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import zenoh
 
 import schemas
-from services import runtime
+from services import lockstep, runtime
 from services.runtime import RAW_QUEUE_MAX, Inbox, apply_scheduling
 
 
@@ -135,41 +135,59 @@ def test_an_idle_reader_loses_nothing_it_did_not_ask_for():
     assert box.take()[-1]["header"]["seq"] == RAW_QUEUE_MAX + 9   # reading again: the newest
 
 
-class FakeClock:
-    """What Runtime.wait_synced needs: the upstreams' progress and the drop bookkeeping."""
-    wait_synced, _drop, report_gone = runtime.Runtime.wait_synced, runtime.Runtime._drop, runtime.Runtime.report_gone
+class Reports:
+    """What services/lockstep.Progress reports to: a dropped participant, a problem."""
 
-    def __init__(self, *names):
-        self.stop_event, self._sync_event = threading.Event(), threading.Event()
-        self._upstreams = {n: runtime._Upstream() for n in names}
-        self.gone, self._gone_why, self.rejected, self.problems = set(), {}, {}, []
+    def __init__(self):
+        self.rejected, self.problems = {}, []
 
-    def problem(self, text):
-        self.problems.append(text)
+    def dropped(self, name, why):
+        self.rejected[f"lockstep_dropped_{name}"] = 1
+        self.problems.append(f"lockstep: {name} dropped from the clock ({why})")
+
+
+def progress_of(*names):
+    reports = Reports()
+    progress = lockstep.Progress(threading.Event(), reports.dropped)
+    for n in names:
+        progress.follow(n)
+    return progress, reports
 
 
 def test_lockstep_wait_drops_a_participant_whose_token_went():
-    clock = FakeClock("attitude", "planner")
-    clock._upstreams["planner"].last_done = 10
-    clock._drop("planner", "its liveliness token is gone")   # gone, but owed nothing: not reported
-    assert clock.wait_synced({"planner": 10}, 10) and clock.rejected == {}
+    progress, reports = progress_of("attitude", "planner")
+    progress.upstreams["planner"].last_done = 10
+    progress.drop("planner", "its liveliness token is gone")   # gone, but owed nothing: not reported
+    assert progress.wait_synced({"planner": 10}, 10, reports.problems.append) and reports.rejected == {}
     result = []
-    waiter = threading.Thread(target=lambda: result.append(clock.wait_synced({"attitude": 8}, 9)))
+    waiter = threading.Thread(target=lambda: result.append(progress.wait_synced({"attitude": 8}, 9, print)))
     waiter.start()
     waiter.join(0.3)
     assert waiter.is_alive()                   # attitude owes tick 8: waiting
-    clock._drop("attitude", "its liveliness token is gone")
+    progress.drop("attitude", "its liveliness token is gone")
     waiter.join(2.0)
     assert result == [True]
-    assert clock.rejected == {"lockstep_dropped_attitude": 1}
-    assert "attitude dropped from the clock (its liveliness token is gone)" in clock.problems[-1]
+    assert reports.rejected == {"lockstep_dropped_attitude": 1}
+    assert "attitude dropped from the clock (its liveliness token is gone)" in reports.problems[-1]
 
 
 def test_lockstep_wait_drops_a_silent_participant_after_the_timeout(monkeypatch):
-    monkeypatch.setattr(runtime, "LOCKSTEP_DROP_AFTER_S", 0.6)
-    clock = FakeClock("position")
-    assert clock.wait_synced({"position": 3}, 4)   # frozen: dropped after 0.6 s (checked every 0.5 s)
-    assert clock.gone == {"position"} and clock.rejected == {"lockstep_dropped_position": 1}
+    monkeypatch.setattr(lockstep, "DROP_AFTER_S", 0.6)
+    progress, reports = progress_of("position")
+    assert progress.wait_synced({"position": 3}, 4, print)   # frozen: dropped after 0.6 s (checked every 0.5 s)
+    assert progress.gone == {"position"} and reports.rejected == {"lockstep_dropped_position": 1}
+
+
+def test_lockstep_progress_from_syncs_and_run_done_messages_only_moves_forward():
+    progress, _ = progress_of("motors")
+    assert progress.last_done("motors") == -2 and progress.last_done("nobody") == -2
+    progress.on_sync("motors", {"tick": -1, "next_tick": 0, "triggers": [], "period_ticks": 1})
+    assert progress.wait_ready(["motors"])
+    progress.on_run_done("motors", 7)
+    progress.on_sync("motors", {"tick": 5, "next_tick": 6, "triggers": [], "period_ticks": 1})   # late: kept at 7
+    assert progress.last_done("motors") == 7 and progress.upstreams["motors"].next_tick == 6
+    progress.on_clock({"tick": 8})
+    assert progress.sim_tick == 8 and progress.clocks[-1]["tick"] == 8
 
 
 def test_multicast_scouting_is_off_unless_asked_for():
