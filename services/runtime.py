@@ -340,7 +340,41 @@ class Publisher:
 
 
 # ---------------------------------------------------------------- runtime
-class Runtime:
+class ParamAccess:
+    """Reading a service's resolved parameters, with errors that say where they were set: the
+    Runtime's in flight, a fake's in the services' unit tests."""
+
+    params: dict[str, Any]
+
+    def where(self) -> str:
+        raise NotImplementedError
+
+    def choice(self, key: str, choices: tuple[str, ...]) -> str:
+        """A string parameter that must be one of `choices`."""
+        if self.params[key] not in choices:
+            raise ValueError(f"{self.where()} {key}: {self.params[key]!r} not one of {choices}")
+        return self.params[key]
+
+    def table(self, key: str, from_dict: Callable[[dict], Any]) -> Any:
+        """A nested parameter table, validated by its owner's from_dict."""
+        try:
+            return from_dict(self.params[key])
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"{self.where()} {key}: {exc}") from None
+
+    def live_array(self, key: str):
+        """A numpy copy of a numeric parameter that param/set updates in place: pass it
+        to the law each step and a new gain applies from the next step."""
+        import numpy as np
+        arr = np.array(self.params[key], dtype=float)
+        self.on_param(key, lambda v: arr.__setitem__(slice(None), v))
+        return arr
+
+    def on_param(self, key: str, callback: Callable[[Any], None]) -> None:
+        raise NotImplementedError
+
+
+class Runtime(ParamAccess):
     def __init__(self, name: str, args: argparse.Namespace, param_defaults: dict[str, Any] | None = None,
                  announce: bool = True):
         self.name = name
@@ -404,19 +438,6 @@ class Runtime:
     # -- helpers ---------------------------------------------------------
     def where(self) -> str:
         return f"{self.stack.path}: [services.{self.name}.params]"
-
-    def choice(self, key: str, choices: tuple[str, ...]) -> str:
-        """A string parameter that must be one of `choices`."""
-        if self.params[key] not in choices:
-            raise ValueError(f"{self.where()} {key}: {self.params[key]!r} not one of {choices}")
-        return self.params[key]
-
-    def table(self, key: str, from_dict: Callable[[dict], Any]) -> Any:
-        """A nested parameter table, validated by its owner's from_dict."""
-        try:
-            return from_dict(self.params[key])
-        except (ValueError, TypeError) as exc:
-            raise ValueError(f"{self.where()} {key}: {exc}") from None
 
     def key(self, topic: str) -> str:
         return f"zp/{self.vehicle_id}/{topic}"
@@ -515,14 +536,6 @@ class Runtime:
     def on_param(self, key: str, callback: Callable[[Any], None]) -> None:
         """Call `callback(new_value)` (on a Zenoh thread) when param/set changes `key`."""
         self._param_callbacks.setdefault(key, []).append(callback)
-
-    def live_array(self, key: str):
-        """A numpy copy of a numeric parameter that param/set updates in place: pass it
-        to the law each step and a new gain applies from the next step."""
-        import numpy as np
-        arr = np.array(self.params[key], dtype=float)
-        self.on_param(key, lambda v: arr.__setitem__(slice(None), v))
-        return arr
 
     def _on_param_set(self, sample: zenoh.Sample) -> None:
         data, reason = screen(schemas.PARAM_SET, sample.payload)

@@ -1,0 +1,114 @@
+"""The attitude level's logic (services/attitude.py AttitudeLoop) without a router."""
+
+import math
+
+import numpy as np
+import pytest
+
+import schemas
+from flight.control.laws import attitude_law, stopping_accel
+from flight.quat import quat_from_euler
+from flight.vehicle import load_vehicle
+from services.attitude import PARAMS, AttitudeLoop
+from tests.unit.services.fake_io import FakeIO
+
+X250 = load_vehicle("x250")
+HOVER_N = X250.mass_kg * X250.gravity_m_s2
+
+
+def truth(t, roll=0.0, pitch=0.0, yaw=0.0, rate=(0.0, 0.0, 0.0)):
+    return {"position_m": [0.0, 0.0, 1.0], "velocity_m_s": [0.0, 0.0, 0.0],
+            "quaternion_wxyz": list(quat_from_euler(roll, pitch, yaw)), "rate_rad_s": list(rate),
+            "acceleration_m_s2": [0.0, 0.0, 0.0], "motor_thrust_n": [HOVER_N / 4] * 4,
+            "wind_m_s": [0.0, 0.0, 0.0], "landed": False}
+
+
+def truth_loop(**params):
+    io = FakeIO("attitude", PARAMS, {"state_source": "truth", **params})
+    return io, AttitudeLoop(io)
+
+
+def test_truth_source_commands_law_8_and_passes_the_thrust_on():
+    io, loop = truth_loop()
+    io.received(schemas.TRUTH, "sim").push(1.0, truth(1.0, roll=0.1, rate=(0.2, 0.0, 0.0)))
+    io.received(schemas.POSITION_SETPOINT, "position").push(1.0, {"attitude_ref_rad": [0.0, 0.05, 0.0],
+                                                                   "thrust_n": HOVER_N})
+    loop.step(1.0)
+    [(t, cmd)] = io.sent(schemas.ATTITUDE_COMMAND)
+    expected = attitude_law(X250.inertia_kg_m2, [0.1, 0.0, 0.0], [0.2, 0.0, 0.0], [0.0, 0.05, 0.0],
+                            np.array(PARAMS["k"]), np.array(PARAMS["alpha"]),
+                            stopping_accel(X250.max_angular_accel_rad_s2, PARAMS["stopping_accel_fraction"]))
+    assert t == 1.0 and cmd["thrust_n"] == pytest.approx(HOVER_N) and cmd["imu_t_s"] == 1.0
+    np.testing.assert_allclose(cmd["torque_nm"], expected, rtol=1e-9, atol=1e-12)
+    [(_, state)] = io.sent(schemas.ATTITUDE_STATE)
+    np.testing.assert_allclose(state["euler_ref_rad"], [0.0, 0.05, 0.0])
+    assert io.rejected == {}
+
+
+def test_a_new_gain_from_param_set_applies_from_the_next_step():
+    io, loop = truth_loop()
+    io.received(schemas.TRUTH, "sim").push(1.0, truth(1.0, roll=0.1))
+    io.received(schemas.POSITION_SETPOINT, "position").push(1.0, {"attitude_ref_rad": [0.0, 0.0, 0.0],
+                                                                   "thrust_n": HOVER_N})
+    loop.step(1.0)
+    io.set_param("k", [8.0, 8.0, 8.0])
+    loop.step(1.0)
+    first, second = (np.array(c["torque_nm"]) for _, c in io.sent(schemas.ATTITUDE_COMMAND))
+    assert abs(second[0]) < abs(first[0])   # a softer gain: less torque for the same roll error
+
+
+def test_no_command_before_any_setpoint_and_none_on_stale_state():
+    io, loop = truth_loop()
+    io.received(schemas.TRUTH, "sim").push(1.0, truth(1.0))
+    loop.step(1.0)
+    assert io.sent(schemas.ATTITUDE_COMMAND) == [] and len(io.sent(schemas.ATTITUDE_STATE)) == 1
+    io.received(schemas.POSITION_SETPOINT, "position").push(1.2, {"attitude_ref_rad": [0.0, 0.0, 0.0],
+                                                                   "thrust_n": HOVER_N})
+    loop.step(1.2)   # the newest truth is 0.2 s old: past state_timeout_s
+    loop.step(1.205)
+    assert io.sent(schemas.ATTITUDE_COMMAND) == []
+    assert io.rejected == {"stale_state": 1}   # once per sample, not per run
+
+
+def test_lost_setpoints_in_the_air_descend_then_hand_back():
+    io, loop = truth_loop()
+    truths, setpoints = io.received(schemas.TRUTH, "sim"), io.received(schemas.POSITION_SETPOINT, "position")
+    io.received(schemas.POSITION_STATE, "position").push(1.0, {
+        "position_m": [0.0, 0.0, 1.0], "velocity_m_s": [0.0, 0.0, 0.0], "position_ref_m": [0.0, 0.0, 1.0],
+        "position_cov_m2": [0.0] * 9, "acceleration_m_s2": [0.0, 0.0, 0.0], "state_source": "truth",
+        "thrust_scale": 1.0})
+    truths.push(1.0, truth(1.0))
+    setpoints.push(1.0, {"attitude_ref_rad": [0.0, 0.0, 0.3], "thrust_n": HOVER_N})
+    loop.step(1.0)
+    truths.push(1.5, truth(1.5))
+    loop.step(1.5)   # setpoint 0.5 s old: the failsafe levels and descends
+    _, cmd = io.sent(schemas.ATTITUDE_COMMAND)[-1]
+    assert 0.0 < cmd["thrust_n"] <= HOVER_N
+    assert io.rejected.get("failsafe_engaged") == 1 and "failsafe" in io.problems[-1]
+    _, state = io.sent(schemas.ATTITUDE_STATE)[-1]
+    assert list(state["euler_ref_rad"][:2]) == [0.0, 0.0]   # level, the yaw kept
+    setpoints.push(1.5, {"attitude_ref_rad": [0.0, 0.0, 0.0], "thrust_n": HOVER_N})
+    loop.step(1.5)
+    assert io.rejected.get("failsafe_recovered") == 1 and io.sent(schemas.ATTITUDE_COMMAND)[-1][1]["thrust_n"] == HOVER_N
+
+
+def test_the_estimate_converges_level_from_imu_samples_at_rest():
+    io = FakeIO("attitude", PARAMS, {"camera_level": False, "compensate_acceleration": False})
+    loop = AttitudeLoop(io)
+    imu = io.received(schemas.IMU, "sim")
+    for n in range(1, 801):   # 2 s at 400 Hz, a run every second sample
+        imu.push(n / 400, {"gyro_rad_s": [0.0, 0.0, 0.0], "accel_m_s2": [0.0, 0.0, X250.gravity_m_s2]})
+        if n % 2 == 0:
+            loop.step(n / 400)
+    _, state = io.sent(schemas.ATTITUDE_STATE)[-1]
+    assert all(math.isfinite(v) for v in state["euler_rad"])
+    assert max(abs(v) for v in state["euler_rad"][:2]) < math.radians(0.1)
+
+
+@pytest.mark.parametrize("params, key", [({"stopping_accel_fraction": 2.0}, "stopping_accel_fraction"),
+                                         ({"estimator": "nonesuch"}, "estimator"),
+                                         ({"accel_window_s": 0.0}, "accel_window_s"),
+                                         ({"carrier": {"enter_tilt_deg": "x"}}, "carrier")])
+def test_bad_parameters_are_refused_naming_the_key(params, key):
+    with pytest.raises(ValueError, match=f"services.attitude.params.*{key}"):
+        AttitudeLoop(FakeIO("attitude", PARAMS, params))
