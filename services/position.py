@@ -84,53 +84,67 @@ LANDED_FOR_S = 1.0
 VISION_MIN_HEIGHT_M = 0.3   # below this the camera's silence is not a loss (too close to the markers)
 
 
-def run(args) -> None:
-    rt = Runtime(NAME, args, PARAMS)
-    p = rt.params
-    vehicle = load_vehicle(rt.vehicle_name)
-    estimate = rt.choice("state_source", STATE_SOURCES) == "estimate"
-    if estimate:
-        ekf = PositionEKF(vehicle, rt.table("ekf", PositionEKFParams.from_dict), dt=1.0 / rt.rate_hz)
-        attitude = rt.inbox(schemas.ATTITUDE_STATE, "attitude")
-        motors = rt.inbox(schemas.MOTOR_PWM, "motors", keep=32)  # every 400 Hz command of a step
-        poses = rt.inbox(schemas.VISION_POSE, "vision", keep=16)
-        started = {"ekf": False, "refused": 0, "fused_t": None, "stale_att_t": None}
-        rotor_forces = LaggedMotorInput(vehicle.motor_time_constant_s)  # the plant's motor lag
-    else:
-        truth = rt.inbox(schemas.TRUTH, "sim")
-    planner = rt.inbox(schemas.PLANNER_SETPOINT, "planner")
-    setpoint_out = rt.publisher(schemas.POSITION_SETPOINT)
-    state_out = rt.publisher(schemas.POSITION_STATE)
-    k, alpha = rt.live_array("k"), rt.live_array("alpha")  # param/set applies them live
-    m, g = vehicle.mass_kg, vehicle.gravity_m_s2
-    allocation = vehicle.allocation
-    hold = {"position": None, "since": 0.0, "landed": False, "vision_lost": False,
-            "integral": np.zeros(2), "bias": None}
-    tilt_limit = {"deg": None, "rad": 0.0}  # vehicle.tilt_limit_rad of the (live) max_tilt_deg
-    velocities: deque = deque(maxlen=max(2, round(ACCEL_WINDOW_S * rt.rate_hz) + 1))
+class PositionLoop:
+    """The position level's logic: EKF (or truth), laws (9)-(11) and the failsafes (module
+    docstring). `io` is the service's Runtime in flight, a fake in the unit tests; no Zenoh here."""
 
-    def count(reason: str) -> None:
-        rt.rejected[reason] = rt.rejected.get(reason, 0) + 1
+    def __init__(self, io):
+        self.io = io
+        p = self.p = io.params
+        vehicle = self.vehicle = load_vehicle(io.vehicle_name)
+        self.dt = 1.0 / io.rate_hz
+        self.estimate = io.choice("state_source", STATE_SOURCES) == "estimate"
+        if self.estimate:
+            self.ekf = PositionEKF(vehicle, io.table("ekf", PositionEKFParams.from_dict), dt=self.dt)
+            self.attitude = io.inbox(schemas.ATTITUDE_STATE, "attitude")
+            self.motors = io.inbox(schemas.MOTOR_PWM, "motors", keep=32)  # every 400 Hz command of a step
+            self.poses = io.inbox(schemas.VISION_POSE, "vision", keep=16)
+            self.rotor_forces = LaggedMotorInput(vehicle.motor_time_constant_s)  # the plant's motor lag
+        else:
+            self.truth = io.inbox(schemas.TRUTH, "sim")
+        self.ekf_started = False
+        self.refused = 0             # camera fixes refused in a row
+        self.fused_t = None          # when a camera fix was last fused
+        self.stale_att_t = None      # the attitude message last counted stale
+        self.planner = io.inbox(schemas.PLANNER_SETPOINT, "planner")
+        self.setpoint_out = io.publisher(schemas.POSITION_SETPOINT)
+        self.state_out = io.publisher(schemas.POSITION_STATE)
+        self.k, self.alpha = io.live_array("k"), io.live_array("alpha")  # param/set applies them live
+        self.allocation = vehicle.allocation
+        self.hold_position = None    # planner lost: the position held (then landed at)
+        self.hold_since = 0.0
+        self.landed = False
+        self.landed_for = 0.0
+        self.vision_lost = False
+        self.integral = np.zeros(2)  # hold_ki's integral of the position error
+        self.bias = None
+        self.tilt_deg, self.tilt_rad = None, 0.0  # vehicle.tilt_limit_rad of the (live) max_tilt_deg
+        self.velocities: deque = deque(maxlen=max(2, round(ACCEL_WINDOW_S * io.rate_hz) + 1))
 
-    def read_state(t: float):
+    def count(self, reason: str) -> None:
+        rejected = self.io.rejected
+        rejected[reason] = rejected.get(reason, 0) + 1
+
+    def read_state(self, t: float):
         """(position, velocity, euler, position covariance, thrust scale) or None."""
-        if not estimate:
-            s = truth.latest()
+        if not self.estimate:
+            s = self.truth.latest()
             if s is None:
                 return None
             return (np.asarray(s["position_m"]), np.asarray(s["velocity_m_s"]),
                     np.array(quat_to_euler(s["quaternion_wxyz"])), np.zeros((3, 3)), 1.0)
-        if not started["ekf"]:
+        p, ekf, count = self.p, self.ekf, self.count
+        if not self.ekf_started:
             ekf.initialize(t, np.asarray(p["home_position_m"], dtype=float))
-            started["ekf"] = True
-        for out in motors.take():  # what the mixer really asked of the motors (after saturation)
-            rotor_forces.add(out["header"]["t_s"], out["thrust_n"])
+            self.ekf_started = True
+        for out in self.motors.take():  # what the mixer really asked of the motors (after saturation)
+            self.rotor_forces.add(out["header"]["t_s"], out["thrust_n"])
         if t > ekf.t:
-            ekf.predict(t, allocation @ rotor_forces.mean_to(t))
-        att = attitude.latest()
+            ekf.predict(t, self.allocation @ self.rotor_forces.mean_to(t))
+        att = self.attitude.latest()
         if att is not None and t - att["header"]["t_s"] > p["attitude_timeout_s"]:
-            if att["header"]["t_s"] != started["stale_att_t"]:   # counted once per message
-                started["stale_att_t"] = att["header"]["t_s"]
+            if att["header"]["t_s"] != self.stale_att_t:   # counted once per message
+                self.stale_att_t = att["header"]["t_s"]
                 count("stale_att_state")
             att = None   # the attitude level gone or late: predict on, never re-fuse an old estimate
         # the messages' lists go to the EKF as they are (it takes plain floats)
@@ -143,7 +157,7 @@ def run(args) -> None:
                                        [max(v, f) for v, f in zip(att["euler_var_rad2"], p["attitude_var_floor"])],
                                        [max(v, f) for v, f in zip(att["rate_var_rad2_s2"], p["rate_var_floor"])]):
                 count("fusion_attitude_gate")
-        for pose in poses.take():
+        for pose in self.poses.take():
             if t - pose["header"]["t_s"] > p["pose_timeout_s"]:
                 count("stale_pose")
                 continue
@@ -151,106 +165,114 @@ def run(args) -> None:
             t_fix = pose["header"]["t_s"] if p["fuse_camera_at_exposure"] else ekf.t
             accepted, _nis = ekf.update_position(t_fix, np.asarray(pose["position_m"]), cov)
             if accepted:
-                started["refused"] = 0
-                started["fused_t"] = t
+                self.refused = 0
+                self.fused_t = t
                 continue
             count("fusion_position_rejected")
-            started["refused"] += 1
-            if started["refused"] >= p["position_reset_after"]:
+            self.refused += 1
+            if self.refused >= p["position_reset_after"]:
                 ekf.reset_position(pose["position_m"], cov)
                 count("fusion_position_reset")
-                started["refused"] = 0
+                self.refused = 0
         x = ekf.x
         return x[0:3], x[3:6], x[6:9], ekf.position_cov, float(x[12])
 
-    def step(t: float) -> None:
-        state, sp = read_state(t), planner.latest()
+    def step(self, t: float) -> None:
+        """One run at time t: the state, then the setpoint for the attitude level."""
+        p, vehicle, k, alpha = self.p, self.vehicle, self.k, self.alpha
+        state, sp = self.read_state(t), self.planner.latest()
         if state is None:
             return
         pos, vel, (roll, pitch, yaw), cov, thrust_scale = state
-        m_eff = m / thrust_scale  # the mass the laws see: a vehicle that gets less thrust per newton
+        m_eff = vehicle.mass_kg / thrust_scale  # the mass the laws see: a vehicle that gets less thrust per newton
+        g = vehicle.gravity_m_s2
         stale = sp is None or t - sp["header"]["t_s"] > p["setpoint_timeout_s"]
-        if stale and hold["position"] is None:
-            hold["position"] = pos.copy()  # planner lost: hold the position we had
-            hold["since"], hold["landed"] = t, False
+        if stale and self.hold_position is None:
+            self.hold_position = pos.copy()  # planner lost: hold the position we had
+            self.hold_since, self.landed = t, False
             if sp is not None and sp["armed"] and sp["mode"] != "idle":
-                count("planner_lost")
-                rt.problem(f"failsafe: no planner setpoint at t={t:.3f}: holding, landing after "
-                           f"{p['planner_loss_land_after_s']} s")
+                self.count("planner_lost")
+                self.io.problem(f"failsafe: no planner setpoint at t={t:.3f}: holding, landing after "
+                                f"{p['planner_loss_land_after_s']} s")
         if not stale:
-            hold["position"] = None
+            self.hold_position = None
         flying = sp is not None and sp["armed"] and sp["mode"] != "idle"
-        if estimate and flying and started["fused_t"] is not None:
+        if self.estimate and flying and self.fused_t is not None:
             # near the ground the camera sees too little of the marker map to solve (take-off, landing)
-            lost = (t - started["fused_t"] > p["vision_timeout_s"]
-                    and (hold["vision_lost"] or pos[2] > p["home_position_m"][2] + VISION_MIN_HEIGHT_M))
-            if lost != hold["vision_lost"]:
-                hold["vision_lost"] = lost
-                count("vision_lost" if lost else "vision_back")
-                rt.problem(f"failsafe: no camera fix for {p['vision_timeout_s']} s at t={t:.3f}: the attitude "
-                           "level lands" if lost else f"camera fixes again at t={t:.3f}")
+            lost = (t - self.fused_t > p["vision_timeout_s"]
+                    and (self.vision_lost or pos[2] > p["home_position_m"][2] + VISION_MIN_HEIGHT_M))
+            if lost != self.vision_lost:
+                self.vision_lost = lost
+                self.count("vision_lost" if lost else "vision_back")
+                self.io.problem(f"failsafe: no camera fix for {p['vision_timeout_s']} s at t={t:.3f}: the attitude "
+                                "level lands" if lost else f"camera fixes again at t={t:.3f}")
             if lost:   # the attitude level's own descent lands; the estimate still goes out
-                publish_state(t, pos, vel, pos, cov, thrust_scale)
+                self.publish_state(t, pos, vel, pos, cov, thrust_scale)
                 return
-        if stale and sp is not None and sp["armed"] and t - hold["since"] > p["planner_loss_land_after_s"]:
-            land(t, pos, vel, yaw, m_eff)
-            publish_state(t, pos, vel, hold["position"], cov, thrust_scale)
+        if stale and sp is not None and sp["armed"] and t - self.hold_since > p["planner_loss_land_after_s"]:
+            self.land(t, pos, vel, yaw, m_eff)
+            self.publish_state(t, pos, vel, self.hold_position, cov, thrust_scale)
             return
         if sp is not None and not stale and (sp["mode"] == "idle" or not sp["armed"]):
             ref_pos, att_ref, thrust = pos, [0.0, 0.0, yaw], 0.0
-            hold["integral"], hold["bias"] = np.zeros(2), None   # on the ground: nothing learnt stays
+            self.integral, self.bias = np.zeros(2), None   # on the ground: nothing learnt stays
         elif sp is not None and not stale and sp["mode"] == "attitude":
             ref_pos, att_ref = np.asarray(sp["position_m"]), list(sp["attitude_rad"])
             thrust = altitude_law(m_eff, g, pos[2], vel[2], ref_pos[2], k[2], alpha[2], roll, pitch)
         else:
-            ref_pos = hold["position"] if stale else np.asarray(sp["position_m"])
+            ref_pos = self.hold_position if stale else np.asarray(sp["position_m"])
             yaw_ref = yaw if stale else sp["attitude_rad"][2]
-            if p["max_tilt_deg"] != tilt_limit["deg"]:
-                tilt_limit["deg"] = p["max_tilt_deg"]
-                tilt_limit["rad"] = vehicle.tilt_limit_rad(tilt_limit["deg"])
+            if p["max_tilt_deg"] != self.tilt_deg:
+                self.tilt_deg = p["max_tilt_deg"]
+                self.tilt_rad = vehicle.tilt_limit_rad(self.tilt_deg)
             if p["hold_ki"] > 0.0:   # the integral learns while holding and is kept between holds
                 holding = not stale and sp["phase"] == "hold"
                 error = (pos[:2] - ref_pos[:2]) if holding else np.zeros(2)
-                hold["integral"], hold["bias"] = hold_integral_update(
-                    hold["integral"], error, 1.0 / rt.rate_hz, p["hold_ki"], p["hold_integral_limit_m_s2"])
+                self.integral, self.bias = hold_integral_update(
+                    self.integral, error, self.dt, p["hold_ki"], p["hold_integral_limit_m_s2"])
             r, pt, thrust = position_law(m_eff, g, pos, vel, ref_pos, k, alpha, yaw_ref,
-                                         max_tilt_rad=tilt_limit["rad"], accel_bias_xy=hold["bias"])
+                                         max_tilt_rad=self.tilt_rad, accel_bias_xy=self.bias)
             att_ref = [r, pt, yaw_ref]
         thrust = float(min(thrust, 4 * vehicle.max_thrust_n))
-        setpoint_out.put({"attitude_ref_rad": att_ref, "thrust_n": thrust}, t_s=t)
-        publish_state(t, pos, vel, ref_pos, cov, thrust_scale)
+        self.setpoint_out.put({"attitude_ref_rad": att_ref, "thrust_n": thrust}, t_s=t)
+        self.publish_state(t, pos, vel, ref_pos, cov, thrust_scale)
 
-    def publish_state(t, pos, vel, ref_pos, cov, thrust_scale) -> None:
+    def publish_state(self, t, pos, vel, ref_pos, cov, thrust_scale) -> None:
+        velocities = self.velocities
         velocities.append((t, vel))  # a fresh array each step
         (t0, v0), (t1, v1) = velocities[0], velocities[-1]
         accel = (v1 - v0) / (t1 - t0) if t1 > t0 else np.zeros(3)
-        state_out.put({"position_m": pos, "velocity_m_s": vel, "position_ref_m": ref_pos,
-                       "position_cov_m2": np.asarray(cov).reshape(-1), "acceleration_m_s2": accel,
-                       "thrust_scale": thrust_scale, "state_source": p["state_source"]}, t_s=t)
+        self.state_out.put({"position_m": pos, "velocity_m_s": vel, "position_ref_m": ref_pos,
+                            "position_cov_m2": np.asarray(cov).reshape(-1), "acceleration_m_s2": accel,
+                            "thrust_scale": thrust_scale, "state_source": self.p["state_source"]}, t_s=t)
 
-    def land(t, pos, vel, yaw, m_eff) -> None:
+    def land(self, t, pos, vel, yaw, m_eff) -> None:
         """Planner lost for planner_loss_land_after_s: land where we held; idle once down."""
+        p, vehicle = self.p, self.vehicle
         home_z = p["home_position_m"][2]
-        if not hold["landed"] and pos[2] < home_z + LANDED_HEIGHT_M and abs(vel[2]) < LANDED_SPEED_M_S:
-            hold["landed_for"] = hold.get("landed_for", 0.0) + 1.0 / rt.rate_hz
-            if hold["landed_for"] >= LANDED_FOR_S:
-                hold["landed"] = True
-                count("planner_lost_landed")
-                rt.problem(f"failsafe: landed at t={t:.3f} with no planner: idle")
+        if not self.landed and pos[2] < home_z + LANDED_HEIGHT_M and abs(vel[2]) < LANDED_SPEED_M_S:
+            self.landed_for += self.dt
+            if self.landed_for >= LANDED_FOR_S:
+                self.landed = True
+                self.count("planner_lost_landed")
+                self.io.problem(f"failsafe: landed at t={t:.3f} with no planner: idle")
         else:
-            hold["landed_for"] = 0.0
-        if hold["landed"]:
-            setpoint_out.put({"attitude_ref_rad": [0.0, 0.0, yaw], "thrust_n": 0.0}, t_s=t)
+            self.landed_for = 0.0
+        if self.landed:
+            self.setpoint_out.put({"attitude_ref_rad": [0.0, 0.0, yaw], "thrust_n": 0.0}, t_s=t)
             return
-        sinking = t - hold["since"] - p["planner_loss_land_after_s"]
-        hold["position"][2] = max(hold["position"][2] - p["land_speed_m_s"] / rt.rate_hz, home_z - LAND_BELOW_M) \
-            if sinking > 0 else hold["position"][2]
-        r, pt, thrust = position_law(m_eff, g, pos, vel, hold["position"], k, alpha, yaw,
+        sinking = t - self.hold_since - p["planner_loss_land_after_s"]
+        held = self.hold_position
+        held[2] = max(held[2] - p["land_speed_m_s"] / self.io.rate_hz, home_z - LAND_BELOW_M) if sinking > 0 else held[2]
+        r, pt, thrust = position_law(m_eff, vehicle.gravity_m_s2, pos, vel, held, self.k, self.alpha, yaw,
                                      max_tilt_rad=vehicle.tilt_limit_rad(p["max_tilt_deg"]))
-        setpoint_out.put({"attitude_ref_rad": [r, pt, yaw], "thrust_n": float(min(thrust, 4 * vehicle.max_thrust_n))},
-                         t_s=t)
+        self.setpoint_out.put({"attitude_ref_rad": [r, pt, yaw],
+                               "thrust_n": float(min(thrust, 4 * vehicle.max_thrust_n))}, t_s=t)
 
-    rt.run(step)
+
+def run(args) -> None:
+    rt = Runtime(NAME, args, PARAMS)
+    rt.run(PositionLoop(rt).step)
 
 
 def main(argv=None) -> None:

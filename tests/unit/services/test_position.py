@@ -1,0 +1,107 @@
+"""The position level's logic (services/position.py PositionLoop) without a router."""
+
+import numpy as np
+import pytest
+
+import schemas
+from flight.control.laws import position_law
+from flight.quat import quat_from_euler
+from flight.vehicle import load_vehicle
+from services.position import PARAMS, PositionLoop
+from tests.unit.services.fake_io import FakeIO
+
+X250 = load_vehicle("x250")
+
+
+def truth(pos, vel=(0.0, 0.0, 0.0), yaw=0.0):
+    return {"position_m": list(pos), "velocity_m_s": list(vel), "quaternion_wxyz": list(quat_from_euler(0.0, 0.0, yaw)),
+            "rate_rad_s": [0.0, 0.0, 0.0], "acceleration_m_s2": [0.0, 0.0, 0.0], "motor_thrust_n": [1.0] * 4,
+            "wind_m_s": [0.0, 0.0, 0.0], "landed": False}
+
+
+def setpoint(pos, mode="position", armed=True, yaw=0.0, phase="hold"):
+    return {"mode": mode, "armed": armed, "position_m": list(pos), "attitude_rad": [0.0, 0.0, yaw], "item": 1,
+            "phase": phase, "measure": False, "mission_state": "running"}
+
+
+def truth_loop(**params):
+    io = FakeIO("position", PARAMS, {"state_source": "truth", **params}, rate_hz=100.0)
+    return io, PositionLoop(io)
+
+
+def test_truth_source_turns_the_reference_into_laws_9_to_11():
+    io, loop = truth_loop()
+    io.received(schemas.TRUTH, "sim").push(2.0, truth([0.0, 0.0, 1.0], vel=[0.1, 0.0, 0.0]))
+    io.received(schemas.PLANNER_SETPOINT, "planner").push(2.0, setpoint([1.0, 0.0, 1.5]))
+    loop.step(2.0)
+    [(t, sp)] = io.sent(schemas.POSITION_SETPOINT)
+    r, pt, thrust = position_law(X250.mass_kg, X250.gravity_m_s2, np.array([0.0, 0.0, 1.0]), np.array([0.1, 0.0, 0.0]),
+                                 np.array([1.0, 0.0, 1.5]), np.array(PARAMS["k"]), np.array(PARAMS["alpha"]), 0.0,
+                                 max_tilt_rad=X250.tilt_limit_rad(PARAMS["max_tilt_deg"]))
+    assert t == 2.0 and sp["attitude_ref_rad"] == pytest.approx([r, pt, 0.0]) and sp["thrust_n"] == pytest.approx(thrust)
+    assert pt > 0.0   # towards +x: pitch forward (FLU: positive pitch tips the nose down)
+    [(_, state)] = io.sent(schemas.POSITION_STATE)
+    assert list(state["position_ref_m"]) == [1.0, 0.0, 1.5] and state["state_source"] == "truth"
+
+
+def test_idle_or_disarmed_asks_for_no_thrust():
+    io, loop = truth_loop()
+    io.received(schemas.TRUTH, "sim").push(1.0, truth([0.0, 0.0, 0.0], yaw=0.4))
+    io.received(schemas.PLANNER_SETPOINT, "planner").push(1.0, setpoint([0.0, 0.0, 1.0], armed=False))
+    loop.step(1.0)
+    _, sp = io.sent(schemas.POSITION_SETPOINT)[-1]
+    assert sp["thrust_n"] == 0.0 and sp["attitude_ref_rad"] == pytest.approx([0.0, 0.0, 0.4])
+
+
+def test_planner_lost_holds_then_lands_then_idles():
+    io, loop = truth_loop(setpoint_timeout_s=0.5, planner_loss_land_after_s=1.0)
+    truths, planner = io.received(schemas.TRUTH, "sim"), io.received(schemas.PLANNER_SETPOINT, "planner")
+    truths.push(1.0, truth([0.5, 0.0, 2.0]))
+    planner.push(1.0, setpoint([0.0, 0.0, 2.0]))
+    loop.step(1.0)
+    truths.push(1.6, truth([0.5, 0.0, 2.0]))
+    loop.step(1.6)   # stale: hold where we were, not where the planner last said
+    _, state = io.sent(schemas.POSITION_STATE)[-1]
+    assert list(state["position_ref_m"]) == [0.5, 0.0, 2.0]
+    assert io.rejected == {"planner_lost": 1} and "holding" in io.problems[-1]
+    for n in range(300):   # 3 s past the hold: the held height sinks
+        t = 2.7 + n / 100
+        truths.push(t, truth([0.5, 0.0, 2.0]))
+        loop.step(t)
+    _, state = io.sent(schemas.POSITION_STATE)[-1]
+    assert state["position_ref_m"][2] < 2.0 - 0.5 * PARAMS["land_speed_m_s"] * 2.0
+    for n in range(150):   # on the ground, slow: idle after LANDED_FOR_S
+        t = 6.0 + n / 100
+        truths.push(t, truth([0.5, 0.0, 0.0]))
+        loop.step(t)
+    assert io.rejected.get("planner_lost_landed") == 1
+    assert io.sent(schemas.POSITION_SETPOINT)[-1][1]["thrust_n"] == 0.0
+
+
+def test_estimate_fuses_camera_fixes_and_counts_stale_ones():
+    io = FakeIO("position", PARAMS, {}, rate_hz=100.0)
+    loop = PositionLoop(io)
+    poses = io.received(schemas.VISION_POSE, "vision")
+    io.received(schemas.PLANNER_SETPOINT, "planner").push(0.0, setpoint([0.0, 0.0, 0.0], armed=False))
+    for n in range(1, 201):   # 2 s on the ground, a fix every 5th run at (0.2, -0.1, 0)
+        t = n / 100
+        if n % 5 == 0:
+            poses.push(t - 0.05, {"position_m": [0.2, -0.1, 0.0], "quaternion_wxyz": [1.0, 0.0, 0.0, 0.0],
+                                  "position_cov_m2": list(np.eye(3).reshape(-1) * 1e-4),
+                                  "attitude_var_rad2": [1e-4, 1e-4, 1e-4], "markers": 6, "reprojection_rms_px": 0.5})
+        loop.step(t)
+    _, state = io.sent(schemas.POSITION_STATE)[-1]
+    assert state["position_m"][:2] == pytest.approx([0.2, -0.1], abs=0.02)
+    poses.push(2.0 - 1.0, {"position_m": [5.0, 5.0, 0.0], "quaternion_wxyz": [1.0, 0.0, 0.0, 0.0],
+                           "position_cov_m2": list(np.eye(3).reshape(-1) * 1e-4),
+                           "attitude_var_rad2": [1e-4, 1e-4, 1e-4], "markers": 6, "reprojection_rms_px": 0.5})
+    loop.step(2.01)   # a fix 1 s old at arrival: not fused
+    assert io.rejected.get("stale_pose") == 1
+    assert io.sent(schemas.POSITION_STATE)[-1][1]["position_m"][0] == pytest.approx(0.2, abs=0.02)
+
+
+def test_bad_parameters_are_refused_naming_the_key():
+    with pytest.raises(ValueError, match="services.position.params.*state_source"):
+        PositionLoop(FakeIO("position", PARAMS, {"state_source": "guess"}, rate_hz=100.0))
+    with pytest.raises(ValueError, match="services.position.params.*ekf"):
+        PositionLoop(FakeIO("position", PARAMS, {"ekf": {"no_such_key": 1.0}}, rate_hz=100.0))
