@@ -62,69 +62,81 @@ PARAMS = {
 OUTPUTS = ("sim", "mavlink")
 
 
-def run(args) -> None:
-    rt = Runtime(NAME, args, PARAMS)
-    vehicle = load_vehicle(rt.vehicle_name)
-    link = actuator_link(rt, vehicle) if rt.choice("output", OUTPUTS) == "mavlink" else None
-    command = rt.inbox(schemas.ATTITUDE_COMMAND, "attitude")
-    setpoint = rt.inbox(schemas.PLANNER_SETPOINT, "planner")
-    plans = rt.inbox(schemas.PLANNER_PLAN, "planner", keep=4)
-    att_state = rt.inbox(schemas.ATTITUDE_STATE, "attitude")
-    pos_state = rt.inbox(schemas.POSITION_STATE, "position")
-    out = rt.publisher(schemas.MOTOR_PWM)
-    kf = vehicle.thrust_coefficient_kf
-    u_max = vehicle.max_rotor_speed_rad_s
-    dt_tick = 1.0 / rt.rate_hz if rt.rate_hz > 0 else 1.0 / rt.tick_rate
-    held = {"plans": [], "forces": np.zeros(4), "mode": "", "cmd": None}
-    max_age = rt.params["command_timeout_s"]
-    if not (isinstance(max_age, (int, float)) and 0.0 < max_age <= 1.0):
-        raise ValueError(f"{rt.where()} command_timeout_s: must be in (0, 1] s, got {max_age!r}")
-    failsafe = MotorFailsafe(rt, vehicle)
+class MotorDriver:
+    """The motor driver's logic: mix the attitude command (or fly the planner's rotor plan), the
+    PWM map, and its own failsafe when the attitude level is gone. `io` is the service's Runtime
+    in flight, a fake in the unit tests; no Zenoh here."""
 
-    def count(reason: str) -> None:
-        rt.rejected[reason] = rt.rejected.get(reason, 0) + 1
+    def __init__(self, io):
+        self.io = io
+        vehicle = self.vehicle = load_vehicle(io.vehicle_name)
+        self.link = actuator_link(io, vehicle) if io.choice("output", OUTPUTS) == "mavlink" else None
+        self.command = io.inbox(schemas.ATTITUDE_COMMAND, "attitude")
+        self.setpoint = io.inbox(schemas.PLANNER_SETPOINT, "planner")
+        self.plans = io.inbox(schemas.PLANNER_PLAN, "planner", keep=4)
+        self.att_state = io.inbox(schemas.ATTITUDE_STATE, "attitude")
+        self.pos_state = io.inbox(schemas.POSITION_STATE, "position")
+        self.out = io.publisher(schemas.MOTOR_PWM)
+        self.kf = vehicle.thrust_coefficient_kf
+        self.u_max = vehicle.max_rotor_speed_rad_s
+        self.dt_tick = 1.0 / io.rate_hz if io.rate_hz > 0 else 1.0 / io.tick_rate
+        self.held_plans: list = []        # the newest two plans received
+        self.forces = np.zeros(4)         # the rotors' forces as the plan's model sees them
+        self.cmd = None                   # the attitude command being flown
+        self.max_age = io.params["command_timeout_s"]
+        if not (isinstance(self.max_age, (int, float)) and 0.0 < self.max_age <= 1.0):
+            raise ValueError(f"{io.where()} command_timeout_s: must be in (0, 1] s, got {self.max_age!r}")
+        self.failsafe = MotorFailsafe(io, vehicle)
+        self.idle = {"pwm_us": [vehicle.pwm_min_us] * 4, "thrust_n": [0.0] * 4, "armed": False,
+                     "saturated": False, "imu_t_s": -1.0}
 
-    def fresh_command(t: float):
+    def count(self, reason: str) -> None:
+        rejected = self.io.rejected
+        rejected[reason] = rejected.get(reason, 0) + 1
+
+    def fresh_command(self, t: float):
         """The newest attitude command young enough to act on, or None; every one too old
         (by its header or by the IMU sample behind it) is counted and never used."""
-        for c in command.take():
+        max_age = self.max_age
+        for c in self.command.take():
             if t - c["header"]["t_s"] > max_age or (c["imu_t_s"] >= 0.0 and t - c["imu_t_s"] > max_age):
-                count("stale_att_command")
+                self.count("stale_att_command")
             else:
-                held["cmd"] = c
-        c = held["cmd"]
+                self.cmd = c
+        c = self.cmd
         if c is not None and (t - c["header"]["t_s"] > max_age
                               or (c["imu_t_s"] >= 0.0 and t - c["imu_t_s"] > max_age)):
-            held["cmd"] = c = None   # aged while held: the failsafe's from here
+            self.cmd = c = None   # aged while held: the failsafe's from here
         return c
 
-    def plan_forces(t: float, sp: dict):
+    def plan_forces(self, t: float, sp: dict):
         """Rotor forces from a valid plan (in the plan's model, the airframe file's),
         with the thrust scale of the latest pos/state; or None (fall back to the
         attitude command)."""
-        for m in plans.take():   # each plan once
-            held["plans"] = (held["plans"] + [RotorPlan.from_message(m)])[-2:]  # newest two
+        for m in self.plans.take():   # each plan once
+            self.held_plans = (self.held_plans + [RotorPlan.from_message(m)])[-2:]  # newest two
         if sp is None or sp["mode"] != "plan":
-            held["plans"] = []
+            self.held_plans = []
             return None
-        att, pos = att_state.latest(), pos_state.latest()
-        valid = [p for p in held["plans"] if p.valid_at(t)]
-        if not valid or att is None or pos is None or kf is None:
-            count("plan_fallback_hover")
+        att, pos = self.att_state.latest(), self.pos_state.latest()
+        valid = [p for p in self.held_plans if p.valid_at(t)]
+        if not valid or att is None or pos is None or self.kf is None:
+            self.count("plan_fallback_hover")
             return None
         plan = valid[-1]
-        if plan is not held["plans"][-1]:
-            count("plan_fallback_previous")
-        x = body_state(t, att, pos, vehicle, held["forces"])
+        if plan is not self.held_plans[-1]:
+            self.count("plan_fallback_previous")
+        x = body_state(t, att, pos, self.vehicle, self.forces)
         if plan.state_dim == 17:
-            x = np.concatenate([x, held["forces"]])
-        u = plan.control(t, x, u_max)
-        return kf * u * u
-    idle = {"pwm_us": [vehicle.pwm_min_us] * 4, "thrust_n": [0.0] * 4, "armed": False,
-            "saturated": False, "imu_t_s": -1.0}
+            x = np.concatenate([x, self.forces])
+        u = plan.control(t, x, self.u_max)
+        return self.kf * u * u
 
-    def step(t: float) -> None:
-        cmd, sp = fresh_command(t), setpoint.latest()
+    def step(self, t: float) -> None:
+        """One run at time t: the PWM for the motors."""
+        vehicle, failsafe, link, out = self.vehicle, self.failsafe, self.link, self.out
+        tau = vehicle.motor_time_constant_s
+        cmd, sp = self.fresh_command(t), self.setpoint.latest()
         armed = sp is not None and sp["armed"]
         if not armed:
             failsafe.disarmed()
@@ -134,24 +146,24 @@ def run(args) -> None:
                 failsafe.resume(t)
                 failsafe.flying = cmd["thrust_n"]   # 0: idle on the ground, nothing to land
             elif failsafe.flying:   # in the air and the attitude level gone: fly on our own
-                forces = failsafe.forces(t, att_state, pos_state)
+                forces = failsafe.forces(t, self.att_state, self.pos_state)
         if forces is not None:
             pwm = thrust_to_pwm(vehicle, forces)
-            held["forces"] = motor_forces_update(held["forces"], forces, dt_tick, vehicle.motor_time_constant_s)
+            self.forces = motor_forces_update(self.forces, forces, self.dt_tick, tau)
             if link:
                 link(t, forces)
             out.put({"pwm_us": pwm, "thrust_n": forces, "armed": True, "saturated": False,
                      "imu_t_s": failsafe.sample_t}, t_s=t)
             return
         if not armed or failsafe.latched or cmd is None:
-            held["forces"] = motor_forces_update(held["forces"], np.zeros(4), dt_tick, vehicle.motor_time_constant_s)
-            out.put({**idle, "armed": bool(armed and not failsafe.latched)}, t_s=t)
+            self.forces = motor_forces_update(self.forces, np.zeros(4), self.dt_tick, tau)
+            out.put({**self.idle, "armed": bool(armed and not failsafe.latched)}, t_s=t)
             if link:
-                link(t, idle["thrust_n"])
+                link(t, self.idle["thrust_n"])
             return
-        pos = pos_state.latest()
+        pos = self.pos_state.latest()
         thrust_scale = pos["thrust_scale"] if pos is not None else 1.0
-        forces = plan_forces(t, sp)
+        forces = self.plan_forces(t, sp)
         if forces is not None:
             if thrust_scale != 1.0:  # the collective the plan needs from the real vehicle
                 wrench = vehicle.allocation @ forces
@@ -164,14 +176,18 @@ def run(args) -> None:
             pwm = thrust_to_pwm(vehicle, forces)
         # the plan's motor states: what was sent, as the plan's model (the airframe file's) sees it
         as_planned = scale_collective(vehicle.allocation, forces, thrust_scale)
-        held["forces"] = motor_forces_update(held["forces"], as_planned, dt_tick, vehicle.motor_time_constant_s)
+        self.forces = motor_forces_update(self.forces, as_planned, self.dt_tick, tau)
         if link:
             link(t, forces)
         out.put({"pwm_us": pwm, "thrust_n": np.asarray(forces),
                  "armed": True, "saturated": bool(saturated), "imu_t_s": cmd["imu_t_s"]}, t_s=t)
 
+
+def run(args) -> None:
+    rt = Runtime(NAME, args, PARAMS)
+    driver = MotorDriver(rt)
     # a new attitude command is mixed and sent at once; between commands the 400 Hz timer runs
-    rt.run(step, wake_on=command, min_gap=0.0)
+    rt.run(driver.step, wake_on=driver.command, min_gap=0.0)
 
 
 class MotorFailsafe:
