@@ -128,118 +128,135 @@ def predict_flips(rt: Runtime, mission, controllers: dict) -> tuple[dict, list]:
     return refused, messages
 
 
-def run(args) -> None:
-    rt = Runtime(NAME, args, PARAMS)
-    name = args.mission if args.mission is not None else rt.params["mission"]
-    mission = None if name in NO_MISSION else load_mission(name)
-    if rt.params["flip_method"] and mission is not None:
-        method = rt.choice("flip_method", FLIP_METHODS)
-        mission = replace(mission, items=tuple({**i, "method": method} if i["type"] == "flip" else i
-                                               for i in mission.items))
-    controllers = flip_controllers(rt, mission)   # at normal scheduling: the runtime raises it for the loop
-    refused, predictions = predict_flips(rt, mission, controllers)
-    state = rt.inbox(schemas.POSITION_STATE, "position")
-    commands = rt.inbox(schemas.PLANNER_COMMAND, "mavlink", keep=16)
-    missions = rt.inbox(schemas.PLANNER_MISSION, "mavlink", keep=4)
-    out = rt.publisher(schemas.PLANNER_SETPOINT)
-    reported = {"state": None}
-    flip = {"t": 0.0, "x": None, "plan": None, "steps": 0, "active": None}
-    if controllers:
-        attitude = rt.inbox(schemas.ATTITUDE_STATE, "attitude")
-        pwm = rt.inbox(schemas.MOTOR_PWM, "motors", keep=32)
-        plan_out = rt.publisher(schemas.PLANNER_PLAN)
-        prediction_out = rt.publisher(schemas.PLANNER_FLIP_PREDICTION)
-        from flight.vehicle import load_vehicle
-        vehicle = load_vehicle(rt.vehicle_name)
-        forces = {"n": None, "tau": vehicle.motor_time_constant_s}
+class PlannerLoop:
+    """The planner's logic: the mission (or commands and uploaded missions) and the flip's
+    controllers and their envelopes. `io` is the service's Runtime in flight, a fake in the unit
+    tests; no Zenoh here. `mission_name`: a shipped mission, a file, or "none"."""
 
-    def fly_flip(item, t, starting):
+    def __init__(self, io, mission_name: str):
+        self.io = io
+        self.name = mission_name
+        mission = None if mission_name in NO_MISSION else load_mission(mission_name)
+        if io.params["flip_method"] and mission is not None:
+            method = io.choice("flip_method", FLIP_METHODS)
+            mission = replace(mission, items=tuple({**i, "method": method} if i["type"] == "flip" else i
+                                                   for i in mission.items))
+        self.controllers = flip_controllers(io, mission)   # at normal scheduling: the runtime raises it for the loop
+        self.refused, self.predictions = predict_flips(io, mission, self.controllers)
+        self.state = io.inbox(schemas.POSITION_STATE, "position")
+        self.commands = io.inbox(schemas.PLANNER_COMMAND, "mavlink", keep=16)
+        self.missions = io.inbox(schemas.PLANNER_MISSION, "mavlink", keep=4)
+        self.out = io.publisher(schemas.PLANNER_SETPOINT)
+        self.reported_state = None
+        self.flip_x = None      # the full state the flip's controllers start and step from
+        self.flip_pos = None
+        self.flip_plan = None   # the plan this run made, sent before the setpoint
+        self.flip_steps = 0
+        if self.controllers:
+            self.attitude = io.inbox(schemas.ATTITUDE_STATE, "attitude")
+            self.pwm = io.inbox(schemas.MOTOR_PWM, "motors", keep=32)
+            self.plan_out = io.publisher(schemas.PLANNER_PLAN)
+            self.prediction_out = io.publisher(schemas.PLANNER_FLIP_PREDICTION)
+            from flight.vehicle import load_vehicle
+            self.vehicle = load_vehicle(io.vehicle_name)
+            self.forces = None   # the rotor forces the motor driver's commands imply
+            self.planner = MissionPlanner(mission, self.fly_flip)
+        else:
+            self.planner = MissionPlanner(mission)
+
+    def fly_flip(self, item, t, starting):
         """MissionRunner's flip hook: one controller step on the state of this run."""
-        c = controllers.get(item["method"])
+        c = self.controllers.get(item["method"])
         if c is None:  # cannot happen for a mission's items; a MAVLink flip names the project's
-            c = next(iter(controllers.values()))
-        if flip["x"] is None:  # no attitude state yet: wait (the fallback laws hold)
-            return "takeoff", False, False, flip["pos"]
-        x = flip["x"] if c.state_dim == 17 else flip["x"][:13]
-        if (item["method"], float(item["altitude_m"])) in refused:  # predicted unsafe: never started
-            return "refused", False, True, flip["pos"]
+            c = next(iter(self.controllers.values()))
+        if self.flip_x is None:  # no attitude state yet: wait (the fallback laws hold)
+            return "takeoff", False, False, self.flip_pos
+        x = self.flip_x if c.state_dim == 17 else self.flip_x[:13]
+        if (item["method"], float(item["altitude_m"])) in self.refused:  # predicted unsafe: never started
+            return "refused", False, True, self.flip_pos
         if starting:
             c.start(t, x, item["altitude_m"], item["baseline_climb_m"])
-            flip["steps"] = 0
-        ratio = max(1, round(rt.rate_hz / c.solve_rate_hz))
-        s = c.step(t, x, item["settle_s"], solve=flip["steps"] % ratio == 0)
-        flip["steps"] += 1
-        flip["plan"] = s.plan
+            self.flip_steps = 0
+        ratio = max(1, round(self.io.rate_hz / c.solve_rate_hz))
+        s = c.step(t, x, item["settle_s"], solve=self.flip_steps % ratio == 0)
+        self.flip_steps += 1
+        self.flip_plan = s.plan
         return s.phase, s.done, s.failed, s.position_ref_m
 
-    def read_full_state(t: float, pos: dict) -> np.ndarray | None:
+    def read_full_state(self, t: float, pos: dict) -> np.ndarray | None:
         """[p, v, q, w, rotor forces] at t, or None without an attitude state."""
-        for m in pwm.take():  # the rotor forces the motor driver's commands imply (its lag model),
+        vehicle = self.vehicle
+        for m in self.pwm.take():  # the rotor forces the motor driver's commands imply (its lag model),
             # as the plan's model (the airframe file's) sees them: collective times the thrust scale
             f = scale_collective(vehicle.allocation, m["thrust_n"], pos["thrust_scale"])
-            forces["n"] = f if forces["n"] is None else motor_forces_update(
-                forces["n"], f, 1.0 / rt.tick_rate, forces["tau"])
-        att = attitude.latest()
+            self.forces = f if self.forces is None else motor_forces_update(
+                self.forces, f, 1.0 / self.io.tick_rate, vehicle.motor_time_constant_s)
+        att = self.attitude.latest()
         if att is None:
             return None
-        n = forces["n"]  # None until a motors message: carried at constant velocity
+        n = self.forces  # None until a motors message: carried at constant velocity
         return np.concatenate([body_state(t, att, pos, vehicle, n), n if n is not None else np.zeros(4)])
 
-    if controllers:
-        planner = MissionPlanner(mission, fly_flip)
-    else:
-        planner = MissionPlanner(mission)
+    def count(self, reason: str) -> None:
+        rejected = self.io.rejected
+        rejected[reason] = rejected.get(reason, 0) + 1
 
-    def follow_commands() -> None:
-        for c in commands.take():
+    def follow_commands(self) -> None:
+        planner = self.planner
+        for c in self.commands.take():
             try:
                 planner.command(c["command"], c["altitude_m"], c["position_m"], c["yaw_rad"])
             except MissionError as exc:
-                rt.rejected["command_refused"] = rt.rejected.get("command_refused", 0) + 1
-                rt.problem(f"command {c['command']} from {c['origin']} refused: {exc}")
+                self.count("command_refused")
+                self.io.problem(f"command {c['command']} from {c['origin']} refused: {exc}")
                 continue
             print(f"zenpilot-planner: command {c['command']} from {c['origin']}", flush=True)
-        for m in missions.take():  # after the commands: a mission and a command in one tick -> the mission
+        for m in self.missions.take():  # after the commands: a mission and a command in one tick -> the mission
             try:
                 planner.fly(mission_items(m), f"mission from {m['origin']}")
             except MissionError as exc:
-                rt.rejected["mission_refused"] = rt.rejected.get("mission_refused", 0) + 1
-                rt.problem(f"mission from {m['origin']} refused: {exc}")
+                self.count("mission_refused")
+                self.io.problem(f"mission from {m['origin']} refused: {exc}")
                 continue
             print(f"zenpilot-planner: mission of {len(m['types'])} items from {m['origin']}", flush=True)
 
-    def step(t: float) -> None:
-        while predictions:  # on the first tick: on the stack's clock, in the log before the flip
-            prediction_out.put(predictions.pop(0), t_s=t)
-        follow_commands()
-        s = state.latest()
+    def step(self, t: float) -> None:
+        """One run at time t: commands and missions in, the setpoint (and a flip's plan) out."""
+        while self.predictions:  # on the first tick: on the stack's clock, in the log before the flip
+            self.prediction_out.put(self.predictions.pop(0), t_s=t)
+        self.follow_commands()
+        s = self.state.latest()
         if s is None:  # the mission starts once the position level reports a state
-            out.put(planner.sp.as_message(), t_s=t)
+            self.out.put(self.planner.sp.as_message(), t_s=t)
             return
-        if controllers:
-            flip["x"] = read_full_state(t, s)
-            flip["pos"] = np.array(s["position_m"])
-            flip["plan"] = None
-        sp = planner.update(t, s["position_m"], s["velocity_m_s"])
-        if controllers and flip["plan"] is not None:
+        if self.controllers:
+            self.flip_x = self.read_full_state(t, s)
+            self.flip_pos = np.array(s["position_m"])
+            self.flip_plan = None
+        sp = self.planner.update(t, s["position_m"], s["velocity_m_s"])
+        if self.controllers and self.flip_plan is not None:
             # the plan before the setpoint: a motor driver run between the two (real time)
             # would otherwise see the flip's first setpoint in mode `plan` with no plan yet
-            plan_out.put(flip["plan"], t_s=t)
-        out.put(sp.as_message(), t_s=t)
-        if sp.mission_state != reported["state"]:
-            reported["state"] = sp.mission_state
+            self.plan_out.put(self.flip_plan, t_s=t)
+        self.out.put(sp.as_message(), t_s=t)
+        if sp.mission_state != self.reported_state:
+            self.reported_state = sp.mission_state
             if sp.mission_state == "failed":
-                rt.problem(f"mission {name} failed: {sp.phase}")
+                self.io.problem(f"mission {self.name} failed: {sp.phase}")
 
+
+def run(args) -> None:
+    rt = Runtime(NAME, args, PARAMS)
+    loop = PlannerLoop(rt, args.mission if args.mission is not None else rt.params["mission"])
     # With an iLQR flip at the position level's rate (the project's 100 Hz re-solves), the loop
     # runs as each position state arrives (real time; lockstep runs on its ticks): every solve
     # starts from a state that is new and fresh, not one up to a period old (or the same twice);
     # a step that overran is followed at once by the next one rather than the next period's.
     position = rt.stack.services.get("position")
-    if controllers and position is not None and abs(position.rate_hz - rt.rate_hz) < 1e-9:
-        rt.run(step, wake_on=state, min_gap=WAKE_MIN_GAP)
+    if loop.controllers and position is not None and abs(position.rate_hz - rt.rate_hz) < 1e-9:
+        rt.run(loop.step, wake_on=loop.state, min_gap=WAKE_MIN_GAP)
     else:
-        rt.run(step)
+        rt.run(loop.step)
 
 
 def main(argv=None) -> None:
