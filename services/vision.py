@@ -31,36 +31,49 @@ PARAMS = {
 }
 
 
+class VisionLoop:
+    """The vision service's logic: a pose from each camera frame's marker corners. `io` is the
+    service's Runtime in flight, a fake in the unit tests; no Zenoh here."""
+
+    def __init__(self, io):
+        self.io = io
+        p = self.p = io.params
+        self.camera = Camera(p["camera_width_px"], p["camera_height_px"], p["camera_focal_px"])
+        self.markers = MarkerMap.grid(p["marker_size_m"], p["marker_spacing_m"], p["marker_grid_half_extent_m"])
+        self.frames = io.inbox(schemas.CAMERA, "sim", keep=16)
+        self.out = io.publisher(schemas.VISION_POSE)
+        self.last_pose = None   # the previous solution: the next solve's starting point
+
+    def count(self, reason: str) -> None:
+        rejected = self.io.rejected
+        rejected[reason] = rejected.get(reason, 0) + 1
+
+    def step(self, t: float) -> None:
+        """Every frame that arrived: its pose, stamped with the frame's exposure time."""
+        io, p = self.io, self.p
+        for frame in self.frames.take():
+            if not io.lockstep:
+                io.count_run(t)  # lockstep counts the triggered run itself
+            if not frame["marker_ids"]:
+                self.count("pose_no_markers")
+                continue
+            sol = solve_pose(self.camera, self.markers, frame["marker_ids"], frame["corners_px"],
+                             pixel_sigma_px=p["pixel_sigma_px"], max_reprojection_px=p["max_reprojection_px"],
+                             prior=self.last_pose)
+            if not sol.ok:  # counted beside the message reasons, prefixed "pose_"
+                self.count("pose_" + sol.reason)
+                continue
+            self.last_pose = (sol.position_m, sol.quaternion_wxyz)
+            cov = np.asarray(sol.covariance)
+            self.out.put({"position_m": sol.position_m, "quaternion_wxyz": sol.quaternion_wxyz,
+                          "position_cov_m2": cov[:3, :3].reshape(-1), "attitude_var_rad2": np.diag(cov)[3:],
+                          "reprojection_rms_px": float(sol.reprojection_rms_px),
+                          "markers": int(sol.points_used // 4)}, t_s=frame["header"]["t_s"])
+
+
 def run(args) -> None:
     rt = Runtime(NAME, args, PARAMS)
-    p = rt.params
-    camera = Camera(p["camera_width_px"], p["camera_height_px"], p["camera_focal_px"])
-    markers = MarkerMap.grid(p["marker_size_m"], p["marker_spacing_m"], p["marker_grid_half_extent_m"])
-    frames = rt.inbox(schemas.CAMERA, "sim", keep=16)
-    out = rt.publisher(schemas.VISION_POSE)
-    last = {"pose": None}
-
-    def step(t: float) -> None:
-        for frame in frames.take():
-            if not rt.lockstep:
-                rt.count_run(t)  # lockstep counts the triggered run itself
-            if not frame["marker_ids"]:
-                rt.rejected["pose_no_markers"] = rt.rejected.get("pose_no_markers", 0) + 1
-                continue
-            sol = solve_pose(camera, markers, frame["marker_ids"], frame["corners_px"],
-                             pixel_sigma_px=p["pixel_sigma_px"], max_reprojection_px=p["max_reprojection_px"],
-                             prior=last["pose"])
-            if not sol.ok:  # counted beside the message reasons, prefixed "pose_"
-                rt.rejected["pose_" + sol.reason] = rt.rejected.get("pose_" + sol.reason, 0) + 1
-                continue
-            last["pose"] = (sol.position_m, sol.quaternion_wxyz)
-            cov = np.asarray(sol.covariance)
-            out.put({"position_m": sol.position_m, "quaternion_wxyz": sol.quaternion_wxyz,
-                     "position_cov_m2": cov[:3, :3].reshape(-1), "attitude_var_rad2": np.diag(cov)[3:],
-                     "reprojection_rms_px": float(sol.reprojection_rms_px),
-                     "markers": int(sol.points_used // 4)}, t_s=frame["header"]["t_s"])
-
-    rt.run(step, triggers=("camera",))
+    rt.run(VisionLoop(rt).step, triggers=("camera",))
 
 
 def main(argv=None) -> None:
