@@ -42,30 +42,16 @@ from flight.control.failsafe import Descent, DescentParams, LevelEstimate
 from flight.control.mixer import mix, pwm_to_thrust, thrust_to_pwm
 from flight.control.plan import RotorPlan, body_state, motor_forces_update, scale_collective
 from flight.vehicle import load_vehicle
+from services.params.motors import PARAMS  # every parameter: default, unit, bounds, doc
 from services.runtime import Runtime, main_guard, service_parser
 
 NAME = "motors"
-PARAMS = {
-    # an attitude command older than this (header time, or the IMU sample behind it) is never
-    # mixed ("stale_att_command"); armed and flying without a fresh one, the driver's own
-    # failsafe flies (level, controlled descent, disarm on the ground; "failsafe_engaged")
-    "command_timeout_s": 0.05,
-    # the failsafe's law (8) gains per axis (roll, pitch, yaw), 1/s: softer than the attitude
-    # level's (its rates are the raw gyro), yaw only held
-    "failsafe_k": [8.0, 8.0, 2.0],
-    "failsafe_alpha": [8.0, 8.0, 2.0],
-    "failsafe_descent": {},   # flight/failsafe.DescentParams overrides
-    "output": "sim",            # "sim" | "mavlink"
-    "mavlink_endpoint": "udpout:127.0.0.1:14560",  # pymavlink connection string (output = "mavlink")
-    "mavlink_target_system": 1,
-}
-OUTPUTS = ("sim", "mavlink")
 
 
 def run(args) -> None:
     rt = Runtime(NAME, args, PARAMS)
     vehicle = load_vehicle(rt.vehicle_name)
-    link = actuator_link(rt, vehicle) if rt.choice("output", OUTPUTS) == "mavlink" else None
+    link = actuator_link(rt, vehicle) if rt.params["output"] == "mavlink" else None
     command = rt.inbox(schemas.ATTITUDE_COMMAND, "attitude")
     setpoint = rt.inbox(schemas.PLANNER_SETPOINT, "planner")
     plans = rt.inbox(schemas.PLANNER_PLAN, "planner", keep=4)
@@ -77,8 +63,6 @@ def run(args) -> None:
     dt_tick = 1.0 / rt.rate_hz if rt.rate_hz > 0 else 1.0 / rt.tick_rate
     held = {"plans": [], "forces": np.zeros(4), "mode": "", "cmd": None}
     max_age = rt.params["command_timeout_s"]
-    if not (isinstance(max_age, (int, float)) and 0.0 < max_age <= 1.0):
-        raise ValueError(f"{rt.where()} command_timeout_s: must be in (0, 1] s, got {max_age!r}")
     failsafe = MotorFailsafe(rt, vehicle)
 
     def count(reason: str) -> None:

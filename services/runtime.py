@@ -427,12 +427,6 @@ class Runtime:
     def where(self) -> str:
         return f"{self.stack.path}: [services.{self.name}.params]"
 
-    def choice(self, key: str, choices: tuple[str, ...]) -> str:
-        """A string parameter that must be one of `choices`."""
-        if self.params[key] not in choices:
-            raise ValueError(f"{self.where()} {key}: {self.params[key]!r} not one of {choices}")
-        return self.params[key]
-
     def table(self, key: str, from_dict: Callable[[dict], Any]) -> Any:
         """A nested parameter table, validated by its owner's from_dict."""
         try:

@@ -28,17 +28,20 @@ A stack file is TOML:
     [services.attitude.params]
     state_source = "truth"
 
-Every service checks its own parameters against its declared defaults
-(`resolve_params`), so a typo is refused with the file, section and key.
+Every service checks its own parameters against its declarations (services/params/:
+type, bounds, choices; `resolve_params`), so a typo is refused with the file, section and
+key.
 """
 
 from __future__ import annotations
 
+import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from services.params import Param
 from services.security import Security, SecurityError, endpoint_host, is_loopback, parse_security
 
 if TYPE_CHECKING:
@@ -279,31 +282,51 @@ def parse_overrides(items: list[str] | None) -> dict[str, Any]:
     return out
 
 
-def resolve_params(defaults: dict[str, Any], given: dict[str, Any], where: str) -> dict[str, Any]:
-    """Merge `given` over `defaults`, refusing unknown keys and wrong types."""
-    out = dict(defaults)
+def resolve_params(declared: dict[str, Any], given: dict[str, Any], where: str) -> dict[str, Any]:
+    """`given` over the declared defaults (name -> services.params.Param, or a bare default), as plain
+    values; an unknown key, a wrong type, a value out of bounds or not among the choices is refused
+    with `where` and the key. A nested table (a dict) is passed on: its owner checks it."""
+    out = {}
+    for key, d in declared.items():
+        out[key] = d.value() if isinstance(d, Param) else d
     for key, value in given.items():
-        if key not in defaults:
-            raise StackError(f"{where}: unknown parameter {key!r} (known: {', '.join(sorted(defaults))})")
-        default = defaults[key]
-        if isinstance(default, bool):
-            value = _expect(value, bool, f"{where}.{key}")
-        elif isinstance(default, float):
-            value = _expect(value, float, f"{where}.{key}")
-        elif isinstance(default, int):
-            value = _expect(value, int, f"{where}.{key}")
-        elif isinstance(default, str):
-            value = _expect(value, str, f"{where}.{key}")
-        elif isinstance(default, dict):  # a nested table: its owner validates the keys
-            value = _expect(value, dict, f"{where}.{key}")
-        elif isinstance(default, (list, tuple)):
-            value = _expect(value, list, f"{where}.{key}")
-            if len(value) != len(default):
-                raise StackError(f"{where}.{key}: expected {len(default)} values, got {len(value)}")
-            value = [_expect(v, float, f"{where}.{key}[{i}]") if isinstance(d, float) else v
-                     for i, (v, d) in enumerate(zip(value, default))]
-        out[key] = value
+        if key not in declared:
+            raise StackError(f"{where}: unknown parameter {key!r} (known: {', '.join(sorted(declared))})")
+        decl = declared[key] if isinstance(declared[key], Param) else Param(declared[key])
+        out[key] = _checked(decl, value, f"{where}.{key}")
     return out
+
+
+def _checked(decl: Param, value: Any, where: str) -> Any:
+    default = decl.default
+    if isinstance(default, bool):
+        value = _expect(value, bool, where)
+    elif isinstance(default, float):
+        value = _expect(value, float, where)
+    elif isinstance(default, int):
+        value = _expect(value, int, where)
+    elif isinstance(default, str):
+        value = _expect(value, str, where)
+        if decl.choices and value not in decl.choices:
+            raise StackError(f"{where}: {value!r} not one of {decl.choices}")
+    elif isinstance(default, dict):  # a nested table: its owner validates the keys
+        value = _expect(value, dict, where)
+    elif isinstance(default, (list, tuple)):
+        value = _expect(value, list, where)
+        if len(value) != len(default):
+            raise StackError(f"{where}: expected {len(default)} values, got {len(value)}")
+        value = [_expect(v, float, f"{where}[{i}]") if isinstance(d, float) else v
+                 for i, (v, d) in enumerate(zip(value, default))]
+    if decl.min is not None or decl.max is not None:
+        for x in value if isinstance(value, list) else [value]:
+            if _is_number(x) and (not math.isfinite(x) or decl.out_of_bounds(x)):
+                unit = f" {decl.unit}" if decl.unit else ""
+                raise StackError(f"{where}: {value!r} outside {decl.bounds_text()}{unit}")
+    return value
+
+
+def _is_number(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
 
 
 def mission_path(name_or_path: str) -> Path:
