@@ -30,7 +30,7 @@ A stack file is TOML:
 
 Every service checks its own parameters against its declarations (services/params/:
 type, bounds, choices; `resolve_params`), so a typo is refused with the file, section and
-key.
+key; so are settings of two services that cannot fly together (`check_compatible`).
 """
 
 from __future__ import annotations
@@ -218,6 +218,7 @@ def load_stack(path: str | Path | None = None) -> Stack:
     for needed in ("sim", "motors", "attitude", "position", "planner"):
         if needed not in services:
             raise StackError(f"{path}: the stack needs a [services.{needed}] section")
+    check_compatible(str(path), {name: spec.params for name, spec in services.items()})
     return Stack(
         path=path,
         vehicle_id=vehicle_id,
@@ -323,6 +324,25 @@ def _checked(decl: Param, value: Any, where: str) -> Any:
                 unit = f" {decl.unit}" if decl.unit else ""
                 raise StackError(f"{where}: {value!r} outside {decl.bounds_text()}{unit}")
     return value
+
+
+def check_compatible(where: str, params: dict[str, dict[str, Any]]) -> None:
+    """Settings of two services that cannot fly together, refused before anything flies.
+    `params`: service -> the parameters it is given (the stack file's, with any --param)."""
+    sim, ekf = params.get("sim", {}), params.get("position", {}).get("ekf", {})
+    ekf = ekf if isinstance(ekf, dict) else {}   # not a table: the position service says so
+    if "camera_latency_s" not in sim and "max_delay_s" not in ekf:
+        return   # the defaults fit (tests/unit/test_params.py); the simulator and the EKF stay unloaded
+    from flight.estimation.position_ekf import PositionEKFParams
+    from services.params.sim import PARAMS as SIM
+
+    latency = sim.get("camera_latency_s", SIM["camera_latency_s"].default)
+    max_delay = ekf.get("max_delay_s", PositionEKFParams.max_delay_s)
+    # wrong types are the owners' to report, with their own words
+    if _is_number(latency) and _is_number(max_delay) and latency >= max_delay:
+        raise StackError(f"{where}: [services.sim.params] camera_latency_s = {latency:g} s is not below "
+                         f"[services.position.params] ekf.max_delay_s = {max_delay:g} s: the position EKF keeps "
+                         f"no history that old and would drop every camera fix")
 
 
 def _is_number(x: Any) -> bool:

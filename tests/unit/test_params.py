@@ -13,7 +13,7 @@ import pytest
 from services.mavlink_logic import BRIDGE_PARAM_DEFAULTS, TUNABLE, TUNABLE_DEFAULTS, ParamTable
 from services.params import Param, values
 from services.params.reference import DECLARED
-from services.stack import SERVICE_MODULES, StackError, resolve_params
+from services.stack import DEFAULT_STACK, SERVICE_MODULES, StackError, check_compatible, load_stack, resolve_params
 
 ROOT = Path(__file__).resolve().parents[2]
 WHERE = "s.toml: [services.attitude.params]"
@@ -122,3 +122,27 @@ def test_sim_declarations_are_the_simulator_config():
             assert sim[key].default == (list(value) if isinstance(value, tuple) else value), key
     with pytest.raises(StackError, match=r"\[services.sim.params\].mass_scale: 20.0 outside \[0.1, 10\]"):
         resolve_params(sim, {"mass_scale": 20.0}, "s.toml: [services.sim.params]")
+
+
+def test_camera_latency_past_the_ekf_history_is_refused(tmp_path):
+    """Above the position EKF's history every camera fix would be dropped, without a word."""
+    f = stack_file(tmp_path / "s.toml", "[services.sim.params]\ncamera_latency_s = 0.3\n")
+    with pytest.raises(StackError) as err:
+        load_stack(f)
+    said = str(err.value)
+    assert str(f) in said and "camera_latency_s = 0.3 s" in said and "ekf.max_delay_s = 0.3 s" in said, said
+    # a longer history lets it fly
+    f = stack_file(tmp_path / "s.toml", "[services.sim.params]\ncamera_latency_s = 0.3\n"
+                                        "[services.position.params]\nekf = {max_delay_s = 0.5}\n")
+    assert load_stack(f).service("sim").params["camera_latency_s"] == 0.3
+    # a --param on one service is checked against the other's settings in the file (services.runtime)
+    given = {n: s.params for n, s in load_stack(DEFAULT_STACK).services.items()}
+    check_compatible("here", {**given, "sim": {"camera_latency_s": 0.2}})
+    with pytest.raises(StackError, match="here: .*camera_latency_s = 0.4 s is not below"):
+        check_compatible("here", {**given, "sim": {"camera_latency_s": 0.4}})
+    with pytest.raises(StackError, match=r"ekf.max_delay_s = 0.04 s"):
+        check_compatible("here", {**given, "position": {"ekf": {"max_delay_s": 0.04}}})
+    check_compatible("here", {**given, "sim": {"camera_latency_s": "slow"}})   # a wrong type: its owner's to say
+    # the defaults fit, so a stack that sets neither is not checked
+    from flight.estimation.position_ekf import PositionEKFParams
+    assert DECLARED["sim"]["camera_latency_s"].default < PositionEKFParams.max_delay_s
