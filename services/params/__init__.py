@@ -10,8 +10,7 @@ TUNABLE) without loading the services. What uses them:
   bounds or not among the choices;
 - services/mavlink_logic.py: the parameters with `mavlink=` are the ones a ground station tunes
   in flight, under those names and within those bounds;
-- services/params/reference.py: every service's declarations in one table (`zenpilot sweep` checks
-  a grid's names and types against it).
+- services/params/reference.py: docs/parameters.md.
 
 A nested table (a dict default: attitude `filter`, position `ekf`, ...) is its owner's: the
 dataclass named in the doc checks its keys and values. The runtime's `rt.params` holds plain

@@ -1,5 +1,5 @@
 """Parameters are declared once (services/params/): every declaration complete, checked at start-up
-with the file, section and key, the MAVLink table generated from them."""
+with the file, section and key, the MAVLink table and docs/parameters.md generated from them."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import pytest
 
 from services.mavlink_logic import BRIDGE_PARAM_DEFAULTS, TUNABLE, TUNABLE_DEFAULTS, ParamTable
 from services.params import Param, values
-from services.params.reference import DECLARED
+from services.params.reference import DECLARED, render
 from services.stack import DEFAULT_STACK, SERVICE_MODULES, StackError, check_compatible, load_stack, resolve_params
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -110,6 +110,11 @@ def test_the_bridge_loads_declarations_not_services():
             "'simulator') or m in ('services.attitude', 'services.position', 'services.motors', 'services.runtime')))")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0 and out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+def test_reference_page_is_current():
+    """docs/parameters.md is generated; regenerate with `python -m services.params.reference > docs/parameters.md`."""
+    assert (ROOT / "docs" / "parameters.md").read_text() == render()
 
 
 def test_sim_declarations_are_the_simulator_config():
