@@ -30,7 +30,8 @@ A stack file is TOML:
 
 Every service checks its own parameters against its declarations (services/params/:
 type, bounds, choices; `resolve_params`), so a typo is refused with the file, section and
-key; so are settings of two services that cannot fly together (`check_compatible`).
+key; so are settings of two services that cannot fly together (`check_compatible`). A
+stack file gives only what differs from the declared defaults (docs/parameters.md).
 """
 
 from __future__ import annotations

@@ -1,11 +1,13 @@
 """Parameters are declared once (services/params/): every declaration complete, checked at start-up
-with the file, section and key, the MAVLink table and docs/parameters.md generated from them."""
+with the file, section and key, the MAVLink table and docs/parameters.md generated from them, the
+default stack file holding only overrides."""
 
 from __future__ import annotations
 
 import importlib
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -110,6 +112,14 @@ def test_the_bridge_loads_declarations_not_services():
             "'simulator') or m in ('services.attitude', 'services.position', 'services.motors', 'services.runtime')))")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0 and out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+def test_default_stack_holds_only_overrides():
+    doc = tomllib.loads(DEFAULT_STACK.read_text())
+    for service, section in doc["services"].items():
+        for key, value in section.get("params", {}).items():
+            default = DECLARED[service][key].default
+            assert value != default, f"[services.{service}.params] {key} = {value!r} is the declared default"
 
 
 def test_reference_page_is_current():
