@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import csv
 import hashlib
-import importlib
 import json
 import math
 import os
@@ -38,7 +37,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from services.stack import SERVICE_MODULES, StackError, load_stack, parse_overrides, resolve_params
+from services.params import values
+from services.params.reference import DECLARED
+from services.stack import StackError, load_stack, parse_overrides, resolve_params
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -102,9 +103,9 @@ def split_values(text: str) -> list[str]:
 
 
 def param_defaults(service: str) -> dict[str, Any]:
-    """A service's declared parameters and defaults (its PARAMS; the simulator's param_defaults())."""
-    module = importlib.import_module(SERVICE_MODULES[service])
-    return module.param_defaults() if hasattr(module, "param_defaults") else dict(getattr(module, "PARAMS", {}))
+    """A service's declared parameters and their defaults (services/params/). Names and types are
+    checked here; bounds and choices the service checks at start (a refused value is a failed flight)."""
+    return values(DECLARED.get(service, {}))
 
 
 def check_setting(item: str, stack, option: str = "--param",

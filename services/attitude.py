@@ -38,62 +38,16 @@ from flight.estimation.attitude_filter import (
     GyroCarrier,
     accel_roll_pitch,
 )
-from flight.control.laws import STOPPING_ACCEL_FRACTION, attitude_law, stopping_accel
+from flight.control.laws import attitude_law, stopping_accel
 from flight.control.failsafe import Descent, DescentParams
 from flight.estimation.gyrovertical import DEFAULT_PARAMS_FILE, GyroVertical, load_trained
 from flight.quat import quat_from_euler, quat_to_euler, quat_to_rotation, rotate_vector
 from flight.vehicle import load_vehicle
+from services.params.attitude import PARAMS  # every parameter: default, unit, bounds, doc
 from services.runtime import Runtime, main_guard, service_parser
 
 NAME = "attitude"
-PARAMS = {
-    "state_source": "estimate",
-    "k": [16.0, 16.0, 16.0],      # law (8) gains per axis (roll, pitch, yaw), 1/s
-    "alpha": [16.0, 16.0, 16.0],
-    # Law (8)'s angle loop asks at most for the rate this fraction of the airframe's angular
-    # acceleration can stop (flight/control.stopping_rate): beyond a few degrees of error on a
-    # heavy frame the linear law saturates the rotors, overshoots and can limit-cycle. Errors
-    # below (fraction a_max) / (alpha k / (alpha + k))^2 see law (8) exactly. 0: law (8) as printed.
-    "stopping_accel_fraction": STOPPING_ACCEL_FRACTION,
-    # stale position setpoint -> in the air: level, controlled descent (failsafe); on the ground: idle
-    "setpoint_timeout_s": 0.1,
-    "state_timeout_s": 0.05,      # newest IMU sample (truth) older than this -> no command
-    "failsafe_descent": {},       # flight/failsafe.DescentParams overrides
-    "filter": {},                 # AttitudeFilterParams overrides (flight/estimation/attitude_filter.py)
-    # Subtract the position level's acceleration estimate from the accelerometer
-    # (the V' terms of 004's observation (5)) before deriving roll and pitch: a
-    # multirotor's accelerometer reads "level" whenever it tilts to accelerate, so
-    # 000's plain accelerometer angles pull the estimate toward level in every
-    # manoeuvre. False: 000 as printed.
-    "compensate_acceleration": True,
-    # How the acceleration is compensated (compensate_acceleration = true):
-    # "window" compares the position level's velocity change over the last
-    # `accel_window_s` with the one the accelerometer gives at the filter's own attitude
-    # over the same window (AttitudeFilter accel_ref: no lag between the two, so a tilt
-    # step is not read as a pull towards level); "slope" subtracts the position
-    # level's published acceleration (its velocity slope, ~50 ms late) from the samples.
-    "acceleration_compensation": "window",
-    "accel_window_s": 0.1,
-    # Angle measurement of the filter: "kalman-000" the accelerometer angles of
-    # 000; "gyro-vertical" the adaptive gyro-vertical of 004 (raw IMU in, its own
-    # adaptive accelerometer trust; compensate_acceleration does not apply).
-    "estimator": "kalman-000",
-    "gyrovertical_params": "",    # trained parameter file; "" = the shipped one for the x250
-    "imu_rate_hz": 400.0,         # the gyro-vertical's sample period (its variances are per sample)
-    # Remove the accelerometer bias's tilt with the camera's attitude (vision/pose): the
-    # estimate minus the camera's roll/pitch at each frame's exposure time, low-passed
-    # (flight/attitude_filter.CameraLevel). False: no camera at the attitude level (000).
-    "camera_level": True,
-    "camera_level_settings": {"time_constant_s": 2.0},
-    # Flips (001): beyond these the 000 filter (Euler axes, body rate as Euler rate) cannot
-    # follow the vehicle; a gyro-integrated quaternion carries the estimate instead and the
-    # filter restarts from it back near level (flight/attitude_filter.GyroCarrier).
-    "carrier": {"enter_tilt_deg": 45.0, "exit_tilt_deg": 30.0, "enter_rate_rad_s": 6.0, "exit_rate_rad_s": 2.0},
-}
-STATE_SOURCES = ("truth", "estimate")
-COMPENSATIONS = ("window", "slope")
 VELOCITY_KEEP_S = 0.2  # pos/state history kept beyond the window: covers an IMU transport delay
-ESTIMATORS = ("kalman-000", "gyro-vertical")
 _sample_time = itemgetter(0)
 
 
@@ -113,8 +67,6 @@ def load_gyrovertical(io):
     except ValueError as exc:
         raise ValueError(f"{io.where()} gyrovertical_params: {exc}") from None
     rate = io.params["imu_rate_hz"]
-    if not (isinstance(rate, (int, float)) and rate > 0):
-        raise ValueError(f"{io.where()} imu_rate_hz: must be a positive number, got {rate!r}")
     return lambda q0: GyroVertical(trained.adaptive, dt=1.0 / rate, q0=q0)
 
 
@@ -129,7 +81,7 @@ class AttitudeLoop:
         self.io = io
         p = self.p = io.params
         vehicle = self.vehicle = load_vehicle(io.vehicle_name)
-        self.estimate = io.choice("state_source", STATE_SOURCES) == "estimate"
+        self.estimate = p["state_source"] == "estimate"
         self.motion = self.level = self.poses = self.make_gyrovertical = None
         if self.estimate:
             params = io.table("filter", AttitudeFilterParams.from_dict)
@@ -149,18 +101,15 @@ class AttitudeLoop:
             self.imu = io.inbox(schemas.IMU, "sim", keep=32)
             self.mag = io.inbox(schemas.MAG, "sim", keep=8)
             self.motors = io.inbox(schemas.MOTOR_PWM, "motors")
-            if io.choice("estimator", ESTIMATORS) == "gyro-vertical":
+            if p["estimator"] == "gyro-vertical":
                 self.make_gyrovertical = load_gyrovertical(io)
             compensate = p["compensate_acceleration"] and self.make_gyrovertical is None
             print(f"zenpilot-attitude: estimator {p['estimator']}"
                   + (f" ({p['gyrovertical_params'] or DEFAULT_PARAMS_FILE.name})" if self.make_gyrovertical else ""),
                   flush=True)
             self.motion = io.inbox(schemas.POSITION_STATE, "position") if compensate else None
-            self.windowed = io.choice("acceleration_compensation", COMPENSATIONS) == "window"
+            self.windowed = p["acceleration_compensation"] == "window"
             self.accel_window_s = p["accel_window_s"]
-            if not (isinstance(self.accel_window_s, (int, float)) and not isinstance(self.accel_window_s, bool)
-                    and 0.0 < self.accel_window_s <= 0.5):
-                raise ValueError(f"{io.where()} accel_window_s: must be in (0, 0.5] s, got {self.accel_window_s!r}")
             self.velocities: deque = deque()   # (t, velocity) of the position level's estimate, newest last
         else:
             self.truth = io.inbox(schemas.TRUTH, "sim")
@@ -176,10 +125,7 @@ class AttitudeLoop:
         self.command = io.publisher(schemas.ATTITUDE_COMMAND)
         self.state_out = io.publisher(schemas.ATTITUDE_STATE)
         self.k, self.alpha = io.live_array("k"), io.live_array("alpha")
-        fraction = p["stopping_accel_fraction"]
-        if not (isinstance(fraction, (int, float)) and not isinstance(fraction, bool) and 0.0 <= fraction <= 1.0):
-            raise ValueError(f"{io.where()} stopping_accel_fraction: must be in [0, 1], got {fraction!r}")
-        self.max_accel = stopping_accel(vehicle.max_angular_accel_rad_s2, fraction)
+        self.max_accel = stopping_accel(vehicle.max_angular_accel_rad_s2, p["stopping_accel_fraction"])
         self.last_torque = np.zeros(3)
         self.filt_q = np.array([1.0, 0.0, 0.0, 0.0])
         self.gyrovertical = None

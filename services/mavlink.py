@@ -18,42 +18,18 @@ rejected and counted.
 from __future__ import annotations
 
 import hashlib
-import importlib
 import time
 from pathlib import Path
 
 import zenoh
 
 import schemas
-from services.mavlink_logic import (BRIDGE_PARAM_DEFAULTS, STREAMS, TUNABLE, Bridge, BridgeConfig, ParamTable,
+from services.mavlink_logic import (STREAMS, TUNABLE, TUNABLE_DEFAULTS, Bridge, BridgeConfig, ParamTable,
                                     is_loopback_endpoint, latency_summary, mavutil)
+from services.params.mavlink import PARAMS  # every parameter: default, unit, bounds, doc
 from services.runtime import Inbox, Runtime, main_guard, service_parser
-from services.stack import SERVICE_MODULES
 
 NAME = "mavlink"
-PARAMS = {
-    "endpoint": "udpout:127.0.0.1:14550",  # pymavlink connection string
-    "system_id": 1,
-    "component_id": 1,
-    "home_lat_deg": 47.397742,
-    "home_lon_deg": 8.545594,
-    "home_alt_m": 488.0,
-    "gcs_timeout_s": 5.0,
-    "failsafe_hold_s": 3.0,
-    "health_timeout_s": 3.0,
-    "signing_key_file": "",
-    # MAVLink 2 signing is required on any endpoint off this machine (a radio, another host, every
-    # interface): unsigned, anyone on the link could command the vehicle. True opts out, knowingly.
-    "allow_unsigned_link": False,
-    "rates_hz": {},  # per stream overrides, e.g. {ATTITUDE = 50.0}
-    "max_messages_per_step": 200,  # bounded work per loop under a flood
-    # estimates converged (SYS_STATUS AHRS/GPS healthy, arming allowed): each axis' std below these
-    "converged_position_std_m": 0.1,
-    "converged_attitude_std_deg": 3.0,
-    # the bridge's own parameters, also over MAVLink with PX4's names (MIS_TAKEOFF_ALT, RTL_RETURN_ALT,
-    # NAV_ACC_RAD, COM_OF_LOSS_T): takeoff_alt_m, return_alt_m, acceptance_radius_m, offboard_timeout_s
-    **BRIDGE_PARAM_DEFAULTS,
-}
 INPUTS = {  # bridge input name -> (message, upstream)
     "att": (schemas.ATTITUDE_STATE, "attitude"), "pos": (schemas.POSITION_STATE, "position"),
     "battery": (schemas.BATTERY, "sim"), "setpoint": (schemas.PLANNER_SETPOINT, "planner"),
@@ -95,12 +71,7 @@ def current_params(rt: Runtime) -> dict:
         if service not in rt.stack.services:
             continue
         spec = rt.stack.services[service].params
-        if key in spec:
-            out[(service, key)] = spec[key]
-        else:
-            defaults = getattr(importlib.import_module(SERVICE_MODULES[service]), "PARAMS", {})
-            if key in defaults:
-                out[(service, key)] = defaults[key]
+        out[(service, key)] = spec[key] if key in spec else TUNABLE_DEFAULTS[(service, key)]
     return out
 
 

@@ -39,6 +39,12 @@ from pymavlink import mavutil  # noqa: E402,F401  (services/mavlink.py's, chosen
 from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
 from flight import mavframes as mf  # noqa: E402
+# the services' parameter declarations only (no service, no transport): the table below
+from services.params import tunable  # noqa: E402
+from services.params.attitude import PARAMS as ATTITUDE_PARAMS  # noqa: E402
+from services.params.mavlink import PARAMS as BRIDGE_PARAMS  # noqa: E402
+from services.params.motors import PARAMS as MOTORS_PARAMS  # noqa: E402
+from services.params.position import PARAMS as POSITION_PARAMS  # noqa: E402
 
 
 def px4_mode(main: int, sub: int = 0) -> int:
@@ -75,23 +81,15 @@ STREAMS = {
 # HIGHRES_IMU is off by default: its 400 Hz IMU input costs CPU; SET_MESSAGE_INTERVAL turns it on
 STREAM_BY_ID = {mid: name for name, (mid, _) in STREAMS.items()}
 
-# Parameters over MAVLink (the one list): (service, key, MAVLink name pattern, axis letters or None,
-# (min, max)). The values are the stack's: the stack file over each service's PARAMS (services/mavlink.py);
-# the "mavlink" rows are the bridge's own, read by the bridge itself.
-TUNABLE = (
-    ("attitude", "k", "ATT_K_{}", "RPY", (0.1, 200.0)),
-    ("attitude", "alpha", "ATT_ALPHA_{}", "RPY", (0.1, 200.0)),
-    ("position", "k", "POS_K_{}", "XYZ", (0.05, 50.0)),
-    ("position", "alpha", "POS_ALPHA_{}", "XYZ", (0.05, 50.0)),
-    ("position", "max_tilt_deg", "POS_MAX_TILT", None, (1.0, 80.0)),
-    ("motors", "command_timeout_s", "MOT_CMD_TIMEOUT", None, (0.005, 1.0)),
-    ("mavlink", "takeoff_alt_m", "MIS_TAKEOFF_ALT", None, (0.2, 100.0)),       # PX4's names: MAVSDK
-    ("mavlink", "return_alt_m", "RTL_RETURN_ALT", None, (0.0, 100.0)),         # reads and sets them
-    ("mavlink", "acceptance_radius_m", "NAV_ACC_RAD", None, (0.05, 10.0)),
-    ("mavlink", "offboard_timeout_s", "COM_OF_LOSS_T", None, (0.1, 10.0)),
-)
-BRIDGE_PARAM_DEFAULTS = {"takeoff_alt_m": 2.0, "return_alt_m": 0.0, "acceptance_radius_m": 0.3,
-                         "offboard_timeout_s": 1.0}
+# Parameters over MAVLink (the one list), generated from the declarations that name a MAVLink
+# parameter (services/params/): (service, key, MAVLink name pattern, axis letters or None, (min, max)),
+# in this order of services (the parameter protocol's index). The values are the stack's: the stack
+# file over each service's defaults (services/mavlink.py); the "mavlink" rows are the bridge's own.
+_DECLARED = {"attitude": ATTITUDE_PARAMS, "position": POSITION_PARAMS, "motors": MOTORS_PARAMS,
+             "mavlink": BRIDGE_PARAMS}
+TUNABLE = tunable(_DECLARED)
+TUNABLE_DEFAULTS = {(service, key): _DECLARED[service][key].value() for service, key, *_ in TUNABLE}
+BRIDGE_PARAM_DEFAULTS = {key: value for (service, key), value in TUNABLE_DEFAULTS.items() if service == "mavlink"}
 
 # SYS_STATUS sensor bits and the services whose health they reflect
 S = mavlink
@@ -138,17 +136,18 @@ def is_loopback_endpoint(endpoint: str) -> bool:
 
 @dataclass
 class BridgeConfig:
-    system_id: int = 1
-    component_id: int = 1
-    home_lat_deg: float = 47.397742   # PX4 SITL's home (Zurich), so GCS maps look familiar
-    home_lon_deg: float = 8.545594
-    home_alt_m: float = 488.0
-    gcs_timeout_s: float = 5.0        # no GCS heartbeat for this long while flying -> hold
-    failsafe_hold_s: float = 3.0      # ... then land after holding this long
-    health_timeout_s: float = 3.0     # a service's 1 Hz health older than this -> unhealthy
+    """The bridge's settings; defaults (and their meaning) as declared in services/params/mavlink.py."""
+    system_id: int = BRIDGE_PARAMS["system_id"].default
+    component_id: int = BRIDGE_PARAMS["component_id"].default
+    home_lat_deg: float = BRIDGE_PARAMS["home_lat_deg"].default
+    home_lon_deg: float = BRIDGE_PARAMS["home_lon_deg"].default
+    home_alt_m: float = BRIDGE_PARAMS["home_alt_m"].default
+    gcs_timeout_s: float = BRIDGE_PARAMS["gcs_timeout_s"].default
+    failsafe_hold_s: float = BRIDGE_PARAMS["failsafe_hold_s"].default
+    health_timeout_s: float = BRIDGE_PARAMS["health_timeout_s"].default
     state_timeout_s: float = 0.5      # att/pos state older than this -> no telemetry, no arming
-    converged_position_std_m: float = 0.1    # position estimate converged: each axis' std below this
-    converged_attitude_std_deg: float = 3.0  # attitude estimate converged: each angle's std below this
+    converged_position_std_m: float = BRIDGE_PARAMS["converged_position_std_m"].default
+    converged_attitude_std_deg: float = BRIDGE_PARAMS["converged_attitude_std_deg"].default
     rates_hz: dict = field(default_factory=dict)  # stream name -> rate override
 
 

@@ -42,24 +42,10 @@ from flight.control.failsafe import Descent, DescentParams, LevelEstimate
 from flight.control.mixer import mix, pwm_to_thrust, thrust_to_pwm
 from flight.control.plan import RotorPlan, body_state, motor_forces_update, scale_collective
 from flight.vehicle import load_vehicle
+from services.params.motors import PARAMS  # every parameter: default, unit, bounds, doc
 from services.runtime import Runtime, main_guard, service_parser
 
 NAME = "motors"
-PARAMS = {
-    # an attitude command older than this (header time, or the IMU sample behind it) is never
-    # mixed ("stale_att_command"); armed and flying without a fresh one, the driver's own
-    # failsafe flies (level, controlled descent, disarm on the ground; "failsafe_engaged")
-    "command_timeout_s": 0.05,
-    # the failsafe's law (8) gains per axis (roll, pitch, yaw), 1/s: softer than the attitude
-    # level's (its rates are the raw gyro), yaw only held
-    "failsafe_k": [8.0, 8.0, 2.0],
-    "failsafe_alpha": [8.0, 8.0, 2.0],
-    "failsafe_descent": {},   # flight/failsafe.DescentParams overrides
-    "output": "sim",            # "sim" | "mavlink"
-    "mavlink_endpoint": "udpout:127.0.0.1:14560",  # pymavlink connection string (output = "mavlink")
-    "mavlink_target_system": 1,
-}
-OUTPUTS = ("sim", "mavlink")
 
 
 class MotorDriver:
@@ -70,7 +56,7 @@ class MotorDriver:
     def __init__(self, io):
         self.io = io
         vehicle = self.vehicle = load_vehicle(io.vehicle_name)
-        self.link = actuator_link(io, vehicle) if io.choice("output", OUTPUTS) == "mavlink" else None
+        self.link = actuator_link(io, vehicle) if io.params["output"] == "mavlink" else None
         self.command = io.inbox(schemas.ATTITUDE_COMMAND, "attitude")
         self.setpoint = io.inbox(schemas.PLANNER_SETPOINT, "planner")
         self.plans = io.inbox(schemas.PLANNER_PLAN, "planner", keep=4)
@@ -84,8 +70,6 @@ class MotorDriver:
         self.forces = np.zeros(4)         # the rotors' forces as the plan's model sees them
         self.cmd = None                   # the attitude command being flown
         self.max_age = io.params["command_timeout_s"]
-        if not (isinstance(self.max_age, (int, float)) and 0.0 < self.max_age <= 1.0):
-            raise ValueError(f"{io.where()} command_timeout_s: must be in (0, 1] s, got {self.max_age!r}")
         self.failsafe = MotorFailsafe(io, vehicle)
         self.idle = {"pwm_us": [vehicle.pwm_min_us] * 4, "thrust_n": [0.0] * 4, "armed": False,
                      "saturated": False, "imu_t_s": -1.0}

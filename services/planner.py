@@ -30,24 +30,13 @@ from dataclasses import replace
 import numpy as np
 
 import schemas
-from flight.control.mission import FLIP_METHODS, MissionError, MissionPlanner, mission_items
+from flight.control.mission import MissionError, MissionPlanner, mission_items
 from flight.control.plan import body_state, motor_forces_update, scale_collective
+from services.params.planner import PARAMS  # every parameter: default, unit, bounds, doc
 from services.runtime import Runtime, main_guard, service_parser
 from services.stack import load_mission
 
 NAME = "planner"
-PARAMS = {
-    "mission": "hover",
-    "mpc_rate_hz": 0.0,   # flip re-solve rate; 0: the method's default (project 100, thesis 20, baseline 200)
-    "flip_method": "",    # fly every flip item with this method ("" : as the mission says)
-    # where compiled iLQR solvers are kept between starts ("": compile every start)
-    "compile_cache_dir": "~/.cache/zenpilot/jax",
-    # before the first tick, each iLQR flip item is predicted over this many uncertain cases
-    # (flight/control/predict.py; `zenpilot predict` prints the same); 0: no check
-    "flip_predict_rollouts": 256,
-    # ... and refused when its 95th-percentile loss from the hover leaves less than this, m
-    "flip_clearance_m": 0.5,
-}
 NO_MISSION = ("", "none")
 # woken by the position state: at most one run per this many periods (a late state and the next
 # one on time both run; a step that overran runs the next one as soon as it ends)
@@ -93,9 +82,7 @@ def predict_flips(rt: Runtime, mission, controllers: dict) -> tuple[dict, list]:
     """The flip items this vehicle should not fly, {(method, altitude_m): reason}, from each
     iLQR item's predicted envelope (the controllers' own solvers fly the nominal), and the
     planner/flip_prediction messages that say so."""
-    n = int(rt.params["flip_predict_rollouts"])
-    if n < 0:
-        raise ValueError(f"{rt.where()} flip_predict_rollouts: must be >= 0 (got {n})")
+    n = rt.params["flip_predict_rollouts"]
     if n == 0 or not controllers:
         return {}, []
     from flight.control.predict import FIGURES, PredictError, build_predictor
@@ -138,7 +125,7 @@ class PlannerLoop:
         self.name = mission_name
         mission = None if mission_name in NO_MISSION else load_mission(mission_name)
         if io.params["flip_method"] and mission is not None:
-            method = io.choice("flip_method", FLIP_METHODS)
+            method = io.params["flip_method"]
             mission = replace(mission, items=tuple({**i, "method": method} if i["type"] == "flip" else i
                                                    for i in mission.items))
         self.controllers = flip_controllers(io, mission)   # at normal scheduling: the runtime raises it for the loop

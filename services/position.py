@@ -33,47 +33,10 @@ from flight.control.laws import altitude_law, hold_integral_update, position_law
 from flight.estimation.position_ekf import LaggedMotorInput, PositionEKF, PositionEKFParams
 from flight.quat import quat_tilt, quat_to_euler
 from flight.vehicle import load_vehicle
+from services.params.position import PARAMS  # every parameter: default, unit, bounds, doc
 from services.runtime import Runtime, main_guard, service_parser
 
 NAME = "position"
-PARAMS = {
-    "state_source": "estimate",
-    "k": [4.0, 4.0, 4.0],        # laws (10) gains per axis (x, y, z), 1/s
-    "alpha": [4.0, 4.0, 4.0],
-    # tilt the laws may ask for: law (8) saturates the x250's torque (~46 rad/s^2 about hover)
-    # for any attitude-reference step over ~10 deg; at 35 deg the position and attitude loops
-    # lost their separation under saturation when attitude steps handed back to position hold
-    # (a growing oscillation, the mixer raising the collective); 20 deg held on every seed tried.
-    # A vehicle file's max_tilt_deg lowers it for that airframe (Vehicle.tilt_limit_rad)
-    "max_tilt_deg": 20.0,
-    # integral of the horizontal position error while the planner holds (phase "hold"), 1/s^3:
-    # a steady wind otherwise leaves an offset of a_wind / (alpha k); 8 puts the closed loop's
-    # poles at -5.2, -2 and -0.76 rad/s with k = alpha = 4. 0: laws (10) as 000 has them
-    "hold_ki": 0.0,
-    "hold_integral_limit_m_s2": 2.0,   # the most acceleration the integral may ask for
-    "setpoint_timeout_s": 0.5,   # stale planner setpoint -> hold where we are
-    "planner_loss_land_after_s": 5.0,  # ... then land there
-    "land_speed_m_s": 0.5,
-    "vision_timeout_s": 3.0,     # no camera fix fused this long in the air -> attitude's descent lands
-    "pose_timeout_s": 0.5,       # a camera fix older than this (exposure time) is not fused
-    "attitude_timeout_s": 0.05,  # an att/state older than this is not fused
-    "home_position_m": [0.0, 0.0, 0.0],  # where the EKF starts: the take-off point
-    "position_reset_after": 5,
-    "fuse_camera_at_exposure": True,  # False: ablation, fuse a camera fix as if it were taken now
-    # floors on the attitude level's variances as the EKF sees them: its filter
-    # does not model the accelerometer's error in manoeuvres (angles, rad^2) nor
-    # unmodelled torques (rates, rad^2/s^2)
-    "attitude_var_floor": [3e-4, 3e-4, 3e-3],
-    "rate_var_floor": [2.5e-3, 2.5e-3, 2.5e-3],
-    # floor on a camera fix's variance (m^2): the solver's few-mm covariance ignores
-    # time-stamp and model errors of a fast climb
-    "camera_var_floor": 1e-5,   # refused camera fixes in a row before the EKF restarts at one
-    # past this tilt (a flip) the attitude level's angles are not fused but pinned into the
-    # EKF (PositionEKF.pin_attitude; counted as attitude_pinned_tilted)
-    "attitude_pin_tilt_deg": 60.0,
-    "ekf": {},                   # PositionEKFParams overrides (flight/estimation/position_ekf.py)
-}
-STATE_SOURCES = ("truth", "estimate")
 ACCEL_WINDOW_S = 0.1  # acceleration = slope of the velocity over this window
 # landing with no planner: the reference goes this far below home (pressing down), and the
 # vehicle is down once this low and this slow for this long
@@ -93,7 +56,7 @@ class PositionLoop:
         p = self.p = io.params
         vehicle = self.vehicle = load_vehicle(io.vehicle_name)
         self.dt = 1.0 / io.rate_hz
-        self.estimate = io.choice("state_source", STATE_SOURCES) == "estimate"
+        self.estimate = p["state_source"] == "estimate"
         if self.estimate:
             self.ekf = PositionEKF(vehicle, io.table("ekf", PositionEKFParams.from_dict), dt=self.dt)
             self.attitude = io.inbox(schemas.ATTITUDE_STATE, "attitude")

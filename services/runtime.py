@@ -44,8 +44,8 @@ import zenoh
 
 import schemas
 from services import lockstep, security
-from services.stack import (LOCKSTEP_PARTICIPANTS, SERVICES_LISTEN, Stack, StackError, load_stack, parse_overrides,
-                            resolve_params)
+from services.stack import (LOCKSTEP_PARTICIPANTS, SERVICES_LISTEN, Stack, StackError, check_compatible, load_stack,
+                            parse_overrides, resolve_params)
 
 HEALTH_PERIOD_S = 1.0
 LATE_S = 0.005        # a wake-up later than this past its deadline counts as late
@@ -349,12 +349,6 @@ class ParamAccess:
     def where(self) -> str:
         raise NotImplementedError
 
-    def choice(self, key: str, choices: tuple[str, ...]) -> str:
-        """A string parameter that must be one of `choices`."""
-        if self.params[key] not in choices:
-            raise ValueError(f"{self.where()} {key}: {self.params[key]!r} not one of {choices}")
-        return self.params[key]
-
     def table(self, key: str, from_dict: Callable[[dict], Any]) -> Any:
         """A nested parameter table, validated by its owner's from_dict."""
         try:
@@ -383,8 +377,12 @@ class Runtime(ParamAccess):
             self.stack: Stack = load_stack(args.stack)
             spec = self.stack.services.get(name)
             given = dict(spec.params) if spec else {}
-            given.update(parse_overrides(getattr(args, "param", None)))
+            overrides = parse_overrides(getattr(args, "param", None))
+            given.update(overrides)
             self.params = resolve_params(param_defaults or {}, given, f"{self.stack.path}: [services.{name}.params]")
+            if overrides:   # this service's --param may clash with another service's settings in the file
+                check_compatible(f"{self.stack.path} with --param",
+                                 {**{n: s.params for n, s in self.stack.services.items()}, name: given})
             self.conf = zenoh_config(args, self.stack, spec.machine if spec else next(iter(self.stack.machines)))
         except (StackError, zenoh.ZError, ValueError) as exc:
             fail(name, str(exc))

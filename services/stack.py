@@ -28,17 +28,21 @@ A stack file is TOML:
     [services.attitude.params]
     state_source = "truth"
 
-Every service checks its own parameters against its declared defaults
-(`resolve_params`), so a typo is refused with the file, section and key.
+Every service checks its own parameters against its declarations (services/params/:
+type, bounds, choices; `resolve_params`), so a typo is refused with the file, section and
+key; so are settings of two services that cannot fly together (`check_compatible`). A
+stack file gives only what differs from the declared defaults (docs/parameters.md).
 """
 
 from __future__ import annotations
 
+import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from services.params import Param
 from services.security import Security, SecurityError, endpoint_host, is_loopback, parse_security
 
 if TYPE_CHECKING:
@@ -215,6 +219,7 @@ def load_stack(path: str | Path | None = None) -> Stack:
     for needed in ("sim", "motors", "attitude", "position", "planner"):
         if needed not in services:
             raise StackError(f"{path}: the stack needs a [services.{needed}] section")
+    check_compatible(str(path), {name: spec.params for name, spec in services.items()})
     return Stack(
         path=path,
         vehicle_id=vehicle_id,
@@ -279,31 +284,70 @@ def parse_overrides(items: list[str] | None) -> dict[str, Any]:
     return out
 
 
-def resolve_params(defaults: dict[str, Any], given: dict[str, Any], where: str) -> dict[str, Any]:
-    """Merge `given` over `defaults`, refusing unknown keys and wrong types."""
-    out = dict(defaults)
+def resolve_params(declared: dict[str, Any], given: dict[str, Any], where: str) -> dict[str, Any]:
+    """`given` over the declared defaults (name -> services.params.Param, or a bare default), as plain
+    values; an unknown key, a wrong type, a value out of bounds or not among the choices is refused
+    with `where` and the key. A nested table (a dict) is passed on: its owner checks it."""
+    out = {}
+    for key, d in declared.items():
+        out[key] = d.value() if isinstance(d, Param) else d
     for key, value in given.items():
-        if key not in defaults:
-            raise StackError(f"{where}: unknown parameter {key!r} (known: {', '.join(sorted(defaults))})")
-        default = defaults[key]
-        if isinstance(default, bool):
-            value = _expect(value, bool, f"{where}.{key}")
-        elif isinstance(default, float):
-            value = _expect(value, float, f"{where}.{key}")
-        elif isinstance(default, int):
-            value = _expect(value, int, f"{where}.{key}")
-        elif isinstance(default, str):
-            value = _expect(value, str, f"{where}.{key}")
-        elif isinstance(default, dict):  # a nested table: its owner validates the keys
-            value = _expect(value, dict, f"{where}.{key}")
-        elif isinstance(default, (list, tuple)):
-            value = _expect(value, list, f"{where}.{key}")
-            if len(value) != len(default):
-                raise StackError(f"{where}.{key}: expected {len(default)} values, got {len(value)}")
-            value = [_expect(v, float, f"{where}.{key}[{i}]") if isinstance(d, float) else v
-                     for i, (v, d) in enumerate(zip(value, default))]
-        out[key] = value
+        if key not in declared:
+            raise StackError(f"{where}: unknown parameter {key!r} (known: {', '.join(sorted(declared))})")
+        decl = declared[key] if isinstance(declared[key], Param) else Param(declared[key])
+        out[key] = _checked(decl, value, f"{where}.{key}")
     return out
+
+
+def _checked(decl: Param, value: Any, where: str) -> Any:
+    default = decl.default
+    if isinstance(default, bool):
+        value = _expect(value, bool, where)
+    elif isinstance(default, float):
+        value = _expect(value, float, where)
+    elif isinstance(default, int):
+        value = _expect(value, int, where)
+    elif isinstance(default, str):
+        value = _expect(value, str, where)
+        if decl.choices and value not in decl.choices:
+            raise StackError(f"{where}: {value!r} not one of {decl.choices}")
+    elif isinstance(default, dict):  # a nested table: its owner validates the keys
+        value = _expect(value, dict, where)
+    elif isinstance(default, (list, tuple)):
+        value = _expect(value, list, where)
+        if len(value) != len(default):
+            raise StackError(f"{where}: expected {len(default)} values, got {len(value)}")
+        value = [_expect(v, float, f"{where}[{i}]") if isinstance(d, float) else v
+                 for i, (v, d) in enumerate(zip(value, default))]
+    if decl.min is not None or decl.max is not None:
+        for x in value if isinstance(value, list) else [value]:
+            if _is_number(x) and (not math.isfinite(x) or decl.out_of_bounds(x)):
+                unit = f" {decl.unit}" if decl.unit else ""
+                raise StackError(f"{where}: {value!r} outside {decl.bounds_text()}{unit}")
+    return value
+
+
+def check_compatible(where: str, params: dict[str, dict[str, Any]]) -> None:
+    """Settings of two services that cannot fly together, refused before anything flies.
+    `params`: service -> the parameters it is given (the stack file's, with any --param)."""
+    sim, ekf = params.get("sim", {}), params.get("position", {}).get("ekf", {})
+    ekf = ekf if isinstance(ekf, dict) else {}   # not a table: the position service says so
+    if "camera_latency_s" not in sim and "max_delay_s" not in ekf:
+        return   # the defaults fit (tests/unit/test_params.py); the simulator and the EKF stay unloaded
+    from flight.estimation.position_ekf import PositionEKFParams
+    from services.params.sim import PARAMS as SIM
+
+    latency = sim.get("camera_latency_s", SIM["camera_latency_s"].default)
+    max_delay = ekf.get("max_delay_s", PositionEKFParams.max_delay_s)
+    # wrong types are the owners' to report, with their own words
+    if _is_number(latency) and _is_number(max_delay) and latency >= max_delay:
+        raise StackError(f"{where}: [services.sim.params] camera_latency_s = {latency:g} s is not below "
+                         f"[services.position.params] ekf.max_delay_s = {max_delay:g} s: the position EKF keeps "
+                         f"no history that old and would drop every camera fix")
+
+
+def _is_number(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
 
 
 def mission_path(name_or_path: str) -> Path:

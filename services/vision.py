@@ -13,22 +13,12 @@ from __future__ import annotations
 import numpy as np
 
 import schemas
-from flight.camera import DEFAULT_CAMERA, DEFAULT_MARKERS, DEFAULT_PIXEL_NOISE_PX, Camera
+from flight.camera import Camera
 from flight.estimation.pnp import MarkerMap, solve_pose
+from services.params.vision import PARAMS  # every parameter: default, unit, bounds, doc
 from services.runtime import Runtime, main_guard, service_parser
 
 NAME = "vision"
-PARAMS = {
-    # the camera and marker map (a real deployment sets these from its calibration)
-    "camera_width_px": DEFAULT_CAMERA.width_px,
-    "camera_height_px": DEFAULT_CAMERA.height_px,
-    "camera_focal_px": DEFAULT_CAMERA.focal_px,
-    "marker_size_m": DEFAULT_MARKERS.size_m,
-    "marker_spacing_m": DEFAULT_MARKERS.spacing_m,
-    "marker_grid_half_extent_m": DEFAULT_MARKERS.half_extent_m,
-    "pixel_sigma_px": DEFAULT_PIXEL_NOISE_PX,
-    "max_reprojection_px": 3.0,
-}
 
 
 class VisionLoop:

@@ -3,54 +3,70 @@ from __future__ import annotations
 
 import math
 import typing
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 
 from flight.camera import DEFAULT_CAMERA, DEFAULT_MARKERS, DEFAULT_PIXEL_NOISE_PX
 
 Vec3 = tuple[float, float, float]
 
 
+def _field(default, doc: str, unit: str = "", min: float | None = None, max: float | None = None,
+           min_exclusive: bool = False):
+    """A setting with its unit, bounds (checked in __post_init__) and a line for docs/parameters.md
+    (the simulator service declares these as its parameters: services/params/sim.py)."""
+    return field(default=default, metadata={"doc": doc, "unit": unit, "min": min, "max": max,
+                                            "min_exclusive": min_exclusive})
+
+
 @dataclass(frozen=True)
 class SimConfig:
-    tick_rate_hz: float = 400.0         # rate the caller calls step()
-    physics_substeps: int = 5           # RK4 steps per tick (2 kHz by default)
-    imu_rate_hz: float = 400.0
-    baro_rate_hz: float = 50.0
-    mag_rate_hz: float = 50.0
-    camera_rate_hz: float = 20.0
-    truth_rate_hz: float = 100.0
-    camera_latency_s: float = 0.05      # publication delay after exposure (rounded up to a tick)
-    imu_latency_s: float = 0.0          # transport delay of the IMU samples (the bus, the driver)
-    camera_drop_rate: float = 0.0       # probability a frame is lost
-    camera_outage_start_s: float = -1.0  # the camera is silent from here (negative: never) ...
-    camera_outage_s: float = 0.0        # ... for this long (fault injection)
-    camera_pixel_noise_px: float = DEFAULT_PIXEL_NOISE_PX  # std of the pixel noise per coordinate
-    camera_width_px: int = DEFAULT_CAMERA.width_px
-    camera_height_px: int = DEFAULT_CAMERA.height_px
-    camera_focal_px: float = DEFAULT_CAMERA.focal_px
-    marker_size_m: float = DEFAULT_MARKERS.size_m
-    marker_spacing_m: float = DEFAULT_MARKERS.spacing_m
-    marker_grid_half_extent_m: float = DEFAULT_MARKERS.half_extent_m
-    gyro_noise_var: float = 1e-5        # rad^2/s^2 per sample (001)
-    accel_noise_var: float = 1e-4       # m^2/s^4 per sample (001)
-    gyro_bias_var: float = 1e-5         # initial constant bias variance, rad^2/s^2
-    accel_bias_var: float = 1e-4        # m^2/s^4
-    gyro_bias_walk: float = 1e-5        # rad/s/sqrt(s)
-    accel_bias_walk: float = 1e-4       # m/s^2/sqrt(s)
-    baro_noise_pa: float = 3.0          # std
-    mag_noise_ut: float = 0.5           # std
-    mag_field_ut: Vec3 = (0.0, 20.0, -45.0)  # world ENU
-    wind_m_s: Vec3 = (0.0, 0.0, 0.0)    # constant wind, world ENU
-    gust_std_m_s: float = 0.0           # Gauss-Markov gust std per axis
-    gust_tau_s: float = 2.0             # gust correlation time
-    initial_position_m: Vec3 = (0.0, 0.0, 0.0)
-    initial_yaw_rad: float = 0.0
-    battery_rate_hz: float = 10.0
-    battery_capacity_mah: float = 1300.0   # 3S 1300 mAh: the usual pack of a 250 frame
-    battery_cells: int = 3
-    battery_internal_resistance_ohm: float = 0.05  # whole pack: the voltage sags 0.4 V in hover
-    battery_current_a_per_n: float = 2.0   # current per newton of total thrust (~8 A hovering 0.4 kg)
-    battery_idle_current_a: float = 0.3    # electronics
+    tick_rate_hz: float = _field(400.0, "rate the caller calls step()", "Hz", 0.0, min_exclusive=True)
+    physics_substeps: int = _field(5, "RK4 steps per tick (2 kHz by default)", "", 1)
+    imu_rate_hz: float = _field(400.0, "IMU sample rate (divides the tick rate)", "Hz", 0.0, min_exclusive=True)
+    baro_rate_hz: float = _field(50.0, "barometer sample rate", "Hz", 0.0, min_exclusive=True)
+    mag_rate_hz: float = _field(50.0, "magnetometer sample rate", "Hz", 0.0, min_exclusive=True)
+    camera_rate_hz: float = _field(20.0, "camera frame rate", "Hz", 0.0, min_exclusive=True)
+    truth_rate_hz: float = _field(100.0, "ground truth rate (recorder, metrics, state_source = \"truth\")", "Hz",
+                                  0.0, min_exclusive=True)
+    camera_latency_s: float = _field(0.05, "publication delay of a frame after its exposure (rounded up to a tick)",
+                                     "s", 0.0)
+    imu_latency_s: float = _field(0.0, "transport delay of the IMU samples (the bus, the driver)", "s")
+    camera_drop_rate: float = _field(0.0, "probability a frame is lost", "", 0.0, 1.0)
+    camera_outage_start_s: float = _field(-1.0, "the camera is silent from here (negative: never) ...", "s")
+    camera_outage_s: float = _field(0.0, "... for this long (fault injection)", "s")
+    camera_pixel_noise_px: float = _field(DEFAULT_PIXEL_NOISE_PX, "std of the pixel noise per coordinate", "px", 0.0)
+    camera_width_px: int = _field(DEFAULT_CAMERA.width_px, "image width", "px", 1)
+    camera_height_px: int = _field(DEFAULT_CAMERA.height_px, "image height", "px", 1)
+    camera_focal_px: float = _field(DEFAULT_CAMERA.focal_px, "focal length", "px", 0.0, min_exclusive=True)
+    marker_size_m: float = _field(DEFAULT_MARKERS.size_m, "a marker's side", "m", 0.0, min_exclusive=True)
+    marker_spacing_m: float = _field(DEFAULT_MARKERS.spacing_m, "distance between marker centres (above the size)",
+                                     "m", 0.0, min_exclusive=True)
+    marker_grid_half_extent_m: float = _field(DEFAULT_MARKERS.half_extent_m,
+                                              "the marker grid spans this far from the origin in x and y", "m", 0.0)
+    gyro_noise_var: float = _field(1e-5, "gyro white noise variance per sample (001)", "rad^2/s^2", 0.0)
+    accel_noise_var: float = _field(1e-4, "accelerometer white noise variance per sample (001)", "m^2/s^4", 0.0)
+    gyro_bias_var: float = _field(1e-5, "variance of the gyro's initial constant bias", "rad^2/s^2", 0.0)
+    accel_bias_var: float = _field(1e-4, "variance of the accelerometer's initial constant bias", "m^2/s^4", 0.0)
+    gyro_bias_walk: float = _field(1e-5, "random walk of the gyro bias", "rad/s/sqrt(s)", 0.0)
+    accel_bias_walk: float = _field(1e-4, "random walk of the accelerometer bias", "m/s^2/sqrt(s)", 0.0)
+    baro_noise_pa: float = _field(3.0, "barometer noise (std)", "Pa", 0.0)
+    mag_noise_ut: float = _field(0.5, "magnetometer noise (std)", "uT", 0.0)
+    mag_field_ut: Vec3 = _field((0.0, 20.0, -45.0), "Earth's magnetic field, world ENU", "uT")
+    wind_m_s: Vec3 = _field((0.0, 0.0, 0.0), "constant wind, world ENU", "m/s")
+    gust_std_m_s: float = _field(0.0, "Gauss-Markov gust std per axis", "m/s", 0.0)
+    gust_tau_s: float = _field(2.0, "gust correlation time", "s", 0.0, min_exclusive=True)
+    initial_position_m: Vec3 = _field((0.0, 0.0, 0.0), "where the vehicle starts, world ENU (z >= 0: the ground "
+                                      "is z = 0)", "m")
+    initial_yaw_rad: float = _field(0.0, "heading at the start", "rad")
+    battery_rate_hz: float = _field(10.0, "battery message rate", "Hz", 0.0, min_exclusive=True)
+    # 3S 1300 mAh: the usual pack of a 250 frame
+    battery_capacity_mah: float = _field(1300.0, "battery capacity", "mAh", 0.0, min_exclusive=True)
+    battery_cells: int = _field(3, "cells in series", "", 1)
+    battery_internal_resistance_ohm: float = _field(0.05, "the whole pack's internal resistance (0.4 V of sag "
+                                                    "in hover)", "ohm", 0.0)
+    battery_current_a_per_n: float = _field(2.0, "current per newton of total thrust (~8 A hovering 0.4 kg)",
+                                            "A/N", 0.0)
+    battery_idle_current_a: float = _field(0.3, "current of the electronics", "A", 0.0)
 
     @classmethod
     def from_dict(cls, d: dict) -> "SimConfig":
@@ -73,26 +89,13 @@ class SimConfig:
         for f in fields(self):
             # also coerce on direct construction (lists -> tuples, ints -> floats)
             object.__setattr__(self, f.name, _coerce(f.name, hints[f.name], getattr(self, f.name)))
-        for key in ("tick_rate_hz", "camera_focal_px", "marker_size_m", "marker_spacing_m", "gust_tau_s"):
-            if getattr(self, key) <= 0:
-                raise ValueError(f"simulator.{key}: must be > 0")
-        for key in ("battery_capacity_mah",):
-            if getattr(self, key) <= 0:
-                raise ValueError(f"simulator.{key}: must be > 0")
-        for key in ("battery_internal_resistance_ohm", "battery_current_a_per_n", "battery_idle_current_a"):
-            if getattr(self, key) < 0:
-                raise ValueError(f"simulator.{key}: must be >= 0")
-        for key in ("physics_substeps", "camera_width_px", "camera_height_px", "battery_cells"):
-            if getattr(self, key) < 1:
-                raise ValueError(f"simulator.{key}: must be >= 1")
-        for key in ("camera_latency_s", "camera_pixel_noise_px", "marker_grid_half_extent_m",
-                    "gyro_noise_var", "accel_noise_var", "gyro_bias_var", "accel_bias_var",
-                    "gyro_bias_walk", "accel_bias_walk", "baro_noise_pa", "mag_noise_ut",
-                    "gust_std_m_s"):
-            if getattr(self, key) < 0:
-                raise ValueError(f"simulator.{key}: must be >= 0")
-        if not 0.0 <= self.camera_drop_rate <= 1.0:
-            raise ValueError("simulator.camera_drop_rate: must be in [0, 1]")
+        for f in fields(self):   # the bounds each field declares
+            value, meta = getattr(self, f.name), f.metadata
+            lo, hi, above = meta["min"], meta["max"], meta["min_exclusive"]
+            if hi is not None and not lo <= value <= hi:
+                raise ValueError(f"simulator.{f.name}: must be in [{lo:g}, {hi:g}]")
+            if lo is not None and (value <= lo if above else value < lo):
+                raise ValueError(f"simulator.{f.name}: must be {'>' if above else '>='} {lo:g}")
         if self.marker_size_m >= self.marker_spacing_m:
             raise ValueError("simulator.marker_size_m: markers would overlap (must be < marker_spacing_m)")
         if self.initial_position_m[2] < 0:

@@ -39,7 +39,7 @@ from mavsdk.asyncio.plugins.telemetry import FlightMode, LandedState, TelemetryA
 
 pytestmark = pytest.mark.integration
 mavlink = mavutil.mavlink
-HOME = (47.397742, 8.545594, 488.0)   # the stack file's home (deploy/stacks/default.toml)
+HOME = (47.397742, 8.545594, 488.0)   # the bridge's default home (services/params/mavlink.py)
 
 
 def free_udp_port() -> int:

@@ -266,9 +266,9 @@ def test_parameter_protocol(link):
 
 def test_bridge_parameters_come_from_the_one_table():
     from services.mavlink import PARAMS
-    table = ParamTable({("mavlink", k): PARAMS[k] for k in BRIDGE_PARAM_DEFAULTS})
+    table = ParamTable({("mavlink", k): PARAMS[k].default for k in BRIDGE_PARAM_DEFAULTS})
     assert [r["name"] for r in table.rows] == ["MIS_TAKEOFF_ALT", "RTL_RETURN_ALT", "NAV_ACC_RAD", "COM_OF_LOSS_T"]
-    assert table.own("takeoff_alt_m") == PARAMS["takeoff_alt_m"]
+    assert table.own("takeoff_alt_m") == PARAMS["takeoff_alt_m"].default
 
 
 def test_offboard_position_and_velocity_targets_with_timeout(link):

@@ -309,8 +309,8 @@ Set `flip.plan_rate_hz` or `attitude.no_such_gain` (`flight.no_such_module`, `fl
     zenpilot-nosuch -e tcp/127.0.0.1:7447
 
 ```toml
-[services.attitude.params]
-k = [99.0, 99.0, 99.0]
+[services.attitude]
+rate_hz = 99.0
 no_such_key = 1
 ```
 """
@@ -322,8 +322,8 @@ no_such_key = 1
                      "has no subcommand 'flyy'", "`zenpilot log` has no subcommand 'inspect'", "`zenpilot log` needs a subcommand",
                      "`zenpilot up` has no flag --detatch", "attitude has no parameter 'nope'",
                      "zenpilot-attitude has no flag --bogus", "no command zenpilot-nosuch",
-                     "services.attitude.params.k = [99.0, 99.0, 99.0]",
-                     "services.attitude.params.no_such_key is not in deploy/stacks/default.toml"):
+                     "services.attitude.rate_hz = 99.0",
+                     "services.attitude.no_such_key is not in deploy/stacks/default.toml"):
         assert expected in found, f"not reported: {expected}\n{found}"
     assert readme_problems("""
 `attitude.k`, `flight.quat`, `flight.control.laws.stopping_rate`, `services/attitude.py`, `--lockstep`, [messages](docs/messages.md), `metrics.json`

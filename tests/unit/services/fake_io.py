@@ -93,3 +93,8 @@ class FakeIO(ParamAccess):
 
     def sent(self, message: schemas.Message) -> list[tuple[float | None, dict]]:
         return self.outputs[message.name].sent if message.name in self.outputs else []
+
+
+def defaults(declared: dict) -> dict:
+    """A service's declared defaults as plain values (what rt.params holds with nothing set)."""
+    return resolve_params(declared, {}, "defaults")

@@ -10,7 +10,9 @@ from flight.control.laws import attitude_law, stopping_accel
 from flight.quat import quat_from_euler
 from flight.vehicle import load_vehicle
 from services.attitude import PARAMS, AttitudeLoop
-from tests.unit.services.fake_io import FakeIO
+from tests.unit.services.fake_io import FakeIO, defaults
+
+DEFAULT = defaults(PARAMS)
 
 X250 = load_vehicle("x250")
 HOVER_N = X250.mass_kg * X250.gravity_m_s2
@@ -36,8 +38,8 @@ def test_truth_source_commands_law_8_and_passes_the_thrust_on():
     loop.step(1.0)
     [(t, cmd)] = io.sent(schemas.ATTITUDE_COMMAND)
     expected = attitude_law(X250.inertia_kg_m2, [0.1, 0.0, 0.0], [0.2, 0.0, 0.0], [0.0, 0.05, 0.0],
-                            np.array(PARAMS["k"]), np.array(PARAMS["alpha"]),
-                            stopping_accel(X250.max_angular_accel_rad_s2, PARAMS["stopping_accel_fraction"]))
+                            np.array(DEFAULT["k"]), np.array(DEFAULT["alpha"]),
+                            stopping_accel(X250.max_angular_accel_rad_s2, DEFAULT["stopping_accel_fraction"]))
     assert t == 1.0 and cmd["thrust_n"] == pytest.approx(HOVER_N) and cmd["imu_t_s"] == 1.0
     np.testing.assert_allclose(cmd["torque_nm"], expected, rtol=1e-9, atol=1e-12)
     [(_, state)] = io.sent(schemas.ATTITUDE_STATE)

@@ -8,7 +8,9 @@ from flight.control.laws import position_law
 from flight.quat import quat_from_euler
 from flight.vehicle import load_vehicle
 from services.position import PARAMS, PositionLoop
-from tests.unit.services.fake_io import FakeIO
+from tests.unit.services.fake_io import FakeIO, defaults
+
+DEFAULT = defaults(PARAMS)
 
 X250 = load_vehicle("x250")
 
@@ -36,8 +38,8 @@ def test_truth_source_turns_the_reference_into_laws_9_to_11():
     loop.step(2.0)
     [(t, sp)] = io.sent(schemas.POSITION_SETPOINT)
     r, pt, thrust = position_law(X250.mass_kg, X250.gravity_m_s2, np.array([0.0, 0.0, 1.0]), np.array([0.1, 0.0, 0.0]),
-                                 np.array([1.0, 0.0, 1.5]), np.array(PARAMS["k"]), np.array(PARAMS["alpha"]), 0.0,
-                                 max_tilt_rad=X250.tilt_limit_rad(PARAMS["max_tilt_deg"]))
+                                 np.array([1.0, 0.0, 1.5]), np.array(DEFAULT["k"]), np.array(DEFAULT["alpha"]), 0.0,
+                                 max_tilt_rad=X250.tilt_limit_rad(DEFAULT["max_tilt_deg"]))
     assert t == 2.0 and sp["attitude_ref_rad"] == pytest.approx([r, pt, 0.0]) and sp["thrust_n"] == pytest.approx(thrust)
     assert pt > 0.0   # towards +x: pitch forward (FLU: positive pitch tips the nose down)
     [(_, state)] = io.sent(schemas.POSITION_STATE)
@@ -69,7 +71,7 @@ def test_planner_lost_holds_then_lands_then_idles():
         truths.push(t, truth([0.5, 0.0, 2.0]))
         loop.step(t)
     _, state = io.sent(schemas.POSITION_STATE)[-1]
-    assert state["position_ref_m"][2] < 2.0 - 0.5 * PARAMS["land_speed_m_s"] * 2.0
+    assert state["position_ref_m"][2] < 2.0 - 0.5 * DEFAULT["land_speed_m_s"] * 2.0
     for n in range(150):   # on the ground, slow: idle after LANDED_FOR_S
         t = 6.0 + n / 100
         truths.push(t, truth([0.5, 0.0, 0.0]))

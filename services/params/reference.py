@@ -1,0 +1,73 @@
+"""Every service's declarations in one table, and the parameter reference page generated from it:
+`python -m services.params.reference > docs/parameters.md`."""
+
+from __future__ import annotations
+
+import sys
+
+from flight.estimation.position_ekf import PositionEKFParams
+from services.params import Param, attitude, mavlink, motors, planner, position, sim, vision
+
+# service -> its declarations, in the order of the data flow (the recorder has no parameters)
+DECLARED: dict[str, dict[str, Param]] = {
+    "sim": sim.PARAMS, "motors": motors.PARAMS, "attitude": attitude.PARAMS, "position": position.PARAMS,
+    "vision": vision.PARAMS, "planner": planner.PARAMS, "mavlink": mavlink.PARAMS,
+}
+
+
+def _value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return f'"{v}"'
+    if isinstance(v, float):
+        return f"{v:g}" if "e" in f"{v:g}" else repr(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k} = {_value(x)}" for k, x in v.items()) + "}"
+    return str(v)
+
+
+def _row(service: str, key: str, p: Param) -> str:
+    bounds = " / ".join(f"`{c}`" if c else '`""`' for c in p.choices) if p.choices else p.bounds_text()
+    names = p.mavlink_names()
+    mav = ", ".join(f"`{n}`" for n in names)
+    return (f"| {service} | `{key}` | `{_value(p.default)}` | {p.unit} | {bounds} | "
+            f"{p.doc.replace('|', '/')} | {mav} |")
+
+
+def render() -> str:
+    out = [
+        "# zenpilot parameter reference",
+        "",
+        "Generated from the declarations in `services/params/` by `python -m services.params.reference`; "
+        "do not edit by hand.",
+        "",
+        "Every service's parameters: default, unit, bounds, what it does, and the MAVLink name a ground "
+        "station tunes it by in flight. A stack file (`deploy/stacks/default.toml`) sets only what "
+        "differs, under `[services.NAME.params]`; `zenpilot fly --set SERVICE.KEY=VALUE` for one "
+        "flight. A service refuses an unknown key, a wrong type, a value out of bounds or not among "
+        "the choices at start, with the file, section and key. Bounds are inclusive unless the "
+        "interval says otherwise (`(0, 0.5]`: above 0, at most 0.5); a list's bounds hold for each "
+        "element. A `{}` default is a nested table its owner (named in the description) checks.",
+        "",
+        "Settings that cannot fly together are refused as well: the simulator's `camera_latency_s` "
+        "must stay below the position EKF's history (`position.ekf` `max_delay_s`, "
+        f"{PositionEKFParams.max_delay_s:g} s by default), or every camera fix would be dropped.",
+        "",
+    ]
+    for service, declared in DECLARED.items():
+        out += [
+            f"## {service}",
+            "",
+            "| service | key | default | unit | bounds | description | MAVLink |",
+            "|---|---|---|---|---|---|---|",
+            *[_row(service, key, p) for key, p in declared.items()],
+            "",
+        ]
+    return "\n".join(out)
+
+
+if __name__ == "__main__":
+    sys.stdout.write(render())

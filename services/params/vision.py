@@ -1,0 +1,22 @@
+"""The vision service's parameters (services/vision.py): a real deployment sets the camera and
+the marker map from its calibration."""
+
+from __future__ import annotations
+
+from flight.camera import DEFAULT_CAMERA, DEFAULT_MARKERS, DEFAULT_PIXEL_NOISE_PX
+from services.params import Param
+
+PARAMS = {
+    "camera_width_px": Param(DEFAULT_CAMERA.width_px, "px", 1, doc="image width"),
+    "camera_height_px": Param(DEFAULT_CAMERA.height_px, "px", 1, doc="image height"),
+    "camera_focal_px": Param(DEFAULT_CAMERA.focal_px, "px", 0.0, min_exclusive=True, doc="focal length"),
+    "marker_size_m": Param(DEFAULT_MARKERS.size_m, "m", 0.0, min_exclusive=True, doc="a marker's side"),
+    "marker_spacing_m": Param(DEFAULT_MARKERS.spacing_m, "m", 0.0, min_exclusive=True,
+                              doc="distance between marker centres on the grid"),
+    "marker_grid_half_extent_m": Param(DEFAULT_MARKERS.half_extent_m, "m", 0.0,
+                                       doc="the marker grid spans this far from the origin in x and y"),
+    "pixel_sigma_px": Param(DEFAULT_PIXEL_NOISE_PX, "px", 0.0, min_exclusive=True,
+                            doc="the corners' pixel noise (std) the pose covariance assumes"),
+    "max_reprojection_px": Param(3.0, "px", 0.0, min_exclusive=True,
+                                 doc="a pose whose RMS reprojection error is above this is refused"),
+}
