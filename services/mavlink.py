@@ -25,7 +25,7 @@ import zenoh
 
 import schemas
 from services.mavlink_logic import (STREAMS, TUNABLE, TUNABLE_DEFAULTS, Bridge, BridgeConfig, ParamTable,
-                                    is_loopback_endpoint, latency_summary, mavutil)
+                                    is_loopback_endpoint, latency_summary, mavutil_v2)
 from services.params.mavlink import PARAMS  # every parameter: default, unit, bounds, doc
 from services.runtime import Inbox, Runtime, main_guard, service_parser
 
@@ -92,7 +92,7 @@ def run(args) -> None:
         raise ValueError(f"{rt.where()} endpoint {p['endpoint']!r} leaves this machine: set signing_key_file "
                          f"(MAVLink 2 signing; the ground station needs the same key), or allow_unsigned_link = true")
     try:
-        conn = mavutil.mavlink_connection(p["endpoint"], source_system=p["system_id"],
+        conn = mavutil_v2().mavlink_connection(p["endpoint"], source_system=p["system_id"],
                                           source_component=p["component_id"], autoreconnect=True)
     except Exception as exc:
         raise ValueError(f"{rt.where()} endpoint: cannot open {p['endpoint']!r}: {exc}") from None

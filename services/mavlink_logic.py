@@ -33,18 +33,25 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-os.environ.setdefault("MAVLINK20", "1")  # before pymavlink is imported: MAVLink 2 framing
-os.environ.setdefault("MAVLINK_DIALECT", "common")
-from pymavlink import mavutil  # noqa: E402,F401  (services/mavlink.py's, chosen after the env above)
-from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
+from pymavlink.dialects.v20 import common as mavlink   # the MAVLink 2 messages and constants
 
-from flight import mavframes as mf  # noqa: E402
+from flight import mavframes as mf
 # the services' parameter declarations only (no service, no transport): the table below
-from services.params import tunable  # noqa: E402
-from services.params.attitude import PARAMS as ATTITUDE_PARAMS  # noqa: E402
-from services.params.mavlink import PARAMS as BRIDGE_PARAMS  # noqa: E402
-from services.params.motors import PARAMS as MOTORS_PARAMS  # noqa: E402
-from services.params.position import PARAMS as POSITION_PARAMS  # noqa: E402
+from services.params import tunable
+from services.params.attitude import PARAMS as ATTITUDE_PARAMS
+from services.params.mavlink import PARAMS as BRIDGE_PARAMS
+from services.params.motors import PARAMS as MOTORS_PARAMS
+from services.params.position import PARAMS as POSITION_PARAMS
+
+
+def mavutil_v2():
+    """pymavlink's mavutil speaking MAVLink 2 on the common dialect: it reads that choice from
+    the environment when first imported, so a process sets it when it opens its first link,
+    never on import."""
+    os.environ.setdefault("MAVLINK20", "1")
+    os.environ.setdefault("MAVLINK_DIALECT", "common")
+    from pymavlink import mavutil
+    return mavutil
 
 
 def px4_mode(main: int, sub: int = 0) -> int:

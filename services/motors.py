@@ -257,11 +257,9 @@ class MotorFailsafe:
 
 def actuator_link(rt: Runtime, vehicle):
     """A sender of the mixer's result to an external autopilot: link(t_s, forces_n)."""
-    import os
-    os.environ.setdefault("MAVLINK20", "1")
-    from pymavlink import mavutil
-
     from flight.mavframes import actuator_controls
+    from services.mavlink_logic import mavutil_v2
+    mavutil = mavutil_v2()
     try:
         conn = mavutil.mavlink_connection(rt.params["mavlink_endpoint"], source_system=rt.params["mavlink_target_system"],
                                           source_component=mavutil.mavlink.MAV_COMP_ID_ONBOARD_COMPUTER)
