@@ -1,12 +1,28 @@
-"""Quaternion helpers. Quaternions are numpy float64 [w, x, y, z], body->world.
+"""Rotations and angles: quaternions [w, x, y, z], Euler angles, angle wrap, tilt.
 
-Euler angles are ZYX: R = Rz(yaw) @ Ry(pitch) @ Rx(roll).
+Quaternions are numpy float64 [w, x, y, z], body->world. Euler angles are ZYX:
+R = Rz(yaw) @ Ry(pitch) @ Rx(roll). Angles wrap to [-pi, pi) as (a + pi) mod 2 pi - pi.
 """
 from __future__ import annotations
 
 import math
 
 import numpy as np
+
+TWO_PI = 2.0 * math.pi
+
+
+def wrap_angle(a, xp=np):
+    """Angle(s) wrapped to [-pi, pi): (a + pi) mod 2 pi - pi. xp is the array module: numpy
+    (the result float64) or jax.numpy (the array's own dtype, traceable)."""
+    a = np.asarray(a, dtype=np.float64) if xp is np else xp.asarray(a)
+    return (a + math.pi) % TWO_PI - math.pi
+
+
+def wrap_angle_float(a: float) -> float:
+    """wrap_angle on a Python float, the same bits without numpy's per-call cost (the
+    200/400 Hz loops)."""
+    return (a + math.pi) % TWO_PI - math.pi
 
 
 def _q(q) -> np.ndarray:

@@ -81,24 +81,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flight.quat import quat_from_euler, quat_multiply, quat_tilt, quat_to_euler
+from flight.quat import (
+    quat_from_euler,
+    quat_multiply,
+    quat_tilt,
+    quat_to_euler,
+    wrap_angle_float,
+)
 
 W, WF, A, AF, B = 0, 1, 2, 3, 4    # state indices per axis (B: the gyro bias)
 NX = 5
 G_REF = 9.80665
 _BIG_ANGLE_VAR = math.pi ** 2      # yaw variance before any magnetometer sample
-
-
-def wrap(a):
-    """Wrap to [-pi, pi) (scalar or array)."""
-    return (np.asarray(a, dtype=np.float64) + np.pi) % (2 * np.pi) - np.pi
-
-
-_PI, _TWO_PI = math.pi, 2 * math.pi
-
-
-def _wrap1(a: float) -> float:
-    return (a + _PI) % _TWO_PI - _PI
 
 
 def _rotation_rows(roll: float, pitch: float, yaw: float):
@@ -141,7 +135,7 @@ def mag_yaw(field_body, roll: float, pitch: float, field_world=(0.0, 20.0, -45.0
     hx = cp * mx + sp * z1
     hy = y1
     beta = math.atan2(float(field_world[1]), float(field_world[0]))
-    return _wrap1(beta - math.atan2(hy, hx))
+    return wrap_angle_float(beta - math.atan2(hy, hx))
 
 
 # ------------------------------------------------------------------ parameters
@@ -538,19 +532,19 @@ def _update(x, p, z_rate: float, z_angle, r_rate: float, r_angle: float, lag: bo
 def _rewrap(x):
     """Wrap the angle state to [-pi, pi) and move af by the same turn (keeps af - a small)."""
     w, wf, a, af, b = x
-    s = ((a + _PI) % _TWO_PI - _PI) - a      # _wrap1 written out: this runs for every axis and sample
+    s = wrap_angle_float(a) - a
     if s != 0.0:
         a += s
         af += s
-    return w, wf, a, a + ((af - a + _PI) % _TWO_PI - _PI), b
+    return w, wf, a, a + wrap_angle_float(af - a), b
 
 
 def _angle_lowpass(af: float, prev: float, cur: float, c: float) -> float:
     """One step of the low-pass (12) on an angle: its input the mean of the previous and this
-    sample (the short way round), the output wrapped (_wrap1 written out, as in _rewrap)."""
-    mid = prev + 0.5 * ((cur - prev + _PI) % _TWO_PI - _PI)
-    af = af + c * ((mid - af + _PI) % _TWO_PI - _PI)
-    return (af + _PI) % _TWO_PI - _PI
+    sample (the short way round), the output wrapped."""
+    mid = prev + 0.5 * wrap_angle_float(cur - prev)
+    af = af + c * wrap_angle_float(mid - af)
+    return wrap_angle_float(af)
 
 
 def _floats3(v) -> tuple[float, float, float] | None:
@@ -862,7 +856,7 @@ class AttitudeFilter:
             # carry the held magnetometer yaw on with the z gyro up to this sample
             dt_hold = t - max(self._yaw_hold_t, t - h)
             if dt_hold > 0:
-                self._yaw_hold = _wrap1(self._yaw_hold + gyro[2] * dt_hold)
+                self._yaw_hold = wrap_angle_float(self._yaw_hold + gyro[2] * dt_hold)
                 self._yaw_hold_t = t
             af[2], a_prev[2] = _angle_lowpass(af[2], a_prev[2], self._yaw_hold, c), self._yaw_hold
             yaw_ok = self._yaw_seen
@@ -878,7 +872,7 @@ class AttitudeFilter:
             z_angle = None
             if angle_ok:
                 pred = x[m]
-                z_angle = pred + _wrap1(af_i - pred)
+                z_angle = pred + wrap_angle_float(af_i - pred)
             x, pp = _update(x, pp, z_rate, z_angle, r_rate, r_angle, lag)
             xs.append(_rewrap(x))
             ps.append(pp)
@@ -982,7 +976,7 @@ class AttitudeFilter:
     def sample_state(self) -> tuple[np.ndarray, np.ndarray]:
         """(euler, rate) of the KF at its newest IMU sample (not extrapolated)."""
         xs = self._xs
-        return (np.array([_wrap1(xs[0][A]), _wrap1(xs[1][A]), _wrap1(xs[2][A])]),
+        return (np.array([wrap_angle_float(xs[0][A]), wrap_angle_float(xs[1][A]), wrap_angle_float(xs[2][A])]),
                 np.array([xs[0][W], xs[1][W], xs[2][W]]))
 
     def reinitialise(self, euler, rate) -> None:
@@ -994,7 +988,7 @@ class AttitudeFilter:
         accelerometer and magnetometer low-passes restart there too, so they pull from it."""
         if self._t_kf is None:
             return
-        euler = tuple(_wrap1(v) for v in _floats3(euler))
+        euler = tuple(wrap_angle_float(v) for v in _floats3(euler))
         rate = _floats3(rate)
         for i, x in enumerate(self._xs):
             w = rate[i] - x[B]
@@ -1087,7 +1081,7 @@ class AttitudeFilter:
                     p00, p02, p22 = pp[0], pp[2], pp[9]
                     var_w[i] = p00 + q[0]
                     var_a[i] = h * (h * p00 + p02) + (h * p02 + p22) + q[9]
-        euler = [_wrap1(xs[0][A]), _wrap1(xs[1][A]), _wrap1(xs[2][A])]
+        euler = [wrap_angle_float(xs[0][A]), wrap_angle_float(xs[1][A]), wrap_angle_float(xs[2][A])]
         rate = [xs[0][W], xs[1][W], xs[2][W]]
         if not math.isfinite(sum(euler) + sum(rate)):
             euler, rate = [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from flight.quat import (quat_conjugate, quat_from_euler, quat_multiply, quat_normalize,
-                         quat_to_euler, quat_to_rotation, rotate_vector)
+                         quat_to_euler, quat_to_rotation, rotate_vector, wrap_angle, wrap_angle_float)
 
 
 def rx(a):
@@ -49,3 +49,21 @@ def test_normalize():
     np.testing.assert_allclose(quat_normalize([2, 0, 0, 0]), [1, 0, 0, 0])
     with pytest.raises(ValueError):
         quat_normalize([0, 0, 0, 0])
+
+
+def test_wrap_angle_one_formula_for_floats_numpy_and_jax():
+    """[-pi, pi), and the float, numpy and jax.numpy forms give the same bits (the 200/400 Hz
+    loops use the float form, the batch code the array forms)."""
+    import jax.numpy as jnp
+    rng = np.random.default_rng(3)
+    a = np.concatenate([rng.uniform(-20.0, 20.0, 2000), [0.0, -0.0, np.pi, -np.pi, 2 * np.pi, -3 * np.pi]])
+    w = wrap_angle(a)
+    assert w.dtype == np.float64 and np.all(w >= -np.pi) and np.all(w < np.pi)
+    np.testing.assert_allclose(np.cos(w), np.cos(a), atol=1e-12)
+    assert wrap_angle(np.pi) == -np.pi and wrap_angle(-np.pi) == -np.pi
+    floats = np.array([wrap_angle_float(float(x)) for x in a])
+    np.testing.assert_array_equal(floats.view(np.int64), w.view(np.int64))
+    assert type(wrap_angle_float(1.0)) is float
+    a32 = a.astype(np.float32)
+    np.testing.assert_array_equal(np.asarray(wrap_angle(jnp.asarray(a32), jnp)),
+                                  (a32 + np.float32(np.pi)) % np.float32(2 * np.pi) - np.float32(np.pi))
