@@ -27,8 +27,11 @@ and the force's mean over the step, exact for a held command (e = sqrt(f) - sqrt
 whose rotors lag in speed, it drifted 8.5 mm over 3 s on the x250 and 4.8 cm and 3 deg of yaw
 on the q820; this one agrees to ~1e-9 m, tests/unit/test_motor_model.py.)
 
-Pure numpy and math; the functions taking `sqrt` work on JAX arrays too when given a
-jnp square root (flight/control/ilqr.py).
+Pure numpy and math. root_step and root_step_and_mean are plain arithmetic, so they run on
+floats, numpy arrays and JAX arrays alike (flight/control/ilqr.py, flight/control/predict.py);
+the *_floats forms are the same operations on lists of Python floats for the 400 Hz paths
+(the motor driver, the simulator, the position EKF's input), the same bits without numpy's
+per-call cost.
 """
 from __future__ import annotations
 
@@ -51,6 +54,19 @@ def mean_weights(dt_s: float, time_constant_s: float) -> tuple[float, float, flo
     return d, th * (1.0 - d), 0.5 * th * (1.0 - d * d)
 
 
+def rk4_stage_decays(dt_s: float, time_constant_s: float) -> tuple[float, float, float, float]:
+    """The decays of a held command's lag at the times RK4's stages 2, 3 and 4 look at
+    (dt/2, dt/2, dt) and at the step's end (dt): there the rotor speeds are exactly
+    w = c + d (w0 - c), so a rigid-body integrator can take them from the lag's solution."""
+    half, full = decay(0.5 * dt_s, time_constant_s), decay(dt_s, time_constant_s)
+    return half, half, full, full
+
+
+def speed_derivative(speed_rad_s, command_rad_s, time_constant_s: float):
+    """w' = (w_c - w) / tau, the lag's differential equation (floats or arrays)."""
+    return (command_rad_s - speed_rad_s) / time_constant_s
+
+
 def rotor_speed_command(thrust_n, kf: float):
     """The rotor speed (rad/s) a thrust command (N) asks for: sqrt(max(c, 0) / kf)."""
     return np.sqrt(np.maximum(np.asarray(thrust_n, dtype=np.float64), 0.0) / kf)
@@ -69,6 +85,11 @@ def rotor_torque(speed_rad_s, km: float):
     return km * w * w
 
 
+def speed_command_floats(thrust_n, kf: float) -> list:
+    """rotor_speed_command on a sequence of Python floats, as a list."""
+    return [math.sqrt(c / kf) if c > 0.0 else 0.0 for c in thrust_n]
+
+
 def speed_step(speed_rad_s, command_rad_s, dt_s: float, time_constant_s: float):
     """Rotor speeds after dt_s under a held speed command: the lag's exact step."""
     d = decay(dt_s, time_constant_s)
@@ -76,26 +97,42 @@ def speed_step(speed_rad_s, command_rad_s, dt_s: float, time_constant_s: float):
     return c + (np.asarray(speed_rad_s, dtype=np.float64) - c) * d
 
 
+def root_step(root_forces, root_command, d):
+    """s = sqrt(f) after a step whose decay is d, from s and s_c = sqrt(c): the lag's exact
+    step (s is sqrt(kf) w). Floats or arrays of any array module."""
+    return root_command + (root_forces - root_command) * d
+
+
+def root_step_and_mean(root_forces, root_command, weights):
+    """(forces after the step, their mean over it) from s = sqrt(f) and s_c = sqrt(c), with
+    weights = mean_weights(dt_s, tau): both exact for a held command (module docstring).
+    Floats or arrays of any array module."""
+    d, w1, w2 = weights
+    e = root_forces - root_command
+    s = root_command + e * d
+    return s * s, root_command * root_command + 2.0 * root_command * e * w1 + e * e * w2
+
+
 def _np_sqrt(x):
     return np.sqrt(np.maximum(x, 0.0))
 
 
-def thrust_step(forces_n, command_n, dt_s: float, time_constant_s: float, sqrt=_np_sqrt):
+def thrust_step(forces_n, command_n, dt_s: float, time_constant_s: float) -> np.ndarray:
     """Rotor forces (N) after dt_s under a held thrust command (N): the rotor-speed lag's
-    exact step in thrust space (kf cancels)."""
+    exact step in thrust space (kf cancels). Two 4-vectors (the 400 Hz motor driver) go
+    through thrust_step_floats."""
     d = decay(dt_s, time_constant_s)
-    sc = sqrt(command_n)
-    s = sc + (sqrt(forces_n) - sc) * d
+    f, c = np.asarray(forces_n, dtype=np.float64), np.asarray(command_n, dtype=np.float64)
+    if f.shape == (4,) and c.shape == (4,):
+        return np.array(thrust_step_floats(f.tolist(), c.tolist(), d))
+    s = root_step(_np_sqrt(f), _np_sqrt(c), d)
     return s * s
 
 
 def thrust_step_and_mean(forces_n, command_n, dt_s: float, time_constant_s: float, sqrt=_np_sqrt):
-    """(forces after dt_s, their mean over the step), a held thrust command: both exact."""
-    d, w1, w2 = mean_weights(dt_s, time_constant_s)
-    sc = sqrt(command_n)
-    e = sqrt(forces_n) - sc
-    s = sc + e * d
-    return s * s, sc * sc + 2.0 * sc * e * w1 + e * e * w2
+    """(forces after dt_s, their mean over the step), a held thrust command: both exact.
+    sqrt: the square root of forces >= 0 (numpy's by default; a jnp one for JAX arrays)."""
+    return root_step_and_mean(sqrt(forces_n), sqrt(command_n), mean_weights(dt_s, time_constant_s))
 
 
 def thrust_step_floats(forces_n: list, command_n: list, d: float) -> list:
@@ -103,9 +140,23 @@ def thrust_step_floats(forces_n: list, command_n: list, d: float) -> list:
     out = []
     for f, c in zip(forces_n, command_n):
         sc = math.sqrt(c) if c > 0.0 else 0.0
-        s = sc + ((math.sqrt(f) if f > 0.0 else 0.0) - sc) * d
+        s = sc + ((math.sqrt(f) if f > 0.0 else 0.0) - sc) * d   # root_step, written out
         out.append(s * s)
     return out
+
+
+def thrust_step_and_mean_floats(forces_n: list, command_n: list, weights) -> tuple[list, list]:
+    """thrust_step_and_mean on lists of Python floats (forces and commands, N), with
+    weights = mean_weights(dt_s, tau): (forces after the step, their means)."""
+    d, w1, w2 = weights
+    ends, means = [], []
+    for f, c in zip(forces_n, command_n):
+        sc = math.sqrt(c) if c > 0.0 else 0.0
+        e = (math.sqrt(f) if f > 0.0 else 0.0) - sc   # root_step_and_mean, written out
+        s = sc + e * d
+        ends.append(s * s)
+        means.append(sc * sc + 2.0 * sc * e * w1 + e * e * w2)
+    return ends, means
 
 
 @dataclass(frozen=True)

@@ -31,7 +31,8 @@ import numpy as np
 
 import schemas
 from flight.control.mission import FLIP_METHODS, MissionError, MissionPlanner, load_mission, mission_items
-from flight.control.plan import body_state, motor_forces_update, scale_collective
+from flight.control.plan import body_state, scale_collective
+from flight.motor_model import thrust_step as motor_forces_update
 from services.runtime import Runtime, main_guard, service_parser
 
 NAME = "planner"

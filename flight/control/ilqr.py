@@ -253,29 +253,20 @@ def make_dynamics(vehicle: Vehicle, dt_s: float, integrator: str = "euler",
     if motor_time_constant_s is None:
         return lambda x, u: step(x, kf * u * u)
 
-    decay, w1, w2 = motor_model.mean_weights(dt_s, motor_time_constant_s)
+    weights = motor_model.mean_weights(dt_s, motor_time_constant_s)
     root_kf = float(np.sqrt(kf))
 
     def lagged(x, u):
         # sqrt of the command's force is sqrt(kf) u (smooth in u); of the state's, floored
         # away from 0, where the square root's derivative is infinite
-        sc = root_kf * u
-        e = jnp.sqrt(jnp.maximum(x[MOTOR], _FORCE_FLOOR_N)) - sc
-        mean = sc * sc + 2.0 * sc * e * w1 + e * e * w2
-        s_next = sc + e * decay
-        return jnp.concatenate([step(x[:BODY_DIM], mean), s_next * s_next])
+        forces, mean = motor_model.root_step_and_mean(jnp.sqrt(jnp.maximum(x[MOTOR], _FORCE_FLOOR_N)),
+                                                      root_kf * u, weights)
+        return jnp.concatenate([step(x[:BODY_DIM], mean), forces])
 
     return lagged
 
 
 _FORCE_FLOOR_N = 1e-12  # rotor force below which the lag model's sqrt(f) is taken at this
-
-
-def motor_forces_update(forces_n, command_n, dt_s: float, motor_time_constant_s: float) -> np.ndarray:
-    """The rotor forces of the motor model after dt_s under a held command: the estimate to
-    append to the body state when the plan models the motors (no force sensor needed).
-    flight.motor_model.thrust_step."""
-    return motor_model.thrust_step(forces_n, command_n, dt_s, motor_time_constant_s)
 
 
 # --- cost --------------------------------------------------------------------------
@@ -666,7 +657,7 @@ class ILQRSolver:
 
     def solve(self, x0, x_targets, u_targets=None, warm=None) -> Plan:
         """x0 (13,) or (state_dim,) (with the motor model, the rotor forces: pass the
-        estimate of motor_forces_update, else hover is assumed); x_targets (H+1, 13) or
+        estimate of flight.motor_model.thrust_step, else hover is assumed); x_targets (H+1, 13) or
         (H+1, state_dim) (rotor forces carry no cost); u_targets (H, 4) (default hover);
         warm (H, 4) initial controls (default hover; pass warm_start(previous plan, elapsed))."""
         u_targets = self.hover_controls() if u_targets is None else u_targets

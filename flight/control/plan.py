@@ -13,7 +13,7 @@ driver does not import JAX), and the rotor forces kf u^2 go to the motor map.
 x is built from the latest estimates: position and velocity (pos/state) and
 attitude and body rate (att/state), each carried to t over its age (constant
 velocity, constant body rate), and, for n = 17, the rotor forces the driver's own
-commands imply through the motor lag (motor_forces_update).
+commands imply through the motor lag (flight.motor_model.thrust_step).
 """
 from __future__ import annotations
 
@@ -22,7 +22,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flight import motor_model
 from flight.quat import quat_multiply, quat_to_rotation
 
 BODY_DIM = 13
@@ -123,17 +122,6 @@ def thrust_acceleration(vehicle, q, rotor_forces_n, velocity_m_s) -> np.ndarray:
     body_z = quat_to_rotation(q)[:, 2]
     drag = vehicle.drag_n_per_m_s * np.asarray(velocity_m_s, dtype=np.float64)
     return (body_z * collective_n - drag) / vehicle.mass_kg - np.array([0.0, 0.0, vehicle.gravity_m_s2])
-
-
-def motor_forces_update(forces_n, command_n, dt_s: float, motor_time_constant_s: float) -> np.ndarray:
-    """Rotor forces after dt_s under a held command: flight/motor_model.py's motors (the
-    rotor speed's first-order lag, thrust kf w^2; as flight.control.ilqr.motor_forces_update and
-    the simulator's plant). On 4 floats without numpy's per-call cost (the 400 Hz driver)."""
-    d = math.exp(-dt_s / motor_time_constant_s)
-    f, c = np.asarray(forces_n, dtype=np.float64), np.asarray(command_n, dtype=np.float64)
-    if f.shape == (4,) and c.shape == (4,):
-        return np.array(motor_model.thrust_step_floats(f.tolist(), c.tolist(), d))
-    return motor_model.thrust_step(f, c, dt_s, motor_time_constant_s)
 
 
 # allocation matrices seen by scale_collective -> (the matrix, the first column of its inverse);

@@ -948,11 +948,7 @@ class LaggedMotorInput:
     through a flip the rotor forces swing by ~6 N within 60 ms, ~0.5 N (0.6 m/s^2) off
     for half a step at a time. The mean of the lagged force over each held command is
     exact for a held command (flight/motor_model.py's motors, the rotor speed lagging:
-    with e = sqrt(f0) - sqrt(c), c + 2 sqrt(c) e w1 + e^2 w2, w1 = (tau / h)(1 - exp(-h / tau)),
-    w2 = (tau / 2h)(1 - exp(-2h / tau))).
-
-    Kept in plain floats (four of them, several times a step); the lag is that of
-    flight.motor_model.thrust_step (flight.control.plan.motor_forces_update)."""
+    thrust_step_and_mean_floats, in plain floats: four of them, several times a step)."""
 
     def __init__(self, time_constant_s: float):
         if not (math.isfinite(time_constant_s) and time_constant_s > 0):
@@ -1000,15 +996,9 @@ class LaggedMotorInput:
                 end = pending[0][0]
             h = end - self.t
             if h > 0.0:
-                decay, w1, w2 = motor_model.mean_weights(h, tau)
-                forces = []
-                for k, (ci, fi) in enumerate(zip(self._command, self._forces)):
-                    sc = math.sqrt(ci) if ci > 0.0 else 0.0
-                    e = (math.sqrt(fi) if fi > 0.0 else 0.0) - sc
-                    total[k] += h * (sc * sc + 2.0 * sc * e * w1 + e * e * w2)
-                    s = sc + e * decay
-                    forces.append(s * s)
-                self._forces = forces
+                self._forces, means = motor_model.thrust_step_and_mean_floats(
+                    self._forces, self._command, motor_model.mean_weights(h, tau))
+                total = [s + h * m for s, m in zip(total, means)]
                 self.t = end
             if end >= t_s:
                 break

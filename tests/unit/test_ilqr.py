@@ -20,10 +20,10 @@ from flight.control.ilqr import (
     make_cost,
     make_cost_derivatives,
     make_dynamics,
-    motor_forces_update,
     solver_compiler_options,
     warm_start,
 )
+from flight.motor_model import thrust_step
 from flight.quat import quat_from_euler
 from flight.vehicle import load_vehicle
 
@@ -253,7 +253,7 @@ def test_motor_lag_model_forces_follow_the_command_exactly():
     x_step = f(x, u * np.sqrt(2.0))
     d = np.exp(-dt / tau)
     np.testing.assert_allclose(x_step[13:17], hover_n * (np.sqrt(2) - (np.sqrt(2) - 1) * d) ** 2, rtol=1e-6)
-    np.testing.assert_allclose(motor_forces_update(np.full(4, hover_n), np.full(4, 2 * hover_n), dt, tau),
+    np.testing.assert_allclose(thrust_step(np.full(4, hover_n), np.full(4, 2 * hover_n), dt, tau),
                                x_step[13:17], rtol=1e-6)
     assert 0 < x_step[5] < 2 * 9.81 * dt  # accelerates up, less than with the thrust at once
 
