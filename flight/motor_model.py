@@ -41,15 +41,16 @@ from dataclasses import dataclass
 import numpy as np
 
 
-def decay(dt_s: float, time_constant_s: float) -> float:
-    """exp(-dt / tau): the fraction of a rotor-speed error left after dt_s."""
-    return math.exp(-dt_s / time_constant_s)
+def decay(dt_s: float, time_constant_s, exp=math.exp):
+    """exp(-dt / tau): the fraction of a rotor-speed error left after dt_s. exp: jnp.exp
+    for a time constant that is a JAX array (flight/control/predict.py draws it per case)."""
+    return exp(-dt_s / time_constant_s)
 
 
-def mean_weights(dt_s: float, time_constant_s: float) -> tuple[float, float, float]:
+def mean_weights(dt_s: float, time_constant_s, exp=math.exp) -> tuple:
     """(d, w1, w2) of a step of dt_s (module docstring): the decay, the mean of d(t) and
     the mean of d(t)^2 over the step."""
-    d = decay(dt_s, time_constant_s)
+    d = decay(dt_s, time_constant_s, exp)
     th = time_constant_s / dt_s
     return d, th * (1.0 - d), 0.5 * th * (1.0 - d * d)
 
@@ -129,10 +130,11 @@ def thrust_step(forces_n, command_n, dt_s: float, time_constant_s: float) -> np.
     return s * s
 
 
-def thrust_step_and_mean(forces_n, command_n, dt_s: float, time_constant_s: float, sqrt=_np_sqrt):
+def thrust_step_and_mean(forces_n, command_n, dt_s: float, time_constant_s, sqrt=_np_sqrt, exp=math.exp):
     """(forces after dt_s, their mean over the step), a held thrust command: both exact.
-    sqrt: the square root of forces >= 0 (numpy's by default; a jnp one for JAX arrays)."""
-    return root_step_and_mean(sqrt(forces_n), sqrt(command_n), mean_weights(dt_s, time_constant_s))
+    sqrt: the square root of forces >= 0 and exp (numpy's and math's by default; jnp ones
+    for JAX arrays)."""
+    return root_step_and_mean(sqrt(forces_n), sqrt(command_n), mean_weights(dt_s, time_constant_s, exp))
 
 
 def thrust_step_floats(forces_n: list, command_n: list, d: float) -> list:
