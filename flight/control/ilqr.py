@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from flight import motor_model
+from flight.quat import quat_multiply
 from flight.vehicle import Vehicle
 
 # How XLA runs the solver on the CPU. Its runtime launches a kernel per fused operation and
@@ -153,17 +154,6 @@ PROJECT = ILQRConfig(
 
 # --- model ---------------------------------------------------------------------------
 
-def _quat_multiply(a, b):
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return jnp.stack([
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ])
-
-
 def _body_z_in_world(q):
     """Third column of R(q) (flight/quat.py's body->world matrix)."""
     w, x, y, z = q
@@ -188,7 +178,7 @@ def rigid_body_derivative(x, forces_n, mass, inertia, allocation, drag, gravity,
     thrust_torque = jnp.sum(allocation * forces_n, axis=1)  # allocation @ forces, fusible
     air = v if wind is None else v - wind
     accel = (_body_z_in_world(q) * thrust_torque[0] - drag * air) / mass - gravity
-    q_dot = 0.5 * _quat_multiply(q, jnp.concatenate([jnp.zeros(1), w]))
+    q_dot = 0.5 * quat_multiply(q, jnp.concatenate([jnp.zeros(1), w]), jnp)
     w_dot = (thrust_torque[1:] - jnp.cross(w, inertia * w)) / inertia
     return jnp.concatenate([v, accel, q_dot, w_dot])
 
@@ -235,7 +225,7 @@ def make_dynamics(vehicle: Vehicle, dt_s: float, integrator: str = "euler",
         p, v, q, w = x[POS], x[VEL], x[QUAT], x[RATE]
         accel, w_dot = xdot[VEL], xdot[RATE]
         w_new = w + w_dot * dt_s
-        q_new = q + 0.5 * _quat_multiply(q, jnp.concatenate([jnp.zeros(1), w_new])) * dt_s
+        q_new = q + 0.5 * quat_multiply(q, jnp.concatenate([jnp.zeros(1), w_new]), jnp) * dt_s
         return jnp.concatenate([p + v * dt_s + 0.5 * accel * dt_s ** 2, v + accel * dt_s,
                                 q_new / jnp.linalg.norm(q_new), w_new])
 

@@ -17,12 +17,11 @@ commands imply through the motor lag (flight.motor_model.thrust_step).
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from flight.quat import quat_multiply, quat_to_rotation
+from flight.quat import quat_integrate, quat_to_rotation
 
 BODY_DIM = 13
 QUAT = slice(6, 10)
@@ -79,18 +78,6 @@ def plan_feedback(states, controls, gains, dt_s: float, elapsed_s: float, x, u_m
     return np.clip(u, 0.0, u_max_rad_s)
 
 
-def propagate_attitude(q, rate_rad_s, dt_s: float) -> np.ndarray:
-    """q after dt_s at a constant body rate (exact for a constant rate)."""
-    w = np.asarray(rate_rad_s, dtype=np.float64)
-    angle = float(np.linalg.norm(w)) * dt_s
-    if angle < 1e-12:
-        return np.asarray(q, dtype=np.float64)
-    axis = w / np.linalg.norm(w)
-    dq = np.concatenate([[math.cos(angle / 2)], math.sin(angle / 2) * axis])
-    out = quat_multiply(q, dq)
-    return out / np.linalg.norm(out)
-
-
 def body_state(t_s: float, att: dict, pos: dict, vehicle=None, rotor_forces_n=None) -> np.ndarray:
     """The 13-state [p, v, q, w] at t_s from an att/state and a pos/state message,
     each carried forward over its age (never backward).
@@ -107,7 +94,7 @@ def body_state(t_s: float, att: dict, pos: dict, vehicle=None, rotor_forces_n=No
     v = np.asarray(pos["velocity_m_s"], dtype=np.float64)
     p = np.asarray(pos["position_m"], dtype=np.float64)
     w = np.asarray(att["rate_rad_s"], dtype=np.float64)
-    q = propagate_attitude(att["quaternion_wxyz"], w, a_age)
+    q = quat_integrate(att["quaternion_wxyz"], w, a_age)
     if vehicle is not None and rotor_forces_n is not None and p_age > 0.0:
         accel = thrust_acceleration(vehicle, q, rotor_forces_n, v)
         return np.concatenate([p + v * p_age + 0.5 * accel * p_age ** 2, v + accel * p_age, q, w])

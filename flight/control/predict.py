@@ -30,7 +30,7 @@ import numpy as np
 
 from flight import motor_model
 from flight.control.flip import TURN_START_RAD
-from flight.quat import wrap_angle
+from flight.quat import quat_multiply, wrap_angle
 from flight.vehicle import Vehicle
 
 # the flip's metric thresholds (flight/flip.flip_metrics' defaults)
@@ -323,7 +323,6 @@ def make_rollouts(nominal: NominalFlip, uncertainty: Uncertainty, max_delay_tick
     body-rate norm."""
     import jax
     import jax.numpy as jnp
-    from flight.control.ilqr import _quat_multiply
 
     vehicle = nominal.vehicle
     dt_s = nominal.tick_s
@@ -342,7 +341,7 @@ def make_rollouts(nominal: NominalFlip, uncertainty: Uncertainty, max_delay_tick
 
     def one(case, u_plan, gains, x_plan, x0):
         body0 = x0[:13]
-        q0 = _quat_multiply(body0[6:10], case["start_dq"])
+        q0 = quat_multiply(body0[6:10], case["start_dq"], jnp)
         err = case["start_error"]
         body0 = jnp.concatenate([body0[0:3] + err[0:3], body0[3:6] + err[3:6], q0, body0[10:13] + err[6:9]])
         forces0 = jnp.full(4, hover_f, jnp.float32)

@@ -83,7 +83,7 @@ import numpy as np
 
 from flight.quat import (
     quat_from_euler,
-    quat_multiply,
+    quat_integrate,
     quat_tilt,
     quat_to_euler,
     wrap_angle_float,
@@ -1171,19 +1171,6 @@ class CameraLevel:
 
 
 # ------------------------------------------------------------------ inversion carrier
-def quat_integrate(q, rate_rad_s, h: float) -> np.ndarray:
-    """q (x) exp(0.5 w h): a body->world quaternion turned by the body rate w over h (exact for constant w)."""
-    w = np.asarray(rate_rad_s, dtype=np.float64)
-    angle = float(np.linalg.norm(w)) * h
-    if angle < 1e-12:
-        return np.asarray(q, dtype=np.float64).copy()
-    axis = w / np.linalg.norm(w)
-    s = math.sin(0.5 * angle)
-    dq = np.array([math.cos(0.5 * angle), *(s * axis)])
-    qn = quat_multiply(q, dq)
-    return qn / np.linalg.norm(qn)
-
-
 class GyroCarrier:
     """A quaternion carried by the gyros through attitudes the 000 filter cannot hold.
 
