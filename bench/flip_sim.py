@@ -49,7 +49,7 @@ from flight.control.ilqr import (
     feedback_control,
     warm_start,
 )
-from flight.control.mixer import pwm_to_thrust, thrust_to_pwm
+from flight.motor_model import pwm_to_thrust, thrust_to_pwm
 from flight.motor_model import thrust_step as motor_forces_update
 from flight.vehicle import Vehicle, load_vehicle
 from simulator.config import SimConfig

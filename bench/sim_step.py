@@ -22,8 +22,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from flight.control.mixer import mix, thrust_to_pwm  # noqa: E402
+from flight.control.mixer import mix  # noqa: E402
 from flight.control.plan import scale_collective  # noqa: E402
+from flight.motor_model import thrust_to_pwm  # noqa: E402
 from flight.motor_model import thrust_step as motor_forces_update  # noqa: E402
 from flight.vehicle import load_vehicle  # noqa: E402
 from simulator import SimConfig, Simulator  # noqa: E402

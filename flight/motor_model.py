@@ -11,7 +11,10 @@ thrust_coefficient_kf, moment_coefficient_km):
 
     f = kf w^2,   torque_z = sign_i km w^2 = sign_i (km / kf) f = sign_i yaw_moment_m f
 
-A thrust command c (N) asks for w_c = sqrt(max(c, 0) / kf).
+A thrust command c (N) asks for w_c = sqrt(max(c, 0) / kf). The ESC takes it as a pulse width,
+linear in thrust between the vehicle file's pwm_min_us (0 N) and pwm_max_us (max_thrust_n),
+document 000's map (thrust_to_pwm, pwm_to_thrust): the motor driver sends it, the simulator
+reads it back.
 
 The models that carry rotor forces (N) rather than speeds (the plan, the motor driver's
 estimate, the position EKF's input) step them through the rotor speed: with s = sqrt(f)
@@ -196,3 +199,74 @@ class MotorModel:
 
     def thrust_step(self, forces_n, command_n, dt_s: float):
         return thrust_step(forces_n, command_n, dt_s, self.time_constant_s)
+
+
+# --------------------------------------------------------------------------- the ESC's PWM map
+
+def clip_float(x: float, lo: float, hi: float) -> float:
+    """np.clip on floats: min(max(x, lo), hi), NaN kept (the 400 Hz paths)."""
+    x = lo if x < lo else x
+    return hi if x > hi else x
+
+
+class _PwmConsts:
+    """What the PWM map reads of a vehicle, as floats (vehicles are frozen)."""
+
+    __slots__ = ("pwm_min", "pwm_max", "pwm_span", "max_thrust", "min_thrust")
+
+    def __init__(self, vehicle):
+        self.pwm_min, self.pwm_max = float(vehicle.pwm_min_us), float(vehicle.pwm_max_us)
+        self.pwm_span = vehicle.pwm_max_us - vehicle.pwm_min_us
+        self.max_thrust = vehicle.max_thrust_n
+        self.min_thrust = float(vehicle.min_thrust_n)
+
+
+_PWM_CONSTS: dict[int, tuple] = {}  # id(vehicle) -> (vehicle, its _PwmConsts)
+
+
+def _pwm_consts(vehicle) -> _PwmConsts:
+    # keyed by identity (hashing a dataclass of tuples costs more than the map); the entry
+    # holds the vehicle, so an id is never reused while its entry is alive
+    entry = _PWM_CONSTS.get(id(vehicle))
+    if entry is not None and entry[0] is vehicle:
+        return entry[1]
+    if len(_PWM_CONSTS) >= 64:
+        _PWM_CONSTS.clear()
+    c = _PwmConsts(vehicle)
+    _PWM_CONSTS[id(vehicle)] = (vehicle, c)
+    return c
+
+
+def thrust_to_pwm(vehicle, forces_n) -> np.ndarray:
+    """Linear map of 000: pwm = pwm_min + F/max_thrust*(pwm_max-pwm_min), clipped. A
+    4-vector (the 400 Hz driver) goes through thrust_to_pwm_floats."""
+    f = np.asarray(forces_n, dtype=np.float64)
+    if f.shape == (4,):
+        return np.array(thrust_to_pwm_floats(vehicle, f.tolist()))
+    span = vehicle.pwm_max_us - vehicle.pwm_min_us
+    pwm = vehicle.pwm_min_us + f / vehicle.max_thrust_n * span
+    return np.clip(pwm, vehicle.pwm_min_us, vehicle.pwm_max_us)
+
+
+def thrust_to_pwm_floats(vehicle, forces_n) -> list:
+    """thrust_to_pwm on a sequence of floats, as a list."""
+    c = _pwm_consts(vehicle)
+    lo, hi, span, f_max = c.pwm_min, c.pwm_max, c.pwm_span, c.max_thrust
+    return [clip_float(lo + f / f_max * span, lo, hi) for f in forces_n]
+
+
+def pwm_to_thrust(vehicle, pwm_us) -> np.ndarray:
+    """Inverse of thrust_to_pwm, clipped to [min_thrust_n, max_thrust_n]."""
+    p = np.asarray(pwm_us, dtype=np.float64)
+    if p.shape == (4,):
+        return np.array(pwm_to_thrust_floats(vehicle, p.tolist()))
+    span = vehicle.pwm_max_us - vehicle.pwm_min_us
+    f = (p - vehicle.pwm_min_us) / span * vehicle.max_thrust_n
+    return np.clip(f, vehicle.min_thrust_n, vehicle.max_thrust_n)
+
+
+def pwm_to_thrust_floats(vehicle, pwm_us) -> list:
+    """pwm_to_thrust on a sequence of floats, as a list (the simulator's 400 Hz tick)."""
+    c = _pwm_consts(vehicle)
+    p_min, span, f_max, f_min = c.pwm_min, c.pwm_span, c.max_thrust, c.min_thrust
+    return [clip_float((p - p_min) / span * f_max, f_min, f_max) for p in pwm_us]

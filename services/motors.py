@@ -39,8 +39,9 @@ import numpy as np
 import schemas
 from flight.control.laws import STOPPING_ACCEL_FRACTION, attitude_law, stopping_accel
 from flight.control.failsafe import Descent, DescentParams, LevelEstimate
-from flight.control.mixer import mix, pwm_to_thrust, thrust_to_pwm
+from flight.control.mixer import mix
 from flight.control.plan import RotorPlan, body_state, scale_collective
+from flight.motor_model import pwm_to_thrust, thrust_to_pwm
 from flight.motor_model import thrust_step as motor_forces_update
 from flight.vehicle import load_vehicle
 from services.runtime import Runtime, main_guard, service_parser

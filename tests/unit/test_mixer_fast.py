@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from flight.control.mixer import mix, mix_floats, pwm_to_thrust, pwm_to_thrust_floats, thrust_to_pwm, thrust_to_pwm_floats
+from flight.control.mixer import mix, mix_floats
 from flight.control.plan import scale_collective
-from flight.motor_model import thrust_step
+from flight.motor_model import pwm_to_thrust, pwm_to_thrust_floats, thrust_step, thrust_to_pwm, thrust_to_pwm_floats
 from flight.vehicle import load_vehicle
 from tests.unit.sim_reference import (ref_mix, ref_motor_forces_update, ref_pwm_to_thrust, ref_scale_collective,
                                       ref_thrust_to_pwm)
