@@ -174,11 +174,11 @@ class MotorModel:
     @classmethod
     def of(cls, vehicle) -> "MotorModel":
         """From the vehicle file: thrust_coefficient_kf and moment_coefficient_km when given;
-        else kf from max_thrust_n at max_rotor_speed_rad_s (1000 rad/s when that is missing
-        too: kf only scales the speeds, not the forces' dynamics) and km = yaw_moment_m kf."""
+        else kf from max_thrust_n at max_rotor_speed_rad_s (the loader requires one of the two)
+        and km = yaw_moment_m kf."""
         kf = vehicle.thrust_coefficient_kf
         if kf is None:
-            top = vehicle.max_rotor_speed_rad_s or 1000.0
+            top = vehicle.max_rotor_speed_rad_s
             kf = vehicle.max_thrust_n / (top * top)
         km = vehicle.moment_coefficient_km
         if km is None:

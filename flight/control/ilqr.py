@@ -208,13 +208,13 @@ def make_derivative(vehicle: Vehicle) -> Callable:
 
 
 def make_dynamics(vehicle: Vehicle, dt_s: float, integrator: str = "euler",
-                  motor_time_constant_s: float | None = None) -> Callable:
+                  models_motors: bool = False) -> Callable:
     """Discrete f(x, u) -> x_next. "euler" is the thesis's update (Appendix A): velocity
     and rate by Euler, position with the dt^2/2 term, quaternion with the new rate.
 
-    With motor_time_constant_s the state has 4 more components, the rotor forces (N),
-    which follow the commanded kf u^2 through flight/motor_model.py's motors (the rotor
-    speed lagging u with that time constant, thrust kf w^2): they are advanced exactly
+    With models_motors the state has 4 more components, the rotor forces (N), which
+    follow the commanded kf u^2 through flight/motor_model.py's motors (the rotor speed
+    lagging u by the vehicle's motor_time_constant_s, thrust kf w^2): they are advanced exactly
     (zero-order hold on the command) and the rigid body is integrated with their exact
     mean over the step."""
     derivative = make_derivative(vehicle)
@@ -240,10 +240,10 @@ def make_dynamics(vehicle: Vehicle, dt_s: float, integrator: str = "euler",
 
     step = {"euler": euler, "rk4": rk4}[integrator]
     kf = _thrust_coefficient(vehicle)
-    if motor_time_constant_s is None:
+    if not models_motors:
         return lambda x, u: step(x, kf * u * u)
 
-    weights = motor_model.mean_weights(dt_s, motor_time_constant_s)
+    weights = motor_model.mean_weights(dt_s, vehicle.motor_time_constant_s)
     root_kf = float(np.sqrt(kf))
 
     def lagged(x, u):
@@ -613,7 +613,7 @@ class ILQRSolver:
         self.vehicle = vehicle
         self.config = config
         self.motor_time_constant_s = vehicle.motor_time_constant_s if config.models_motors else None
-        self.dynamics = make_dynamics(vehicle, config.dt_s, config.integrator, self.motor_time_constant_s)
+        self.dynamics = make_dynamics(vehicle, config.dt_s, config.integrator, config.models_motors)
         self.stage_cost, self.terminal_cost = make_cost(config)
         self.u_max_rad_s = float(vehicle.max_rotor_speed_rad_s)
         self.u_hover_rad_s = hover_rotor_speed_rad_s(vehicle)

@@ -194,8 +194,8 @@ def fly_nominal(vehicle: Vehicle, method: str = "ilqr-project", altitude_m: floa
     tau = c.motor_time_constant_s
     kf = vehicle.thrust_coefficient_kf
     u_max = float(vehicle.max_rotor_speed_rad_s)
-    step = _plant_step(vehicle, tick_s, tau)
-    params = nominal_params(vehicle, tau)
+    step = _plant_step(vehicle, tick_s)
+    params = nominal_params(vehicle)
 
     body = hover_state(np.array([0.0, 0.0, altitude_m]))
     forces = np.full(4, vehicle.hover_thrust_per_motor_n)
@@ -240,11 +240,11 @@ def fly_nominal(vehicle: Vehicle, method: str = "ilqr-project", altitude_m: floa
 
 # --- the plant of the rollouts ---------------------------------------------------------------
 
-def nominal_params(vehicle: Vehicle, motor_time_constant_s: float | None) -> dict:
+def nominal_params(vehicle: Vehicle) -> dict:
     """The rollout plant's numbers for the vehicle file (one case, no uncertainty)."""
-    tau = motor_time_constant_s if motor_time_constant_s is not None else vehicle.motor_time_constant_s
     return {"mass": np.float32(vehicle.mass_kg), "inertia": np.asarray(vehicle.inertia_kg_m2, np.float32),
-            "thrust_scale": np.float32(1.0), "tau": np.float32(tau), "wind": np.zeros(3, np.float32)}
+            "thrust_scale": np.float32(1.0), "tau": np.float32(vehicle.motor_time_constant_s),
+            "wind": np.zeros(3, np.float32)}
 
 
 def _jnp_root(x):
@@ -252,7 +252,7 @@ def _jnp_root(x):
     return jnp.sqrt(jnp.maximum(x, 0.0))
 
 
-def _plant_step(vehicle: Vehicle, dt_s: float, controller_tau: float | None):
+def _plant_step(vehicle: Vehicle, dt_s: float):
     """One tick of the plant: the rotor speeds lag the command with the case's time constant
     (flight/motor_model.py, exact over the tick), the rigid body by RK4 under the forces'
     mean over the tick (the iLQR's model, flight/control/ilqr.make_dynamics). Returns a jitted
@@ -294,7 +294,7 @@ def draw_cases(vehicle: Vehicle, nominal: NominalFlip, n: int, uncertainty: Unce
     def spread(frac, shape=(n,)):
         return 1.0 + rng.uniform(-frac, frac, shape)
 
-    tau0 = nominal.motor_time_constant_s or vehicle.motor_time_constant_s
+    tau0 = vehicle.motor_time_constant_s
     heading = rng.uniform(0.0, 2.0 * math.pi, n)
     speed = rng.uniform(0.0, u.wind_m_s, n)
     wind = np.stack([speed * np.cos(heading), speed * np.sin(heading), np.zeros(n)], axis=1)
@@ -330,7 +330,7 @@ def make_rollouts(nominal: NominalFlip, uncertainty: Uncertainty, max_delay_tick
     u_max = float(vehicle.max_rotor_speed_rad_s)
     ctrl_tau = nominal.motor_time_constant_s
     ctrl_decay = None if ctrl_tau is None else motor_model.decay(dt_s, ctrl_tau)
-    step = _plant_step(vehicle, dt_s, ctrl_tau).raw
+    step = _plant_step(vehicle, dt_s).raw
     gust_decay = float(np.exp(-dt_s / uncertainty.gust_time_s)) if uncertainty.gust_m_s > 0 else 0.0
     gust_gain = uncertainty.gust_m_s * math.sqrt(1.0 - gust_decay ** 2)
     hover_f = float(vehicle.hover_thrust_per_motor_n)

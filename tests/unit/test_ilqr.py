@@ -241,11 +241,11 @@ def test_backward_pass_is_the_riccati_recursion():
 
 
 def test_motor_lag_model_forces_follow_the_command_exactly():
-    """With motor_time_constant_s the rotor forces are states: hover is an equilibrium and a
+    """With models_motors the rotor forces are states: hover is an equilibrium and a
     step of the command is followed as the rotor speed's lag (flight/motor_model.py, the
     plant's motors): sqrt(f) moves to sqrt(c) as exp(-t / tau)."""
-    tau, dt = 0.02, 0.025
-    f = make_dynamics(VEHICLE, dt, "rk4", motor_time_constant_s=tau)
+    tau, dt = VEHICLE.motor_time_constant_s, 0.025
+    f = make_dynamics(VEHICLE, dt, "rk4", models_motors=True)
     hover_n = VEHICLE.hover_thrust_per_motor_n
     x = jnp.concatenate([jnp.asarray(hover_state([0, 0, 5])), jnp.full(4, hover_n)])
     u = jnp.full(4, hover_rotor_speed_rad_s(VEHICLE))
