@@ -34,10 +34,10 @@ import schemas
 from flight.estimation.attitude_filter import (
     AttitudeFilter,
     AttitudeFilterParams,
-    CameraLevel,
-    GyroCarrier,
     accel_roll_pitch,
 )
+from flight.estimation.camera_level import CameraLevel
+from flight.estimation.gyro_carrier import GyroCarrier
 from flight.control.laws import STOPPING_ACCEL_FRACTION, attitude_law, stopping_accel
 from flight.control.failsafe import Descent, DescentParams
 from flight.estimation.gyrovertical import DEFAULT_PARAMS_FILE, GyroVertical, load_trained
