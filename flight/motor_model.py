@@ -95,10 +95,10 @@ def speed_command_floats(thrust_n, kf: float) -> list:
 
 
 def speed_step(speed_rad_s, command_rad_s, dt_s: float, time_constant_s: float):
-    """Rotor speeds after dt_s under a held speed command: the lag's exact step."""
-    d = decay(dt_s, time_constant_s)
-    c = np.asarray(command_rad_s, dtype=np.float64)
-    return c + (np.asarray(speed_rad_s, dtype=np.float64) - c) * d
+    """Rotor speeds after dt_s under a held speed command: the lag's exact step (root_step:
+    sqrt(f) is sqrt(kf) w)."""
+    return root_step(np.asarray(speed_rad_s, dtype=np.float64), np.asarray(command_rad_s, dtype=np.float64),
+                     decay(dt_s, time_constant_s))
 
 
 def root_step(root_forces, root_command, d):
