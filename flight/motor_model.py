@@ -212,7 +212,7 @@ def clip_float(x: float, lo: float, hi: float) -> float:
 class _PwmConsts:
     """What the PWM map reads of a vehicle, as floats (vehicles are frozen)."""
 
-    __slots__ = ("pwm_min", "pwm_max", "pwm_span", "max_thrust", "min_thrust")
+    __slots__ = ("max_thrust", "min_thrust", "pwm_max", "pwm_min", "pwm_span")
 
     def __init__(self, vehicle):
         self.pwm_min, self.pwm_max = float(vehicle.pwm_min_us), float(vehicle.pwm_max_us)

@@ -15,6 +15,7 @@ from collections import deque
 import numpy as np
 import pytest
 
+from flight.control.laws import attitude_law
 from flight.estimation.attitude_filter import (
     AF,
     FILTER_000,
@@ -33,7 +34,6 @@ from flight.estimation.attitude_filter import (
     mag_yaw,
     rotation_zyx,
 )
-from flight.control.laws import attitude_law
 from flight.quat import quat_from_euler, quat_to_rotation, wrap_angle
 
 INERTIA = np.array([7.5e-3, 7.5e-3, 14.2e-3])   # the x250 of 000
@@ -372,8 +372,7 @@ def test_bias_state_converges_to_a_constant_gyro_bias():
 # ------------------------------------------------------------------ Euler kinematics
 def test_euler_rate_excess_matches_the_quaternion_kinematics():
     from flight.estimation.attitude_filter import euler_rate_excess
-    from flight.quat import quat_integrate
-    from flight.quat import quat_to_euler
+    from flight.quat import quat_integrate, quat_to_euler
     rng = np.random.default_rng(0)
     for _ in range(20):
         e0 = rng.uniform([-0.8, -0.8, -3.0], [0.8, 0.8, 3.0])

@@ -178,4 +178,4 @@ def test_simulator_imports_no_control_code():
     import sys
     code = ("import sys, simulator, simulator.world, simulator.plant, simulator.sensors; "
             "sys.exit(any(m.startswith('flight.control') for m in sys.modules))")
-    assert subprocess.run([sys.executable, "-c", code]).returncode == 0
+    assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0
