@@ -10,7 +10,8 @@ import numpy as np
 
 from flight.control.laws import STOPPING_ACCEL_FRACTION, attitude_law, stopping_accel
 from flight.control.failsafe import Descent, DescentParams, LevelEstimate
-from flight.control.mixer import mix, thrust_to_pwm
+from flight.control.mixer import mix
+from flight.motor_model import thrust_to_pwm
 from flight.vehicle import load_vehicle
 
 v = load_vehicle("x250")

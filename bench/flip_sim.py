@@ -47,10 +47,10 @@ from flight.control.ilqr import (
     ILQRConfig,
     ILQRSolver,
     feedback_control,
-    motor_forces_update,
     warm_start,
 )
-from flight.control.mixer import pwm_to_thrust, thrust_to_pwm
+from flight.motor_model import pwm_to_thrust, thrust_to_pwm
+from flight.motor_model import thrust_step as motor_forces_update
 from flight.vehicle import Vehicle, load_vehicle
 from simulator.config import SimConfig
 from simulator.plant import Plant

@@ -22,16 +22,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.support.sim_reference import (  # noqa: E402
-    RefPlant,
-    RefSimulator,
-    ref_mix,
-    ref_motor_forces_update,
-    ref_scale_collective,
-    ref_thrust_to_pwm,
-)
-from flight.control.mixer import mix, thrust_to_pwm  # noqa: E402
-from flight.control.plan import motor_forces_update, scale_collective  # noqa: E402
+from bench.support.sim_reference import (RefPlant, RefSimulator, ref_mix, ref_motor_forces_update,  # noqa: E402
+                                         ref_scale_collective, ref_thrust_to_pwm)
+from flight.control.mixer import mix  # noqa: E402
+from flight.control.plan import scale_collective  # noqa: E402
+from flight.motor_model import thrust_to_pwm  # noqa: E402
+from flight.motor_model import thrust_step as motor_forces_update  # noqa: E402
 from flight.vehicle import load_vehicle  # noqa: E402
 from simulator import SimConfig, Simulator  # noqa: E402
 from simulator.plant import Plant  # noqa: E402

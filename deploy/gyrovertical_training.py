@@ -194,5 +194,5 @@ def tilt_error_deg(flight: FlightData, roll, pitch):
     """Per-sample (roll, pitch) errors, degrees, wrapped."""
     import numpy as np
 
-    from flight.estimation.gyrovertical import wrap
+    from flight.quat import wrap_angle as wrap
     return np.degrees(wrap(roll - flight.roll_rad)), np.degrees(wrap(pitch - flight.pitch_rad))

@@ -20,9 +20,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from flight.control.laws import altitude_law, attitude_law, position_law, wrap_angle
-from flight.control.mixer import mix, thrust_to_pwm
-from flight.quat import quat_to_euler
+from flight.control.laws import altitude_law, attitude_law, position_law
+from flight.control.mixer import mix
+from flight.motor_model import thrust_to_pwm
+from flight.quat import quat_to_euler, wrap_angle
 from flight.vehicle import Vehicle
 from simulator.config import SimConfig
 from simulator.world import Simulator

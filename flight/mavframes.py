@@ -18,15 +18,17 @@ import math
 
 import numpy as np
 
-from flight.quat import quat_from_euler, quat_multiply, quat_normalize, quat_to_euler
+from flight.quat import (
+    quat_from_euler,
+    quat_multiply,
+    quat_normalize,
+    quat_to_euler,
+    wrap_angle_float,
+)
 
 # q(ENU->NED world swap) and q(FLU->FRD body swap), both [w, x, y, z]
 _Q_NED_ENU = np.array([0.0, math.sqrt(0.5), math.sqrt(0.5), 0.0])  # 180 deg about (1, 1, 0)/sqrt(2)
 _Q_FLU_FRD = np.array([0.0, 1.0, 0.0, 0.0])  # 180 deg about x
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
 # ---- world vectors (position, velocity, acceleration) -----------------------------
@@ -70,21 +72,21 @@ def quat_ned_frd_to_enu_flu(q) -> np.ndarray:
 def euler_enu_to_ned(rpy) -> tuple[float, float, float]:
     """[roll, pitch, yaw] ENU/FLU -> NED/FRD (rad): roll kept, pitch negated, yaw = pi/2 - yaw."""
     roll, pitch, yaw = (float(a) for a in rpy)
-    return roll, -pitch, _wrap(math.pi / 2 - yaw)
+    return roll, -pitch, wrap_angle_float(math.pi / 2 - yaw)
 
 
 def euler_ned_to_enu(rpy) -> tuple[float, float, float]:
     """[roll, pitch, yaw] NED/FRD -> ENU/FLU (rad)."""
     roll, pitch, yaw = (float(a) for a in rpy)
-    return roll, -pitch, _wrap(math.pi / 2 - yaw)
+    return roll, -pitch, wrap_angle_float(math.pi / 2 - yaw)
 
 
 def yaw_enu_to_ned(yaw_rad: float) -> float:
-    return _wrap(math.pi / 2 - float(yaw_rad))
+    return wrap_angle_float(math.pi / 2 - float(yaw_rad))
 
 
 def yaw_ned_to_enu(yaw_rad: float) -> float:
-    return _wrap(math.pi / 2 - float(yaw_rad))
+    return wrap_angle_float(math.pi / 2 - float(yaw_rad))
 
 
 def euler_from_quat_ned(q_ned_frd) -> tuple[float, float, float]:

@@ -1,12 +1,28 @@
-"""Quaternion helpers. Quaternions are numpy float64 [w, x, y, z], body->world.
+"""Rotations and angles: quaternions [w, x, y, z], Euler angles, angle wrap, tilt.
 
-Euler angles are ZYX: R = Rz(yaw) @ Ry(pitch) @ Rx(roll).
+Quaternions are numpy float64 [w, x, y, z], body->world. Euler angles are ZYX:
+R = Rz(yaw) @ Ry(pitch) @ Rx(roll). Angles wrap to [-pi, pi) as (a + pi) mod 2 pi - pi.
 """
 from __future__ import annotations
 
 import math
 
 import numpy as np
+
+TWO_PI = 2.0 * math.pi
+
+
+def wrap_angle(a, xp=np):
+    """Angle(s) wrapped to [-pi, pi): (a + pi) mod 2 pi - pi. xp is the array module: numpy
+    (the result float64) or jax.numpy (the array's own dtype, traceable)."""
+    a = np.asarray(a, dtype=np.float64) if xp is np else xp.asarray(a)
+    return (a + math.pi) % TWO_PI - math.pi
+
+
+def wrap_angle_float(a: float) -> float:
+    """wrap_angle on a Python float, the same bits without numpy's per-call cost (the
+    200/400 Hz loops)."""
+    return (a + math.pi) % TWO_PI - math.pi
 
 
 def _q(q) -> np.ndarray:
@@ -29,16 +45,33 @@ def quat_conjugate(q) -> np.ndarray:
     return np.array([w, -x, -y, -z])
 
 
-def quat_multiply(a, b) -> np.ndarray:
-    """Hamilton product a (x) b (apply b first, then a, as rotations)."""
-    aw, ax, ay, az = _q(a)
-    bw, bx, by, bz = _q(b)
-    return np.array([
+def quat_multiply(a, b, xp=np):
+    """Hamilton product a (x) b (apply b first, then a, as rotations). xp is the array module:
+    numpy (4-vectors, checked) or jax.numpy (the iLQR model, traceable)."""
+    if xp is np:
+        a, b = _q(a), _q(b)
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (np.array if xp is np else xp.stack)([
         aw * bw - ax * bx - ay * by - az * bz,
         aw * bx + ax * bw + ay * bz - az * by,
         aw * by - ax * bz + ay * bw + az * bx,
         aw * bz + ax * by - ay * bx + az * bw,
     ])
+
+
+def quat_integrate(q, rate_rad_s, h: float) -> np.ndarray:
+    """q (x) exp(0.5 w h): a body->world quaternion turned by the body rate w over h (exact
+    for a constant w)."""
+    w = np.asarray(rate_rad_s, dtype=np.float64)
+    angle = float(np.linalg.norm(w)) * h
+    if angle < 1e-12:
+        return np.asarray(q, dtype=np.float64).copy()
+    axis = w / np.linalg.norm(w)
+    s = math.sin(0.5 * angle)
+    dq = np.array([math.cos(0.5 * angle), *(s * axis)])
+    qn = quat_multiply(q, dq)
+    return qn / np.linalg.norm(qn)
 
 
 def quat_to_rotation(q) -> np.ndarray:
@@ -49,6 +82,29 @@ def quat_to_rotation(q) -> np.ndarray:
         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
         [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
     ])
+
+
+def quat_from_rotation(r) -> np.ndarray:
+    """Unit quaternion [w, x, y, z] (w >= 0) of a rotation matrix (Shepperd)."""
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = np.asarray(r, dtype=np.float64).tolist()
+    tr = r00 + r11 + r22
+    cands = [tr, r00, r11, r22]
+    k = cands.index(max(cands))       # the first maximum, like np.argmax
+    if k == 0:
+        s = 2.0 * math.sqrt(max(1.0 + tr, 0.0))
+        q = [0.25 * s, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s]
+    elif k == 1:
+        s = 2.0 * math.sqrt(max(1.0 + r00 - r11 - r22, 0.0))
+        q = [(r21 - r12) / s, 0.25 * s, (r01 + r10) / s, (r02 + r20) / s]
+    elif k == 2:
+        s = 2.0 * math.sqrt(max(1.0 - r00 + r11 - r22, 0.0))
+        q = [(r02 - r20) / s, (r01 + r10) / s, 0.25 * s, (r12 + r21) / s]
+    else:
+        s = 2.0 * math.sqrt(max(1.0 - r00 - r11 + r22, 0.0))
+        q = [(r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s]
+    q = np.array(q)
+    q /= np.linalg.norm(q)
+    return -q if q[0] < 0 else q
 
 
 def quat_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:

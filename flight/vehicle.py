@@ -37,11 +37,11 @@ class Vehicle:
     yaw_moment_m: float
     max_thrust_n: float  # per motor
     drag_n_per_m_s: float
+    motor_time_constant_s: float  # s: the rotor speed's first-order lag (flight/motor_model.py)
+    pwm_min_us: float  # the ESC's pulse width at 0 N ...
+    pwm_max_us: float  # ... and at max_thrust_n (flight/motor_model.thrust_to_pwm)
     gravity_m_s2: float = 9.81
     min_thrust_n: float = 0.0
-    motor_time_constant_s: float = 0.02  # s: the rotor speed's first-order lag (flight/motor_model.py)
-    pwm_min_us: float = 1000.0
-    pwm_max_us: float = 2000.0
     # optional extras of document 001 (None when the file does not give them)
     thrust_coefficient_kf: float | None = None   # N s^2 (rad^-2): rotor thrust kf w^2, > 0
     moment_coefficient_km: float | None = None   # N m s^2: rotor yaw torque km w^2, km / kf = yaw_moment_m
@@ -104,9 +104,9 @@ _FIELDS: dict[str, tuple[str, bool]] = {
     "drag_n_per_m_s": ("nonneg", True),
     "gravity_m_s2": ("pos", False),
     "min_thrust_n": ("nonneg", False),
-    "motor_time_constant_s": ("pos", False),
-    "pwm_min_us": ("pos", False),
-    "pwm_max_us": ("pos", False),
+    "motor_time_constant_s": ("pos", True),
+    "pwm_min_us": ("pos", True),
+    "pwm_max_us": ("pos", True),
     "thrust_coefficient_kf": ("pos", False),
     "moment_coefficient_km": ("pos", False),
     "max_rotor_speed_rad_s": ("pos", False),
@@ -167,6 +167,9 @@ def vehicle_from_dict(d: dict, src: str = "<dict>") -> Vehicle:
 
     if veh.min_thrust_n >= veh.max_thrust_n:
         raise VehicleError(f"{src}: field 'min_thrust_n': must be below max_thrust_n")
+    if veh.thrust_coefficient_kf is None and veh.max_rotor_speed_rad_s is None:
+        raise VehicleError(f"{src}: field 'thrust_coefficient_kf': missing, and no max_rotor_speed_rad_s "
+                           "to take it from (the rotor speed's scale, flight/motor_model.py)")
     if veh.pwm_min_us >= veh.pwm_max_us:
         raise VehicleError(f"{src}: field 'pwm_max_us': must be above pwm_min_us")
     if veh.hover_thrust_per_motor_n >= veh.max_thrust_n:

@@ -31,15 +31,11 @@ from operator import itemgetter
 import numpy as np
 
 import schemas
-from flight.estimation.attitude_filter import (
-    AttitudeFilter,
-    AttitudeFilterParams,
-    CameraLevel,
-    GyroCarrier,
-    accel_roll_pitch,
-)
-from flight.control.laws import attitude_law, stopping_accel
 from flight.control.failsafe import Descent, DescentParams
+from flight.control.laws import attitude_law, stopping_accel
+from flight.estimation.attitude_filter import AttitudeFilter, AttitudeFilterParams, accel_roll_pitch
+from flight.estimation.camera_level import CameraLevel
+from flight.estimation.gyro_carrier import GyroCarrier
 from flight.estimation.gyrovertical import DEFAULT_PARAMS_FILE, GyroVertical, load_trained
 from flight.quat import quat_from_euler, quat_to_euler, quat_to_rotation, rotate_vector
 from flight.vehicle import load_vehicle

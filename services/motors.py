@@ -39,8 +39,9 @@ import numpy as np
 import schemas
 from flight.control.laws import STOPPING_ACCEL_FRACTION, attitude_law, stopping_accel
 from flight.control.failsafe import Descent, DescentParams, LevelEstimate
-from flight.control.mixer import mix, pwm_to_thrust, thrust_to_pwm
-from flight.control.plan import RotorPlan, body_state, motor_forces_update, scale_collective
+from flight.control.mixer import mix
+from flight.control.plan import RotorPlan, body_state, scale_collective
+from flight.motor_model import pwm_to_thrust, thrust_step, thrust_to_pwm
 from flight.vehicle import load_vehicle
 from services.params.motors import PARAMS  # every parameter: default, unit, bounds, doc
 from services.runtime import Runtime, main_guard, service_parser
@@ -133,14 +134,14 @@ class MotorDriver:
                 forces = failsafe.forces(t, self.att_state, self.pos_state)
         if forces is not None:
             pwm = thrust_to_pwm(vehicle, forces)
-            self.forces = motor_forces_update(self.forces, forces, self.dt_tick, tau)
+            self.forces = thrust_step(self.forces, forces, self.dt_tick, tau)
             if link:
                 link(t, forces)
             out.put({"pwm_us": pwm, "thrust_n": forces, "armed": True, "saturated": False,
                      "imu_t_s": failsafe.sample_t}, t_s=t)
             return
         if not armed or failsafe.latched or cmd is None:
-            self.forces = motor_forces_update(self.forces, np.zeros(4), self.dt_tick, tau)
+            self.forces = thrust_step(self.forces, np.zeros(4), self.dt_tick, tau)
             out.put({**self.idle, "armed": bool(armed and not failsafe.latched)}, t_s=t)
             if link:
                 link(t, self.idle["thrust_n"])
@@ -160,7 +161,7 @@ class MotorDriver:
             pwm = thrust_to_pwm(vehicle, forces)
         # the plan's motor states: what was sent, as the plan's model (the airframe file's) sees it
         as_planned = scale_collective(vehicle.allocation, forces, thrust_scale)
-        self.forces = motor_forces_update(self.forces, as_planned, self.dt_tick, tau)
+        self.forces = thrust_step(self.forces, as_planned, self.dt_tick, tau)
         if link:
             link(t, forces)
         out.put({"pwm_us": pwm, "thrust_n": np.asarray(forces),

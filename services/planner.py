@@ -31,7 +31,8 @@ import numpy as np
 
 import schemas
 from flight.control.mission import MissionError, MissionPlanner, mission_items
-from flight.control.plan import body_state, motor_forces_update, scale_collective
+from flight.control.plan import body_state, scale_collective
+from flight.motor_model import thrust_step
 from services.params.planner import PARAMS  # every parameter: default, unit, bounds, doc
 from services.runtime import Runtime, main_guard, service_parser
 from services.stack import load_mission
@@ -176,7 +177,7 @@ class PlannerLoop:
         for m in self.pwm.take():  # the rotor forces the motor driver's commands imply (its lag model),
             # as the plan's model (the airframe file's) sees them: collective times the thrust scale
             f = scale_collective(vehicle.allocation, m["thrust_n"], pos["thrust_scale"])
-            self.forces = f if self.forces is None else motor_forces_update(
+            self.forces = f if self.forces is None else thrust_step(
                 self.forces, f, 1.0 / self.io.tick_rate, vehicle.motor_time_constant_s)
         att = self.attitude.latest()
         if att is None:

@@ -19,7 +19,12 @@ import math
 
 import numpy as np
 
-from flight.motor_model import MotorModel, decay
+from flight.motor_model import (
+    MotorModel,
+    rk4_stage_decays,
+    speed_command_floats,
+    speed_derivative,
+)
 from flight.quat import quat_from_euler, quat_to_rotation
 from flight.vehicle import Vehicle
 
@@ -63,8 +68,8 @@ class Plant:
         self._drag = float(vehicle.drag_n_per_m_s)
         self.motors = MotorModel.of(vehicle)
         self._kf = self.motors.kf
-        self._tau = float(vehicle.motor_time_constant_s)
-        self._lag = {}  # dt -> the lag's factors at RK4's stage times (see _lag_factors)
+        self._tau = self.motors.time_constant_s
+        self._lag = {}  # dt -> the lag's decays at RK4's stage times (see _lag_factors)
         self.x = np.zeros(17)
         self.x[P] = position_m
         self.x[V] = velocity_m_s
@@ -133,7 +138,7 @@ class Plant:
         r22 = 1.0 - 2.0 * (qx * qx + qy * qy)
         m, c = self._m, self._drag
         windx, windy, windz = _floats(wind_m_s, 3)
-        c0, c1, c2, c3 = [math.sqrt(c / kf) if c > 0.0 else 0.0 for c in _floats(thrust_cmd_n, 4)]
+        c0, c1, c2, c3 = speed_command_floats(_floats(thrust_cmd_n, 4), kf)
         ix, iy, iz = self._inertia_t
         tau = self._tau
         return np.array([
@@ -147,7 +152,8 @@ class Plant:
             (u1 - (wy * iz * wz - wz * iy * wy)) / ix,
             (u2 - (wz * ix * wx - wx * iz * wz)) / iy,
             (u3 - (wx * iy * wy - wy * ix * wx)) / iz,
-            (c0 - o0) / tau, (c1 - o1) / tau, (c2 - o2) / tau, (c3 - o3) / tau,
+            speed_derivative(o0, c0, tau), speed_derivative(o1, c1, tau),
+            speed_derivative(o2, c2, tau), speed_derivative(o3, c3, tau),
         ])
 
     def acceleration_floats(self, wind_m_s) -> tuple:
@@ -174,13 +180,12 @@ class Plant:
         self.advance(dt_s, 1, thrust_cmd_n, wind_m_s)
 
     def _lag_factors(self, dt_s: float) -> tuple:
-        """The rotor-speed lag w' = (c - w) / tau held over a step has the exact solution
-        w(t) = c + e exp(-t / tau), e = w - c (flight.motor_model): RK4's stages at t = dt/2,
-        dt/2 and dt see w = c + beta_i e, and the step ends at w = c + exp(-dt / tau) e."""
+        """The rotor-speed lag's exact decays at RK4's stage times, (beta_2, beta_3, beta_4,
+        end) of flight.motor_model.rk4_stage_decays: the stages see w = c + beta_i e (e = w - c)
+        and the step ends at w = c + end e. Cached per dt."""
         k = self._lag.get(dt_s)
         if k is None:
-            half, full = decay(0.5 * dt_s, self._tau), decay(dt_s, self._tau)
-            k = self._lag[dt_s] = (half, half, full, full)
+            k = self._lag[dt_s] = rk4_stage_decays(dt_s, self._tau)
         return k
 
     def advance(self, dt_s: float, steps: int, thrust_cmd_n, wind_m_s) -> None:
@@ -191,7 +196,7 @@ class Plant:
     def _advance(self, dt_s: float, steps: int, thrust_cmd_n: list, wind_m_s: list) -> None:
         """advance() on Python floats: the command (4) and the wind (3) as lists of floats."""
         kf = self._kf
-        c0, c1, c2, c3 = [math.sqrt(c / kf) if c > 0.0 else 0.0 for c in thrust_cmd_n]  # rotor speeds
+        c0, c1, c2, c3 = speed_command_floats(thrust_cmd_n, kf)  # rotor speeds
         windx, windy, windz = wind_m_s
         px, py, pz, vx, vy, vz, qw, qx, qy, qz, wx, wy, wz, f0, f1, f2, f3 = self.x.tolist()  # f: rotor speeds
         (a00, a01, a02, a03), (a10, a11, a12, a13), (a20, a21, a22, a23), (a30, a31, a32, a33) = self._alloc_rows

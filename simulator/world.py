@@ -9,7 +9,7 @@ from collections import deque
 
 import numpy as np
 
-from flight.control.mixer import pwm_to_thrust_floats
+from flight.motor_model import pwm_to_thrust_floats
 from flight.vehicle import Vehicle
 from simulator.battery import Battery
 from simulator.config import SimConfig

@@ -26,13 +26,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flight.control.laws import STOPPING_ACCEL_FRACTION, attitude_law, position_law, stopping_accel, wrap_angle
+from flight.control.laws import STOPPING_ACCEL_FRACTION, attitude_law, position_law, stopping_accel
 from flight.control.mixer import mix
-from flight.quat import quat_multiply, quat_to_euler
+from flight.quat import TWO_PI, quat_multiply, quat_to_euler, wrap_angle_float
 from flight.quat import quat_tilt as tilt_rad  # the name its users here know it by
 from flight.vehicle import Vehicle
-
-TWO_PI = 2.0 * math.pi
 
 
 class Phase(str, enum.Enum):
@@ -89,7 +87,7 @@ class RollAccumulator:
         roll = quat_to_euler(q)[0]
         if self._last is None:
             self._last = roll
-        step = (roll - self._last + math.pi) % TWO_PI - math.pi
+        step = wrap_angle_float(roll - self._last)
         self.roll_rad += step
         self._last = roll
         return self.roll_rad
@@ -440,7 +438,7 @@ class BaselineFlip:
                 self.phase = Phase.LAND  # hand over to the altitude hold, as Appendix И lands
                 self.hold_point_m = x[0:3].copy()
             else:
-                error = np.array([-roll, -pitch, wrap_angle(self._yaw - yaw)])
+                error = np.array([-roll, -pitch, wrap_angle_float(self._yaw - yaw)])
                 rate_sp = np.clip(c.recovery_attitude_gain_1_s * error, -c.max_rate_rad_s, c.max_rate_rad_s)
                 return self._rate_loop(rate_sp, rates, c.recovery_thrust)
         # land (as Appendix И hands over): hold the altitude, damp the horizontal speed

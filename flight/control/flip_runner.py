@@ -35,7 +35,7 @@ from flight.control.flip import (
     Phase,
     tilt_rad,
 )
-from flight.quat import quat_to_euler
+from flight.quat import quat_to_euler, wrap_angle_float
 from flight.vehicle import Vehicle
 
 METHODS = ("ilqr-project", "ilqr-thesis", "baseline")
@@ -61,10 +61,6 @@ class Step:
     failed: bool
     position_ref_m: np.ndarray  # the fallback laws' position reference
     plan: dict | None          # planner/plan fields to publish (None: nothing new)
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
 
 
 class FlipController:
@@ -175,7 +171,7 @@ class FlipController:
             return step
         self.plan, self.plan_t_s = candidate, t_s
         roll_now, euler_roll = self.machine.roll.roll_rad, quat_to_euler(x[6:10])[0]
-        target_roll = [roll_now + _wrap(quat_to_euler(q)[0] - euler_roll) for q in targets[:h, 6:10]]
+        target_roll = [roll_now + wrap_angle_float(quat_to_euler(q)[0] - euler_roll) for q in targets[:h, 6:10]]
         step.plan = {
             "method": self.method, "phase": step.phase, "t0_s": t_s, "dt_s": candidate.dt_s,
             "horizon": h, "state_dim": candidate.states.shape[1],

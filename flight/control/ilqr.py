@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from flight import motor_model
+from flight.quat import quat_multiply
 from flight.vehicle import Vehicle
 
 # How XLA runs the solver on the CPU. Its runtime launches a kernel per fused operation and
@@ -153,17 +154,6 @@ PROJECT = ILQRConfig(
 
 # --- model ---------------------------------------------------------------------------
 
-def _quat_multiply(a, b):
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return jnp.stack([
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ])
-
-
 def _body_z_in_world(q):
     """Third column of R(q) (flight/quat.py's body->world matrix)."""
     w, x, y, z = q
@@ -188,7 +178,7 @@ def rigid_body_derivative(x, forces_n, mass, inertia, allocation, drag, gravity,
     thrust_torque = jnp.sum(allocation * forces_n, axis=1)  # allocation @ forces, fusible
     air = v if wind is None else v - wind
     accel = (_body_z_in_world(q) * thrust_torque[0] - drag * air) / mass - gravity
-    q_dot = 0.5 * _quat_multiply(q, jnp.concatenate([jnp.zeros(1), w]))
+    q_dot = 0.5 * quat_multiply(q, jnp.concatenate([jnp.zeros(1), w]), jnp)
     w_dot = (thrust_torque[1:] - jnp.cross(w, inertia * w)) / inertia
     return jnp.concatenate([v, accel, q_dot, w_dot])
 
@@ -218,13 +208,13 @@ def make_derivative(vehicle: Vehicle) -> Callable:
 
 
 def make_dynamics(vehicle: Vehicle, dt_s: float, integrator: str = "euler",
-                  motor_time_constant_s: float | None = None) -> Callable:
+                  models_motors: bool = False) -> Callable:
     """Discrete f(x, u) -> x_next. "euler" is the thesis's update (Appendix A): velocity
     and rate by Euler, position with the dt^2/2 term, quaternion with the new rate.
 
-    With motor_time_constant_s the state has 4 more components, the rotor forces (N),
-    which follow the commanded kf u^2 through flight/motor_model.py's motors (the rotor
-    speed lagging u with that time constant, thrust kf w^2): they are advanced exactly
+    With models_motors the state has 4 more components, the rotor forces (N), which
+    follow the commanded kf u^2 through flight/motor_model.py's motors (the rotor speed
+    lagging u by the vehicle's motor_time_constant_s, thrust kf w^2): they are advanced exactly
     (zero-order hold on the command) and the rigid body is integrated with their exact
     mean over the step."""
     derivative = make_derivative(vehicle)
@@ -235,7 +225,7 @@ def make_dynamics(vehicle: Vehicle, dt_s: float, integrator: str = "euler",
         p, v, q, w = x[POS], x[VEL], x[QUAT], x[RATE]
         accel, w_dot = xdot[VEL], xdot[RATE]
         w_new = w + w_dot * dt_s
-        q_new = q + 0.5 * _quat_multiply(q, jnp.concatenate([jnp.zeros(1), w_new])) * dt_s
+        q_new = q + 0.5 * quat_multiply(q, jnp.concatenate([jnp.zeros(1), w_new]), jnp) * dt_s
         return jnp.concatenate([p + v * dt_s + 0.5 * accel * dt_s ** 2, v + accel * dt_s,
                                 q_new / jnp.linalg.norm(q_new), w_new])
 
@@ -250,32 +240,23 @@ def make_dynamics(vehicle: Vehicle, dt_s: float, integrator: str = "euler",
 
     step = {"euler": euler, "rk4": rk4}[integrator]
     kf = _thrust_coefficient(vehicle)
-    if motor_time_constant_s is None:
+    if not models_motors:
         return lambda x, u: step(x, kf * u * u)
 
-    decay, w1, w2 = motor_model.mean_weights(dt_s, motor_time_constant_s)
+    weights = motor_model.mean_weights(dt_s, vehicle.motor_time_constant_s)
     root_kf = float(np.sqrt(kf))
 
     def lagged(x, u):
         # sqrt of the command's force is sqrt(kf) u (smooth in u); of the state's, floored
         # away from 0, where the square root's derivative is infinite
-        sc = root_kf * u
-        e = jnp.sqrt(jnp.maximum(x[MOTOR], _FORCE_FLOOR_N)) - sc
-        mean = sc * sc + 2.0 * sc * e * w1 + e * e * w2
-        s_next = sc + e * decay
-        return jnp.concatenate([step(x[:BODY_DIM], mean), s_next * s_next])
+        forces, mean = motor_model.root_step_and_mean(jnp.sqrt(jnp.maximum(x[MOTOR], _FORCE_FLOOR_N)),
+                                                      root_kf * u, weights)
+        return jnp.concatenate([step(x[:BODY_DIM], mean), forces])
 
     return lagged
 
 
 _FORCE_FLOOR_N = 1e-12  # rotor force below which the lag model's sqrt(f) is taken at this
-
-
-def motor_forces_update(forces_n, command_n, dt_s: float, motor_time_constant_s: float) -> np.ndarray:
-    """The rotor forces of the motor model after dt_s under a held command: the estimate to
-    append to the body state when the plan models the motors (no force sensor needed).
-    flight.motor_model.thrust_step."""
-    return motor_model.thrust_step(forces_n, command_n, dt_s, motor_time_constant_s)
 
 
 # --- cost --------------------------------------------------------------------------
@@ -632,7 +613,7 @@ class ILQRSolver:
         self.vehicle = vehicle
         self.config = config
         self.motor_time_constant_s = vehicle.motor_time_constant_s if config.models_motors else None
-        self.dynamics = make_dynamics(vehicle, config.dt_s, config.integrator, self.motor_time_constant_s)
+        self.dynamics = make_dynamics(vehicle, config.dt_s, config.integrator, config.models_motors)
         self.stage_cost, self.terminal_cost = make_cost(config)
         self.u_max_rad_s = float(vehicle.max_rotor_speed_rad_s)
         self.u_hover_rad_s = hover_rotor_speed_rad_s(vehicle)
@@ -666,7 +647,7 @@ class ILQRSolver:
 
     def solve(self, x0, x_targets, u_targets=None, warm=None) -> Plan:
         """x0 (13,) or (state_dim,) (with the motor model, the rotor forces: pass the
-        estimate of motor_forces_update, else hover is assumed); x_targets (H+1, 13) or
+        estimate of flight.motor_model.thrust_step, else hover is assumed); x_targets (H+1, 13) or
         (H+1, state_dim) (rotor forces carry no cost); u_targets (H, 4) (default hover);
         warm (H, 4) initial controls (default hover; pass warm_start(previous plan, elapsed))."""
         u_targets = self.hover_controls() if u_targets is None else u_targets

@@ -9,11 +9,7 @@ import math
 
 import numpy as np
 
-
-def wrap_angle(a):
-    """Wrap to [-pi, pi)."""
-    return (np.asarray(a, dtype=np.float64) + np.pi) % (2 * np.pi) - np.pi
-
+from flight.quat import wrap_angle_float
 
 # Law (8)'s angle loop asks at most for the rate this fraction of the airframe's angular
 # acceleration can stop (stopping_rate): the attitude service's default and the baseline
@@ -84,7 +80,7 @@ def attitude_law(inertia, angles, rates, angles_ref, k, alpha, max_accel=None) -
     inertia, k, alpha = _three(inertia), _three(k), _three(alpha)
     angles, angles_ref, rates = _three(angles), _three(angles_ref), _three(rates)
     err = [angles[0] - angles_ref[0], angles[1] - angles_ref[1], angles[2] - angles_ref[2]]
-    err[2] = (err[2] + math.pi) % (2 * math.pi) - math.pi  # yaw: take the short way round (wrap_angle)
+    err[2] = wrap_angle_float(err[2])  # yaw: take the short way round
     if max_accel is None:
         return np.array([inertia[i] * (-(alpha[i] + k[i]) * rates[i] - alpha[i] * k[i] * err[i]) for i in range(3)])
     max_accel = _three(max_accel)

@@ -1,14 +1,16 @@
-"""Mixer (body wrench -> rotor forces) and the linear force <-> PWM map of document 000.
+"""Mixer of document 000: body wrench -> rotor forces, with saturation (the force <-> PWM
+map that follows it is the motors' own, flight/motor_model.py).
 
-The 400 Hz paths (mix, thrust_to_pwm, pwm_to_thrust) work on Python floats with the
-vehicle's M^-1 and limits read once per vehicle: numpy's ~1 us per call on 4-vectors was
-most of their time. tests/unit/test_mixer_fast.py checks them against the former numpy
-versions (bench/support/sim_reference.py), saturation cases included.
+The 400 Hz path (mix) works on Python floats with the vehicle's M^-1 and limits read once
+per vehicle: numpy's ~1 us per call on 4-vectors was most of its time.
+tests/unit/test_mixer_fast.py checks it against the former numpy version
+(bench/support/sim_reference.py), saturation cases included.
 """
 from __future__ import annotations
 
 import numpy as np
 
+from flight.motor_model import clip_float
 from flight.vehicle import Vehicle
 
 _EPS = 1e-12
@@ -17,15 +19,12 @@ _EPS = 1e-12
 class _Consts:
     """What the mixer reads of a vehicle, as floats (vehicles are frozen)."""
 
-    __slots__ = ("m_inv", "lo", "hi", "limit", "pwm_min", "pwm_max", "pwm_span", "max_thrust")
+    __slots__ = ("m_inv", "lo", "hi", "limit")
 
     def __init__(self, vehicle: Vehicle):
         self.m_inv = tuple(tuple(row) for row in np.asarray(vehicle.allocation_inv, dtype=np.float64).tolist())
         self.lo, self.hi = float(vehicle.min_thrust_n), float(vehicle.max_thrust_n)
         self.limit = self.hi - self.lo
-        self.pwm_min, self.pwm_max = float(vehicle.pwm_min_us), float(vehicle.pwm_max_us)
-        self.pwm_span = vehicle.pwm_max_us - vehicle.pwm_min_us
-        self.max_thrust = vehicle.max_thrust_n
 
 
 _CONSTS: dict[int, tuple[Vehicle, _Consts]] = {}  # id(vehicle) -> (vehicle, its constants)
@@ -74,12 +73,6 @@ def _max_scale_floats(base, part, limit: float) -> float:
     return max(0.0, s)
 
 
-def _clip(x: float, lo: float, hi: float) -> float:
-    """np.clip on floats: min(max(x, lo), hi), NaN kept."""
-    x = lo if x < lo else x
-    return hi if x > hi else x
-
-
 def mix(vehicle: Vehicle, thrust_n: float, torque_nm) -> tuple[np.ndarray, bool]:
     """F = M^-1 u with saturation to [min_thrust_n, max_thrust_n].
 
@@ -124,12 +117,12 @@ def mix_floats(vehicle: Vehicle, thrust_n: float, torque_nm) -> tuple[list, bool
 
     # Collective: the validated vehicle's M^-1 [T,0,0,0] is T/4 per motor.
     collective = float(thrust_n) / 4.0
-    shifted = _clip(collective, lo - min(diff), hi - max(diff))
+    shifted = clip_float(collective, lo - min(diff), hi - max(diff))
     if abs(shifted - collective) > 1e-9:
         saturated = True
     # clip only removes rounding here
-    return [_clip(shifted + diff[0], lo, hi), _clip(shifted + diff[1], lo, hi),
-            _clip(shifted + diff[2], lo, hi), _clip(shifted + diff[3], lo, hi)], saturated
+    return [clip_float(shifted + diff[0], lo, hi), clip_float(shifted + diff[1], lo, hi),
+            clip_float(shifted + diff[2], lo, hi), clip_float(shifted + diff[3], lo, hi)], saturated
 
 
 def _mix_array(vehicle: Vehicle, thrust_n: float, torque_nm) -> tuple[np.ndarray, bool]:
@@ -158,37 +151,3 @@ def _mix_array(vehicle: Vehicle, thrust_n: float, torque_nm) -> tuple[np.ndarray
         saturated = True
     forces = np.clip(shifted + diff, lo, hi)  # clip only removes rounding here
     return forces, saturated
-
-
-def thrust_to_pwm(vehicle: Vehicle, forces_n) -> np.ndarray:
-    """Linear map of 000: pwm = pwm_min + F/max_thrust*(pwm_max-pwm_min), clipped."""
-    f = np.asarray(forces_n, dtype=np.float64)
-    if f.shape == (4,):
-        return np.array(thrust_to_pwm_floats(vehicle, f.tolist()))
-    span = vehicle.pwm_max_us - vehicle.pwm_min_us
-    pwm = vehicle.pwm_min_us + f / vehicle.max_thrust_n * span
-    return np.clip(pwm, vehicle.pwm_min_us, vehicle.pwm_max_us)
-
-
-def thrust_to_pwm_floats(vehicle: Vehicle, forces_n) -> list:
-    """thrust_to_pwm on a sequence of floats, as a list."""
-    c = _consts(vehicle)
-    lo, hi, span, f_max = c.pwm_min, c.pwm_max, c.pwm_span, c.max_thrust
-    return [_clip(lo + f / f_max * span, lo, hi) for f in forces_n]
-
-
-def pwm_to_thrust(vehicle: Vehicle, pwm_us) -> np.ndarray:
-    """Inverse of thrust_to_pwm, clipped to [min_thrust_n, max_thrust_n]."""
-    p = np.asarray(pwm_us, dtype=np.float64)
-    if p.shape == (4,):
-        return np.array(pwm_to_thrust_floats(vehicle, p.tolist()))
-    span = vehicle.pwm_max_us - vehicle.pwm_min_us
-    f = (p - vehicle.pwm_min_us) / span * vehicle.max_thrust_n
-    return np.clip(f, vehicle.min_thrust_n, vehicle.max_thrust_n)
-
-
-def pwm_to_thrust_floats(vehicle: Vehicle, pwm_us) -> list:
-    """pwm_to_thrust on a sequence of floats, as a list."""
-    c = _consts(vehicle)
-    p_min, span, f_max, f_min = c.pwm_min, c.pwm_span, c.max_thrust, c.lo
-    return [_clip((p - p_min) / span * f_max, f_min, f_max) for p in pwm_us]

@@ -13,17 +13,15 @@ driver does not import JAX), and the rotor forces kf u^2 go to the motor map.
 x is built from the latest estimates: position and velocity (pos/state) and
 attitude and body rate (att/state), each carried to t over its age (constant
 velocity, constant body rate), and, for n = 17, the rotor forces the driver's own
-commands imply through the motor lag (motor_forces_update).
+commands imply through the motor lag (flight.motor_model.thrust_step).
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from flight import motor_model
-from flight.quat import quat_multiply, quat_to_rotation
+from flight.quat import quat_integrate, quat_to_rotation
 
 BODY_DIM = 13
 QUAT = slice(6, 10)
@@ -80,18 +78,6 @@ def plan_feedback(states, controls, gains, dt_s: float, elapsed_s: float, x, u_m
     return np.clip(u, 0.0, u_max_rad_s)
 
 
-def propagate_attitude(q, rate_rad_s, dt_s: float) -> np.ndarray:
-    """q after dt_s at a constant body rate (exact for a constant rate)."""
-    w = np.asarray(rate_rad_s, dtype=np.float64)
-    angle = float(np.linalg.norm(w)) * dt_s
-    if angle < 1e-12:
-        return np.asarray(q, dtype=np.float64)
-    axis = w / np.linalg.norm(w)
-    dq = np.concatenate([[math.cos(angle / 2)], math.sin(angle / 2) * axis])
-    out = quat_multiply(q, dq)
-    return out / np.linalg.norm(out)
-
-
 def body_state(t_s: float, att: dict, pos: dict, vehicle=None, rotor_forces_n=None) -> np.ndarray:
     """The 13-state [p, v, q, w] at t_s from an att/state and a pos/state message,
     each carried forward over its age (never backward).
@@ -108,7 +94,7 @@ def body_state(t_s: float, att: dict, pos: dict, vehicle=None, rotor_forces_n=No
     v = np.asarray(pos["velocity_m_s"], dtype=np.float64)
     p = np.asarray(pos["position_m"], dtype=np.float64)
     w = np.asarray(att["rate_rad_s"], dtype=np.float64)
-    q = propagate_attitude(att["quaternion_wxyz"], w, a_age)
+    q = quat_integrate(att["quaternion_wxyz"], w, a_age)
     if vehicle is not None and rotor_forces_n is not None and p_age > 0.0:
         accel = thrust_acceleration(vehicle, q, rotor_forces_n, v)
         return np.concatenate([p + v * p_age + 0.5 * accel * p_age ** 2, v + accel * p_age, q, w])
@@ -123,17 +109,6 @@ def thrust_acceleration(vehicle, q, rotor_forces_n, velocity_m_s) -> np.ndarray:
     body_z = quat_to_rotation(q)[:, 2]
     drag = vehicle.drag_n_per_m_s * np.asarray(velocity_m_s, dtype=np.float64)
     return (body_z * collective_n - drag) / vehicle.mass_kg - np.array([0.0, 0.0, vehicle.gravity_m_s2])
-
-
-def motor_forces_update(forces_n, command_n, dt_s: float, motor_time_constant_s: float) -> np.ndarray:
-    """Rotor forces after dt_s under a held command: flight/motor_model.py's motors (the
-    rotor speed's first-order lag, thrust kf w^2; as flight.control.ilqr.motor_forces_update and
-    the simulator's plant). On 4 floats without numpy's per-call cost (the 400 Hz driver)."""
-    d = math.exp(-dt_s / motor_time_constant_s)
-    f, c = np.asarray(forces_n, dtype=np.float64), np.asarray(command_n, dtype=np.float64)
-    if f.shape == (4,) and c.shape == (4,):
-        return np.array(motor_model.thrust_step_floats(f.tolist(), c.tolist(), d))
-    return motor_model.thrust_step(f, c, dt_s, motor_time_constant_s)
 
 
 # allocation matrices seen by scale_collective -> (the matrix, the first column of its inverse);

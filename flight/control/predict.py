@@ -28,7 +28,9 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from flight import motor_model
 from flight.control.flip import TURN_START_RAD
+from flight.quat import quat_multiply, wrap_angle
 from flight.vehicle import Vehicle
 
 # the flip's metric thresholds (flight/flip.flip_metrics' defaults)
@@ -192,8 +194,8 @@ def fly_nominal(vehicle: Vehicle, method: str = "ilqr-project", altitude_m: floa
     tau = c.motor_time_constant_s
     kf = vehicle.thrust_coefficient_kf
     u_max = float(vehicle.max_rotor_speed_rad_s)
-    step = _plant_step(vehicle, tick_s, tau)
-    params = nominal_params(vehicle, tau)
+    step = _plant_step(vehicle, tick_s)
+    params = nominal_params(vehicle)
 
     body = hover_state(np.array([0.0, 0.0, altitude_m]))
     forces = np.full(4, vehicle.hover_thrust_per_motor_n)
@@ -238,17 +240,23 @@ def fly_nominal(vehicle: Vehicle, method: str = "ilqr-project", altitude_m: floa
 
 # --- the plant of the rollouts ---------------------------------------------------------------
 
-def nominal_params(vehicle: Vehicle, motor_time_constant_s: float | None) -> dict:
+def nominal_params(vehicle: Vehicle) -> dict:
     """The rollout plant's numbers for the vehicle file (one case, no uncertainty)."""
-    tau = motor_time_constant_s if motor_time_constant_s is not None else vehicle.motor_time_constant_s
     return {"mass": np.float32(vehicle.mass_kg), "inertia": np.asarray(vehicle.inertia_kg_m2, np.float32),
-            "thrust_scale": np.float32(1.0), "tau": np.float32(tau), "wind": np.zeros(3, np.float32)}
+            "thrust_scale": np.float32(1.0), "tau": np.float32(vehicle.motor_time_constant_s),
+            "wind": np.zeros(3, np.float32)}
 
 
-def _plant_step(vehicle: Vehicle, dt_s: float, controller_tau: float | None):
-    """One tick of the plant: rotor forces lag the command with the case's time constant
-    (exact over the tick), the rigid body by RK4 under their mean over the tick (the iLQR's
-    model, flight/ilqr.make_dynamics). Returns a jitted step(body, forces, command, params)."""
+def _jnp_root(x):
+    import jax.numpy as jnp
+    return jnp.sqrt(jnp.maximum(x, 0.0))
+
+
+def _plant_step(vehicle: Vehicle, dt_s: float):
+    """One tick of the plant: the rotor speeds lag the command with the case's time constant
+    (flight/motor_model.py, exact over the tick), the rigid body by RK4 under the forces'
+    mean over the tick (the iLQR's model, flight/control/ilqr.make_dynamics). Returns a jitted
+    step(body, forces, command, params)."""
     import jax
     import jax.numpy as jnp
     from flight.control.ilqr import rigid_body_derivative
@@ -259,8 +267,7 @@ def _plant_step(vehicle: Vehicle, dt_s: float, controller_tau: float | None):
 
     def step(body, forces, command, p):
         command = command * p["thrust_scale"]
-        decay = jnp.exp(-dt_s / p["tau"])
-        mean = command + (forces - command) * (p["tau"] / dt_s * (1.0 - decay))
+        forces_next, mean = motor_model.thrust_step_and_mean(forces, command, dt_s, p["tau"], _jnp_root, jnp.exp)
 
         def f(x):
             return rigid_body_derivative(x, mean, p["mass"], p["inertia"], allocation, drag, gravity, p["wind"])
@@ -270,7 +277,7 @@ def _plant_step(vehicle: Vehicle, dt_s: float, controller_tau: float | None):
         k4 = f(body + dt_s * k3)
         x = body + dt_s / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
         x = jnp.concatenate([x[:6], x[6:10] / jnp.linalg.norm(x[6:10]), x[10:]])
-        return x, command + (forces - command) * decay
+        return x, forces_next
 
     step.raw = step
     return jax.jit(step)
@@ -287,7 +294,7 @@ def draw_cases(vehicle: Vehicle, nominal: NominalFlip, n: int, uncertainty: Unce
     def spread(frac, shape=(n,)):
         return 1.0 + rng.uniform(-frac, frac, shape)
 
-    tau0 = nominal.motor_time_constant_s or vehicle.motor_time_constant_s
+    tau0 = vehicle.motor_time_constant_s
     heading = rng.uniform(0.0, 2.0 * math.pi, n)
     speed = rng.uniform(0.0, u.wind_m_s, n)
     wind = np.stack([speed * np.cos(heading), speed * np.sin(heading), np.zeros(n)], axis=1)
@@ -316,15 +323,14 @@ def make_rollouts(nominal: NominalFlip, uncertainty: Uncertainty, max_delay_tick
     body-rate norm."""
     import jax
     import jax.numpy as jnp
-    from flight.control.ilqr import _quat_multiply
 
     vehicle = nominal.vehicle
     dt_s = nominal.tick_s
     kf = float(vehicle.thrust_coefficient_kf)
     u_max = float(vehicle.max_rotor_speed_rad_s)
     ctrl_tau = nominal.motor_time_constant_s
-    ctrl_decay = None if ctrl_tau is None else float(np.exp(-dt_s / ctrl_tau))
-    step = _plant_step(vehicle, dt_s, ctrl_tau).raw
+    ctrl_decay = None if ctrl_tau is None else motor_model.decay(dt_s, ctrl_tau)
+    step = _plant_step(vehicle, dt_s).raw
     gust_decay = float(np.exp(-dt_s / uncertainty.gust_time_s)) if uncertainty.gust_m_s > 0 else 0.0
     gust_gain = uncertainty.gust_m_s * math.sqrt(1.0 - gust_decay ** 2)
     hover_f = float(vehicle.hover_thrust_per_motor_n)
@@ -335,7 +341,7 @@ def make_rollouts(nominal: NominalFlip, uncertainty: Uncertainty, max_delay_tick
 
     def one(case, u_plan, gains, x_plan, x0):
         body0 = x0[:13]
-        q0 = _quat_multiply(body0[6:10], case["start_dq"])
+        q0 = quat_multiply(body0[6:10], case["start_dq"], jnp)
         err = case["start_error"]
         body0 = jnp.concatenate([body0[0:3] + err[0:3], body0[3:6] + err[3:6], q0, body0[10:13] + err[6:9]])
         forces0 = jnp.full(4, hover_f, jnp.float32)
@@ -354,10 +360,11 @@ def make_rollouts(nominal: NominalFlip, uncertainty: Uncertainty, max_delay_tick
             applied = buffer[case["delay_ticks"]]
             wind = case["wind"] + gust
             body_next, forces_next = step(body, forces, applied, params | {"wind": wind})
-            est_next = est if ctrl_tau is None else command + (est - command) * ctrl_decay
+            est_next = est if ctrl_tau is None else motor_model.root_step(_jnp_root(est), _jnp_root(command),
+                                                                          ctrl_decay) ** 2
             gust_next = gust * gust_decay + gust_gain * noise * jnp.array([1.0, 1.0, 1.0])
             r = euler_roll(body[6:10])
-            roll_next = roll + jnp.mod(r - last + jnp.pi, 2 * jnp.pi) - jnp.pi
+            roll_next = roll + wrap_angle(r - last, jnp)
             q = body[6:10]
             tilt = jnp.arccos(jnp.clip((q[0] ** 2 - q[1] ** 2 - q[2] ** 2 + q[3] ** 2) / jnp.sum(q * q), -1.0, 1.0))
             out = jnp.stack([body[2], body[0], body[1], roll_next, tilt, jnp.linalg.norm(body[10:13])])

@@ -76,29 +76,16 @@ import bisect
 import dataclasses
 import math
 import operator
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 
-from flight.quat import quat_from_euler, quat_multiply, quat_tilt, quat_to_euler
+from flight.quat import quat_from_euler, wrap_angle_float
 
 W, WF, A, AF, B = 0, 1, 2, 3, 4    # state indices per axis (B: the gyro bias)
 NX = 5
 G_REF = 9.80665
 _BIG_ANGLE_VAR = math.pi ** 2      # yaw variance before any magnetometer sample
-
-
-def wrap(a):
-    """Wrap to [-pi, pi) (scalar or array)."""
-    return (np.asarray(a, dtype=np.float64) + np.pi) % (2 * np.pi) - np.pi
-
-
-_PI, _TWO_PI = math.pi, 2 * math.pi
-
-
-def _wrap1(a: float) -> float:
-    return (a + _PI) % _TWO_PI - _PI
 
 
 def _rotation_rows(roll: float, pitch: float, yaw: float):
@@ -141,7 +128,7 @@ def mag_yaw(field_body, roll: float, pitch: float, field_world=(0.0, 20.0, -45.0
     hx = cp * mx + sp * z1
     hy = y1
     beta = math.atan2(float(field_world[1]), float(field_world[0]))
-    return _wrap1(beta - math.atan2(hy, hx))
+    return wrap_angle_float(beta - math.atan2(hy, hx))
 
 
 # ------------------------------------------------------------------ parameters
@@ -538,23 +525,24 @@ def _update(x, p, z_rate: float, z_angle, r_rate: float, r_angle: float, lag: bo
 def _rewrap(x):
     """Wrap the angle state to [-pi, pi) and move af by the same turn (keeps af - a small)."""
     w, wf, a, af, b = x
-    s = ((a + _PI) % _TWO_PI - _PI) - a      # _wrap1 written out: this runs for every axis and sample
+    s = wrap_angle_float(a) - a
     if s != 0.0:
         a += s
         af += s
-    return w, wf, a, a + ((af - a + _PI) % _TWO_PI - _PI), b
+    return w, wf, a, a + wrap_angle_float(af - a), b
 
 
 def _angle_lowpass(af: float, prev: float, cur: float, c: float) -> float:
     """One step of the low-pass (12) on an angle: its input the mean of the previous and this
-    sample (the short way round), the output wrapped (_wrap1 written out, as in _rewrap)."""
-    mid = prev + 0.5 * ((cur - prev + _PI) % _TWO_PI - _PI)
-    af = af + c * ((mid - af + _PI) % _TWO_PI - _PI)
-    return (af + _PI) % _TWO_PI - _PI
+    sample (the short way round), the output wrapped."""
+    mid = prev + 0.5 * wrap_angle_float(cur - prev)
+    af = af + c * wrap_angle_float(mid - af)
+    return wrap_angle_float(af)
 
 
-def _floats3(v) -> tuple[float, float, float] | None:
-    """v (a list, tuple or array of 3 numbers, any shape) as three floats; None if it is not."""
+def floats3(v) -> tuple[float, float, float] | None:
+    """v (a list, tuple or array of 3 numbers, any shape) as three Python floats; None if it
+    is not (the attitude level's inputs, here and in camera_level.py and gyro_carrier.py)."""
     if isinstance(v, np.ndarray):
         if v.shape != (3,):
             v = v.reshape(-1)
@@ -571,7 +559,7 @@ def _floats3(v) -> tuple[float, float, float] | None:
     except (TypeError, ValueError, LookupError):
         pass
     try:
-        return _floats3(np.asarray(v, dtype=np.float64))
+        return floats3(np.asarray(v, dtype=np.float64))
     except (TypeError, ValueError):
         return None
 
@@ -695,7 +683,7 @@ class AttitudeFilter:
 
     # -------------------------------------------------------------- torque history
     def _add_torque(self, torque_nm, t_now: float) -> None:
-        u = _floats3(torque_nm)
+        u = floats3(torque_nm)
         if u is None or not math.isfinite(u[0] + u[1] + u[2]):
             u = _ZERO3
         i0, i1, i2 = self._inertia
@@ -759,7 +747,7 @@ class AttitudeFilter:
 
     # -------------------------------------------------------------- helpers
     def _compute_mag_yaw(self, field, roll: float, pitch: float) -> float | None:
-        field = _floats3(field)
+        field = floats3(field)
         if field is None or not math.isfinite(field[0] + field[1] + field[2]):
             return None
         yaw = mag_yaw(field, roll, pitch, self.params.mag_field_world_ut)
@@ -862,7 +850,7 @@ class AttitudeFilter:
             # carry the held magnetometer yaw on with the z gyro up to this sample
             dt_hold = t - max(self._yaw_hold_t, t - h)
             if dt_hold > 0:
-                self._yaw_hold = _wrap1(self._yaw_hold + gyro[2] * dt_hold)
+                self._yaw_hold = wrap_angle_float(self._yaw_hold + gyro[2] * dt_hold)
                 self._yaw_hold_t = t
             af[2], a_prev[2] = _angle_lowpass(af[2], a_prev[2], self._yaw_hold, c), self._yaw_hold
             yaw_ok = self._yaw_seen
@@ -878,7 +866,7 @@ class AttitudeFilter:
             z_angle = None
             if angle_ok:
                 pred = x[m]
-                z_angle = pred + _wrap1(af_i - pred)
+                z_angle = pred + wrap_angle_float(af_i - pred)
             x, pp = _update(x, pp, z_rate, z_angle, r_rate, r_angle, lag)
             xs.append(_rewrap(x))
             ps.append(pp)
@@ -982,7 +970,7 @@ class AttitudeFilter:
     def sample_state(self) -> tuple[np.ndarray, np.ndarray]:
         """(euler, rate) of the KF at its newest IMU sample (not extrapolated)."""
         xs = self._xs
-        return (np.array([_wrap1(xs[0][A]), _wrap1(xs[1][A]), _wrap1(xs[2][A])]),
+        return (np.array([wrap_angle_float(xs[0][A]), wrap_angle_float(xs[1][A]), wrap_angle_float(xs[2][A])]),
                 np.array([xs[0][W], xs[1][W], xs[2][W]]))
 
     def reinitialise(self, euler, rate) -> None:
@@ -994,8 +982,8 @@ class AttitudeFilter:
         accelerometer and magnetometer low-passes restart there too, so they pull from it."""
         if self._t_kf is None:
             return
-        euler = tuple(_wrap1(v) for v in _floats3(euler))
-        rate = _floats3(rate)
+        euler = tuple(wrap_angle_float(v) for v in floats3(euler))
+        rate = floats3(rate)
         for i, x in enumerate(self._xs):
             w = rate[i] - x[B]
             self._xs[i] = (w, w, euler[i], euler[i], x[B])
@@ -1029,7 +1017,7 @@ class AttitudeFilter:
         self._aid_ref = None
         if accel_ref is not None:
             try:
-                t0, t1, a_ref = float(accel_ref[0]), float(accel_ref[1]), _floats3(accel_ref[2])
+                t0, t1, a_ref = float(accel_ref[0]), float(accel_ref[1]), floats3(accel_ref[2])
             except (TypeError, ValueError, IndexError):
                 t0 = t1 = math.nan
                 a_ref = None
@@ -1040,7 +1028,7 @@ class AttitudeFilter:
         self._t_prev_call = t_now
         samples = []
         for s in imu_samples or ():
-            t, g, a = s[0], _floats3(s[1]), _floats3(s[2])
+            t, g, a = s[0], floats3(s[1]), floats3(s[2])
             tilt = s[3] if len(s) > 3 else None
             t = float(t)
             if tilt is not None:
@@ -1087,171 +1075,12 @@ class AttitudeFilter:
                     p00, p02, p22 = pp[0], pp[2], pp[9]
                     var_w[i] = p00 + q[0]
                     var_a[i] = h * (h * p00 + p02) + (h * p02 + p22) + q[9]
-        euler = [_wrap1(xs[0][A]), _wrap1(xs[1][A]), _wrap1(xs[2][A])]
+        euler = [wrap_angle_float(xs[0][A]), wrap_angle_float(xs[1][A]), wrap_angle_float(xs[2][A])]
         rate = [xs[0][W], xs[1][W], xs[2][W]]
         if not math.isfinite(sum(euler) + sum(rate)):
             euler, rate = [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
         q = quat_from_euler(*euler)
         return AttitudeEstimate(np.array(euler), np.array(rate), q, np.array(var_a), np.array(var_w), float(delay))
-
-
-# ------------------------------------------------------------------ camera level
-class CameraLevel:
-    """Roll/pitch offset of the attitude estimate, measured against the camera's attitude.
-
-    The accelerometer's bias tilts the estimate's "level": 0.01 m/s^2 is 0.06 deg, and the
-    acceleration reference cannot see it (the filter's attitude settles where the rotated
-    accelerometer agrees with the EKF's velocity change). The vision pose's attitude has no
-    such bias (about 0.15 deg of noise per frame, stamped with the exposure time), so the
-    difference between the estimate at a frame's exposure time (from a short history) and
-    the frame's roll/pitch, low-passed over time_constant_s, is the offset to subtract from
-    the published estimate. Frames taken while the vehicle turned faster than max_rate_rad_s
-    (a millisecond of timing error is then visible), tilted past max_tilt_rad, outside the
-    history, or disagreeing by more than gate_rad with the current offset are not used
-    (counted by reason in `rejected`). Pure: no I/O."""
-
-    def __init__(self, time_constant_s: float = 2.0, max_rate_rad_s: float = 1.0,
-                 max_tilt_rad: float = 0.5, gate_rad: float = 0.05, history_s: float = 0.5,
-                 max_offset_rad: float = 0.05):
-        if not (time_constant_s > 0 and max_rate_rad_s > 0 and max_tilt_rad > 0 and gate_rad > 0
-                and history_s > 0 and max_offset_rad > 0):
-            raise ValueError("camera level: every setting must be positive")
-        self.time_constant_s = time_constant_s
-        self.max_rate_rad_s = max_rate_rad_s
-        self.max_tilt_rad = max_tilt_rad
-        self.gate_rad = gate_rad
-        self.history_s = history_s
-        self.max_offset_rad = max_offset_rad
-        self.offset_rad = np.zeros(2)   # (roll, pitch): estimate minus camera
-        self.fused = 0
-        self.rejected: dict[str, int] = {}
-        self._history: deque = deque()  # (t, roll, pitch, |rate|), oldest first
-        self._last_fused_t = None
-
-    def record(self, t_s: float, euler_rad, rate_rad_s) -> None:
-        """The estimate (before the offset is removed) at t_s, in time order."""
-        if self._history and t_s <= self._history[-1][0]:
-            return
-        p, q, r = _floats3(rate_rad_s)
-        self._history.append((float(t_s), float(euler_rad[0]), float(euler_rad[1]), math.sqrt(p * p + q * q + r * r)))
-        while self._history and self._history[0][0] < t_s - self.history_s:
-            self._history.popleft()
-
-    def _reject(self, reason: str) -> bool:
-        self.rejected[reason] = self.rejected.get(reason, 0) + 1
-        return False
-
-    def fuse(self, t_exposure_s: float, quaternion_wxyz) -> bool:
-        """One camera attitude at its exposure time; True when it moved the offset."""
-        q = np.asarray(quaternion_wxyz, dtype=np.float64)
-        if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) < 0.5:
-            return self._reject("camera_level_bad_quaternion")
-        roll, pitch, _ = quat_to_euler(q / np.linalg.norm(q))
-        h = self._history
-        if len(h) < 2 or not (h[0][0] <= t_exposure_s <= h[-1][0]):
-            return self._reject("camera_level_outside_history")
-        i = bisect.bisect_left(h, t_exposure_s, lo=1, key=_first)   # the first sample at or after it
-        (t0, r0, p0, w0), (t1, r1, p1, w1) = h[i - 1], h[i]
-        f = (t_exposure_s - t0) / (t1 - t0) if t1 > t0 else 1.0
-        est = np.array([r0 + f * (r1 - r0), p0 + f * (p1 - p0)])
-        if max(w0, w1) > self.max_rate_rad_s:
-            return self._reject("camera_level_turning")
-        if max(abs(roll), abs(pitch), *np.abs(est)) > self.max_tilt_rad:
-            return self._reject("camera_level_tilted")
-        diff = est - np.array([roll, pitch])
-        if np.any(np.abs(diff - self.offset_rad) > self.gate_rad):
-            return self._reject("camera_level_inconsistent")
-        dt = (t_exposure_s - self._last_fused_t) if self._last_fused_t is not None else 0.05
-        gain = min(1.0, max(dt, 0.0) / self.time_constant_s)
-        self.offset_rad = np.clip(self.offset_rad + gain * (diff - self.offset_rad),
-                                  -self.max_offset_rad, self.max_offset_rad)
-        self._last_fused_t = t_exposure_s
-        self.fused += 1
-        return True
-
-    def apply(self, euler_rad) -> np.ndarray:
-        """The estimate's (roll, pitch, yaw) with the offset removed."""
-        roll, pitch, yaw = _floats3(euler_rad)
-        d_roll, d_pitch = self.offset_rad.tolist()
-        return np.array([roll - d_roll, pitch - d_pitch, yaw])
-
-
-# ------------------------------------------------------------------ inversion carrier
-def quat_integrate(q, rate_rad_s, h: float) -> np.ndarray:
-    """q (x) exp(0.5 w h): a body->world quaternion turned by the body rate w over h (exact for constant w)."""
-    w = np.asarray(rate_rad_s, dtype=np.float64)
-    angle = float(np.linalg.norm(w)) * h
-    if angle < 1e-12:
-        return np.asarray(q, dtype=np.float64).copy()
-    axis = w / np.linalg.norm(w)
-    s = math.sin(0.5 * angle)
-    dq = np.array([math.cos(0.5 * angle), *(s * axis)])
-    qn = quat_multiply(q, dq)
-    return qn / np.linalg.norm(qn)
-
-
-class GyroCarrier:
-    """A quaternion carried by the gyros through attitudes the 000 filter cannot hold.
-
-    The 000 filter is three independent Euler-angle axes with the body rate taken
-    as the Euler rate: fine near level, wrong when tilted far or turning fast, and
-    it cannot represent inversion.  Near level the carrier just follows that
-    filter (``follow``: its estimate is used unchanged, so normal flight is
-    exactly 000).  Once tilted past ``enter_tilt_deg`` or turning faster than
-    ``enter_rate_rad_s`` it becomes ``active``: every IMU sample turns the
-    quaternion by the gyro (``propagate``; gyro bias ~3e-3 rad/s, so a 1 s flip
-    drifts well under a degree), and the attitude service publishes it.  When
-    back within ``exit_tilt_deg`` and slower than ``exit_rate_rad_s``,
-    ``back_near_level`` says so and the service re-initialises the 000 filter
-    from it (hysteresis between the two thresholds avoids chattering).
-    """
-
-    def __init__(self, enter_tilt_deg: float = 45.0, exit_tilt_deg: float = 30.0,
-                 enter_rate_rad_s: float = 6.0, exit_rate_rad_s: float = 2.0):
-        if not (0.0 < exit_tilt_deg <= enter_tilt_deg < 180.0 and 0.0 < exit_rate_rad_s <= enter_rate_rad_s):
-            raise ValueError("GyroCarrier: need 0 < exit_tilt <= enter_tilt < 180 and 0 < exit_rate <= enter_rate")
-        self.enter_tilt = math.radians(enter_tilt_deg)
-        self.exit_tilt = math.radians(exit_tilt_deg)
-        self.enter_rate = float(enter_rate_rad_s)
-        self.exit_rate = float(exit_rate_rad_s)
-        self.q = np.array([1.0, 0.0, 0.0, 0.0])
-        self.t: float | None = None
-        self.gyro = np.zeros(3)
-        self.active = False
-        self.activations = 0
-
-    def follow(self, t_s: float, q, gyro) -> None:
-        """Inactive: take the 000 filter's attitude at its newest sample time and that sample's gyro."""
-        w, x, y, z = q.tolist() if isinstance(q, np.ndarray) else q
-        n = math.sqrt(w * w + x * x + y * y + z * z)
-        self.q = np.array([w / n, x / n, y / n, z / n])
-        self.t = float(t_s)
-        self.gyro = np.array(gyro, dtype=np.float64)
-
-    def check_enter(self, q, rate) -> bool:
-        """Become active when the attitude (q, rate) is beyond what the 000 filter represents."""
-        if not self.active and self.t is not None and (
-                quat_tilt(q) > self.enter_tilt or math.hypot(*_floats3(rate)) > self.enter_rate):
-            self.active = True
-            self.activations += 1
-        return self.active
-
-    def propagate(self, t_s: float, gyro) -> None:
-        """One IMU sample: turn by the mean of the previous and this gyro over the interval."""
-        gyro = np.asarray(gyro, dtype=np.float64)
-        if self.t is None or not t_s > self.t:
-            return
-        self.q = quat_integrate(self.q, 0.5 * (self.gyro + gyro), t_s - self.t)
-        self.t = float(t_s)
-        self.gyro = gyro.copy()
-
-    def back_near_level(self) -> bool:
-        return self.active and quat_tilt(self.q) < self.exit_tilt and float(np.linalg.norm(self.gyro)) < self.exit_rate
-
-    def estimate(self, t_now: float, max_delay_s: float) -> tuple[np.ndarray, np.ndarray]:
-        """(quaternion, body rate) at t_now: carried over the transport delay by the newest gyro."""
-        delay = min(max(0.0, t_now - (self.t if self.t is not None else t_now)), max_delay_s)
-        return quat_integrate(self.q, self.gyro, delay), self.gyro.copy()
 
 
 # The per-axis filter of 000 as printed (an ablation): no gyro-bias state, the body rate taken

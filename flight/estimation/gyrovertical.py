@@ -96,7 +96,7 @@ from typing import Sequence
 
 import numpy as np
 
-from flight.quat import quat_from_euler, quat_normalize
+from flight.quat import quat_from_euler, quat_normalize, wrap_angle
 
 # 004's training (+-0.05 deg/s gyro biases): the figures and tests of 004
 PAPER_PARAMS_FILE = Path(__file__).resolve().parent.parent / "params" / "gyrovertical_x250.toml"
@@ -435,14 +435,9 @@ def run_sequence(filt, gyro, accel) -> tuple[np.ndarray, np.ndarray]:
     return roll, pitch
 
 
-def wrap(a):
-    """Wrap angle(s) to [-pi, pi)."""
-    return (np.asarray(a, dtype=np.float64) + np.pi) % (2 * np.pi) - np.pi
-
-
 def rms_error_deg(est, truth) -> float:
     """RMS of the wrapped angle difference, degrees (NaN anywhere -> NaN)."""
-    d = wrap(np.asarray(est, dtype=np.float64) - np.asarray(truth, dtype=np.float64))
+    d = wrap_angle(np.asarray(est, dtype=np.float64) - np.asarray(truth, dtype=np.float64))
     return float(np.degrees(np.sqrt(np.mean(d * d))))
 
 

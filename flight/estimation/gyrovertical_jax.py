@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from flight.estimation.gyrovertical import DT_REF, G, TrainingSequence
-from flight.quat import quat_from_euler
+from flight.quat import quat_from_euler, wrap_angle
 
 LOG_CLIP = (-60.0, 30.0)   # as GyroVerticalParams.from_vector: exp() finite and positive
 
@@ -128,15 +128,11 @@ def run_batch(log_params, gyro, accel, q0, *, dt: float = DT_REF, adaptive: bool
     return jax.vmap(one)(gyro, accel, q0)
 
 
-def _wrap(a):
-    return (a + jnp.pi) % (2 * jnp.pi) - jnp.pi
-
-
 @partial(jax.jit, static_argnames=("dt", "adaptive", "weights"))
 def _criterion(log_params, gyro, accel, q0, roll, pitch, *, dt, adaptive, weights):
     r, p = run_batch(log_params, gyro, accel, q0, dt=dt, adaptive=adaptive)
-    rms_p = jnp.degrees(jnp.sqrt(jnp.mean(_wrap(p - pitch) ** 2, axis=1)))
-    rms_r = jnp.degrees(jnp.sqrt(jnp.mean(_wrap(r - roll) ** 2, axis=1)))
+    rms_p = jnp.degrees(jnp.sqrt(jnp.mean(wrap_angle(p - pitch, jnp) ** 2, axis=1)))
+    rms_r = jnp.degrees(jnp.sqrt(jnp.mean(wrap_angle(r - roll, jnp) ** 2, axis=1)))
     return weights[0] * jnp.mean(rms_p) + weights[1] * jnp.mean(rms_r)
 
 

@@ -46,6 +46,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from flight.camera import R_CAM_FROM_BODY, Camera, marker_grid
+from flight.quat import quat_from_rotation, quat_to_rotation
 
 REASONS = ("too_few_points", "unknown_marker", "degenerate", "not_converged", "reprojection")
 
@@ -154,38 +155,6 @@ def _orthonormalise(m: np.ndarray) -> np.ndarray:
         u[:, 2] = -u[:, 2]
         r = u @ vt
     return r
-
-
-def _quat_from_rotation(r: np.ndarray) -> np.ndarray:
-    """Unit quaternion [w, x, y, z] (w >= 0) of a rotation matrix (Shepperd)."""
-    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = np.asarray(r, dtype=np.float64).tolist()
-    tr = r00 + r11 + r22
-    cands = [tr, r00, r11, r22]
-    k = cands.index(max(cands))       # the first maximum, like np.argmax
-    if k == 0:
-        s = 2.0 * math.sqrt(max(1.0 + tr, 0.0))
-        q = [0.25 * s, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s]
-    elif k == 1:
-        s = 2.0 * math.sqrt(max(1.0 + r00 - r11 - r22, 0.0))
-        q = [(r21 - r12) / s, 0.25 * s, (r01 + r10) / s, (r02 + r20) / s]
-    elif k == 2:
-        s = 2.0 * math.sqrt(max(1.0 - r00 + r11 - r22, 0.0))
-        q = [(r02 - r20) / s, (r01 + r10) / s, 0.25 * s, (r12 + r21) / s]
-    else:
-        s = 2.0 * math.sqrt(max(1.0 - r00 - r11 + r22, 0.0))
-        q = [(r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s]
-    q = np.array(q)
-    q /= np.linalg.norm(q)
-    return -q if q[0] < 0 else q
-
-
-def _quat_to_rotation(q) -> np.ndarray:
-    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
 
 
 def _hartley(pts: np.ndarray) -> tuple[float, float, float]:
@@ -426,7 +395,7 @@ def _fail(reason, n, r_wb=None, p=None, rms=0.0) -> PoseSolution:
     return PoseSolution(
         ok=False, reason=reason,
         position_m=np.array(p, dtype=np.float64) if ok_pose else np.zeros(3),
-        quaternion_wxyz=_quat_from_rotation(r_wb) if ok_pose else np.array([1.0, 0.0, 0.0, 0.0]),
+        quaternion_wxyz=quat_from_rotation(r_wb) if ok_pose else np.array([1.0, 0.0, 0.0, 0.0]),
         covariance=_FAILED_COVARIANCE * np.eye(6),
         reprojection_rms_px=float(rms) if np.isfinite(rms) else 0.0,
         points_used=int(n))
@@ -487,7 +456,7 @@ def solve_pose(camera: Camera, marker_map: MarkerMap, marker_ids, corners_px,
             p0 = np.asarray(prior[0], dtype=np.float64).reshape(3)
             q0 = np.asarray(prior[1], dtype=np.float64).reshape(4)
             if np.all(np.isfinite(p0)) and np.all(np.isfinite(q0)) and np.linalg.norm(q0) > 0:
-                start = (_quat_to_rotation(q0), p0)
+                start = (quat_to_rotation(q0), p0)
         except (TypeError, ValueError, IndexError):
             start = None
     if start is None:
@@ -519,5 +488,5 @@ def solve_pose(camera: Camera, marker_map: MarkerMap, marker_ids, corners_px,
     if not np.all(np.isfinite(cov)):
         return _fail("degenerate", n, r_wb, p, rms)
     return PoseSolution(ok=True, reason="", position_m=np.array(p, dtype=np.float64),
-                        quaternion_wxyz=_quat_from_rotation(r_wb), covariance=cov,
+                        quaternion_wxyz=quat_from_rotation(r_wb), covariance=cov,
                         reprojection_rms_px=rms, points_used=n)

@@ -110,11 +110,12 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from flight import motor_model
+from flight.quat import wrap_angle_float
 from flight.vehicle import Vehicle
 
 __all__ = [
     "PositionEKFError", "PositionEKFParams", "PositionEKF",
-    "f", "jacobian_f", "rk4_step", "discretize", "wrap_angle",
+    "f", "jacobian_f", "rk4_step", "discretize",
     "POSITION", "VELOCITY", "EULER", "RATES", "THRUST_SCALE", "N_MODEL", "N_STATE", "LaggedMotorInput",
 ]
 
@@ -127,18 +128,12 @@ EULER = slice(6, 9)
 RATES = slice(9, 12)
 THRUST_SCALE_LIMITS = (0.5, 2.0)  # a physical bound: beyond it the vehicle cannot hover anyway
 
-_TWO_PI = 2.0 * math.pi
 _KINDS = ("attitude", "position", "pin")
 _REASONS = ("gate", "too_old", "future", "invalid")
 
 
 class PositionEKFError(ValueError):
     """Bad parameters or malformed inputs to the position EKF."""
-
-
-def wrap_angle(a):
-    """Wrap to [-pi, pi)."""
-    return (np.asarray(a, dtype=np.float64) + math.pi) % _TWO_PI - math.pi
 
 
 # --------------------------------------------------------------------------- #
@@ -632,8 +627,8 @@ class PositionEKF:
         x[POSITION] = _vec(position, 3, "position")
         x[EULER] = _vec(euler, 3, "euler")
         x[THRUST_SCALE] = 1.0
-        x[6] = float(wrap_angle(x[6]))
-        x[8] = float(wrap_angle(x[8]))
+        x[6] = wrap_angle_float(float(x[6]))
+        x[8] = wrap_angle_float(float(x[8]))
         P = self.params.initial_covariance if P0 is None else np.array(P0, dtype=np.float64)
         if P.shape != (N_STATE, N_STATE) or not np.all(np.isfinite(P)):
             raise PositionEKFError(f"P0 must be a finite {N_STATE}x{N_STATE} matrix")
@@ -744,8 +739,8 @@ class PositionEKF:
             P += Qd
         P = P + P.T
         P *= 0.5
-        xs[6] = (xs[6] + math.pi) % _TWO_PI - math.pi
-        xs[8] = (xs[8] + math.pi) % _TWO_PI - math.pi
+        xs[6] = wrap_angle_float(xs[6])
+        xs[8] = wrap_angle_float(xs[8])
         if xs[2] <= 0.0:  # the floor: (1) alone would let a vehicle at idle thrust fall through it
             xs[2], xs[5] = 0.0, max(xs[5], 0.0)
             if u1 * s < self._weight:
@@ -762,8 +757,8 @@ class PositionEKF:
         if kind == "attitude":  # h = [angles, rates], the angle innovations wrapped
             _, _, _, _, _, _, r, p, yaw, wx, wy, wz, _ = x
             z0, z1, z2, z3, z4, z5 = z
-            y = np.array(((z0 - r + math.pi) % _TWO_PI - math.pi, (z1 - p + math.pi) % _TWO_PI - math.pi,
-                          (z2 - yaw + math.pi) % _TWO_PI - math.pi, z3 - wx, z4 - wy, z5 - wz))
+            y = np.array((wrap_angle_float(z0 - r), wrap_angle_float(z1 - p),
+                          wrap_angle_float(z2 - yaw), z3 - wx, z4 - wy, z5 - wz))
             return y, 6, P[6:12, 6:12] + R
         if not offset:  # the camera, h = p
             return z - np.array(x[0:3]), 0, P[0:3, 0:3] + R
@@ -785,8 +780,8 @@ class PositionEKF:
             K = P.dot(H.T).dot(S_inv)
             IKH = _EYE13 - K.dot(H)
         xs = [a + b for a, b in zip(x, K.dot(y).tolist())]
-        xs[6] = (xs[6] + math.pi) % _TWO_PI - math.pi
-        xs[8] = (xs[8] + math.pi) % _TWO_PI - math.pi
+        xs[6] = wrap_angle_float(xs[6])
+        xs[8] = wrap_angle_float(xs[8])
         xs[THRUST_SCALE] = min(max(xs[THRUST_SCALE], THRUST_SCALE_LIMITS[0]), THRUST_SCALE_LIMITS[1])
         P = IKH.dot(P).dot(IKH.T)
         P += K.dot(R).dot(K.T)
@@ -799,8 +794,8 @@ class PositionEKF:
         if kind == "pin":
             x = list(x)
             x[6:12] = z
-            x[6] = (x[6] + math.pi) % _TWO_PI - math.pi
-            x[8] = (x[8] + math.pi) % _TWO_PI - math.pi
+            x[6] = wrap_angle_float(x[6])
+            x[8] = wrap_angle_float(x[8])
             return x, P
         y, H, S = self._innovate(kind, x, P, z, R, offset)
         return self._correct(x, P, y, H, _inv(S), R)
@@ -953,11 +948,7 @@ class LaggedMotorInput:
     through a flip the rotor forces swing by ~6 N within 60 ms, ~0.5 N (0.6 m/s^2) off
     for half a step at a time. The mean of the lagged force over each held command is
     exact for a held command (flight/motor_model.py's motors, the rotor speed lagging:
-    with e = sqrt(f0) - sqrt(c), c + 2 sqrt(c) e w1 + e^2 w2, w1 = (tau / h)(1 - exp(-h / tau)),
-    w2 = (tau / 2h)(1 - exp(-2h / tau))).
-
-    Kept in plain floats (four of them, several times a step); the lag is that of
-    flight.motor_model.thrust_step (flight.control.plan.motor_forces_update)."""
+    thrust_step_and_mean_floats, in plain floats: four of them, several times a step)."""
 
     def __init__(self, time_constant_s: float):
         if not (math.isfinite(time_constant_s) and time_constant_s > 0):
@@ -1005,15 +996,9 @@ class LaggedMotorInput:
                 end = pending[0][0]
             h = end - self.t
             if h > 0.0:
-                decay, w1, w2 = motor_model.mean_weights(h, tau)
-                forces = []
-                for k, (ci, fi) in enumerate(zip(self._command, self._forces)):
-                    sc = math.sqrt(ci) if ci > 0.0 else 0.0
-                    e = (math.sqrt(fi) if fi > 0.0 else 0.0) - sc
-                    total[k] += h * (sc * sc + 2.0 * sc * e * w1 + e * e * w2)
-                    s = sc + e * decay
-                    forces.append(s * s)
-                self._forces = forces
+                self._forces, means = motor_model.thrust_step_and_mean_floats(
+                    self._forces, self._command, motor_model.mean_weights(h, tau))
+                total = [s + h * m for s, m in zip(total, means)]
                 self.t = end
             if end >= t_s:
                 break

@@ -15,6 +15,7 @@ from collections import deque
 import numpy as np
 import pytest
 
+from flight.control.laws import attitude_law
 from flight.estimation.attitude_filter import (
     AF,
     FILTER_000,
@@ -32,10 +33,8 @@ from flight.estimation.attitude_filter import (
     discrete_model,
     mag_yaw,
     rotation_zyx,
-    wrap,
 )
-from flight.control.laws import attitude_law
-from flight.quat import quat_from_euler, quat_to_rotation
+from flight.quat import quat_from_euler, quat_to_rotation, wrap_angle
 
 INERTIA = np.array([7.5e-3, 7.5e-3, 14.2e-3])   # the x250 of 000
 G = 9.81
@@ -137,7 +136,7 @@ def step_metrics(t, y, y0, y1, t_step):
 
 
 def rms_deg(a, b):
-    return float(np.degrees(np.sqrt(np.mean(wrap(np.asarray(a) - np.asarray(b)) ** 2))))
+    return float(np.degrees(np.sqrt(np.mean(wrap_angle(np.asarray(a) - np.asarray(b)) ** 2))))
 
 
 # ------------------------------------------------------------------ helpers and params
@@ -146,7 +145,7 @@ def test_accel_and_mag_helpers_match_the_frame_convention():
         r = quat_to_rotation(quat_from_euler(roll, pitch, yaw))
         rr, pp = accel_roll_pitch(r.T @ np.array([0.0, 0.0, G]))
         assert rr == pytest.approx(roll, abs=1e-12) and pp == pytest.approx(pitch, abs=1e-12)
-        assert float(wrap(mag_yaw(r.T @ FIELD, roll, pitch) - yaw)) == pytest.approx(0.0, abs=1e-12)
+        assert float(wrap_angle(mag_yaw(r.T @ FIELD, roll, pitch) - yaw)) == pytest.approx(0.0, abs=1e-12)
     # the brief's signs: nose-down pitch about +y reads ax = -g sin(theta); roll reads ay = g sin(phi)
     assert accel_roll_pitch([-G * math.sin(0.2), 0.0, G * math.cos(0.2)])[1] == pytest.approx(0.2)
     assert accel_roll_pitch([0.0, G * math.sin(0.3), G * math.cos(0.3)])[0] == pytest.approx(0.3)
@@ -173,13 +172,13 @@ def test_converges_at_rest_tilted():
     angles = np.radians([5.0, -8.0, 30.0])
     f = AttitudeFilter(INERTIA)
     out = simulate([f], t_end=2.0, angles0=angles, control="none", seed=1)
-    err = np.degrees(np.abs(wrap(out["est"][0] - out["truth"])))
+    err = np.degrees(np.abs(wrap_angle(out["est"][0] - out["truth"])))
     late = out["t"] >= 1.0
     print("at rest: max |error| over the last second (deg):", err[late].max(axis=0))
     assert np.all(err[late] < 0.5)
     last = out["last"][0]
     assert isinstance(last, AttitudeEstimate)
-    assert np.degrees(np.abs(wrap(last.euler_rad - angles))).max() < 0.5
+    assert np.degrees(np.abs(wrap_angle(last.euler_rad - angles))).max() < 0.5
     assert np.allclose(last.quaternion_wxyz, quat_from_euler(*last.euler_rad))
     assert np.all(last.euler_var > 0) and np.all(last.rate_var > 0)
     assert np.abs(last.rate_rad_s).max() < 0.01
@@ -267,7 +266,7 @@ def test_yaw_from_magnetometer(yaw_deg):
     angles = np.array([math.radians(4.0), math.radians(-6.0), math.radians(yaw_deg)])
     f = AttitudeFilter(INERTIA)
     out = simulate([f], t_end=1.5, angles0=angles, control="none", seed=5)
-    err = np.degrees(np.abs(wrap(out["est"][0][:, 2] - out["truth"][:, 2])))
+    err = np.degrees(np.abs(wrap_angle(out["est"][0][:, 2] - out["truth"][:, 2])))
     late = out["t"] >= 0.5
     print(f"yaw {yaw_deg}: max |error| after 0.5 s {err[late].max():.3f} deg")
     assert err[late].max() < 1.0
@@ -279,10 +278,10 @@ def test_yaw_tracks_a_turn_through_180():
     f = AttitudeFilter(INERTIA)
     out = simulate([f], t_end=1.5, angles0=(0.0, 0.0, math.radians(170.0)),
                    ref=(0.0, 0.0, math.radians(-170.0)), step_t=0.2, seed=6)
-    err = np.degrees(np.abs(wrap(out["est"][0][:, 2] - out["truth"][:, 2])))
+    err = np.degrees(np.abs(wrap_angle(out["est"][0][:, 2] - out["truth"][:, 2])))
     print(f"yaw turn 170 -> -170 deg: max |error| {err[out['t'] >= 0.2].max():.3f} deg from t = 0.2 s")
     assert err[out["t"] >= 0.2].max() < 1.0
-    assert abs(float(wrap(out["truth"][-1, 2] - math.radians(-170.0)))) < math.radians(0.5)
+    assert abs(float(wrap_angle(out["truth"][-1, 2] - math.radians(-170.0)))) < math.radians(0.5)
 
 
 # ------------------------------------------------------------------ (6) no NaN, predict only
@@ -312,7 +311,7 @@ def test_no_nan_without_imu_samples():
     assert np.all(np.isfinite(e.euler_rad)) and np.all(np.isfinite(e.rate_rad_s))
     # after a long IMU gap the filter re-initialises from the next sample
     e = f.update([(5.0, np.zeros(3), r.T @ [0, 0, G])], None, np.zeros(3), 5.0)
-    assert np.degrees(np.abs(wrap(e.euler_rad[:2] - [0.1, -0.05]))).max() < 0.01
+    assert np.degrees(np.abs(wrap_angle(e.euler_rad[:2] - [0.1, -0.05]))).max() < 0.01
 
 
 def test_reset_and_free_fall():
@@ -334,59 +333,6 @@ def test_reset_and_free_fall():
     assert e.euler_rad[0] == pytest.approx(0.5 * t, abs=0.03)
 
 
-# ------------------------------------------------------------------ the flip: gyro carrier
-def test_quat_integrate_turns_by_the_body_rate():
-    from flight.estimation.attitude_filter import quat_integrate
-    from flight.quat import quat_to_euler
-    q = np.array([1.0, 0.0, 0.0, 0.0])
-    for _ in range(200):   # 0.5 s at 2 pi rad/s about body x: half a turn
-        q = quat_integrate(q, [2 * math.pi, 0.0, 0.0], 1.0 / 400)
-    assert abs(abs(quat_to_euler(q)[0]) - math.pi) < 1e-9
-    # body rate: from a 90 deg yaw, a body-x turn is a world-y turn
-    q = quat_integrate(quat_from_euler(0.0, 0.0, math.pi / 2), [0.3, 0.0, 0.0], 1.0)
-    assert quat_to_rotation(q)[:, 2] == pytest.approx([math.sin(0.3), 0.0, math.cos(0.3)], abs=1e-12)
-
-
-def test_gyro_carrier_carries_a_full_roll_flip_and_hands_back():
-    from flight.estimation.attitude_filter import GyroCarrier, quat_tilt
-    from flight.quat import quat_to_euler
-    c = GyroCarrier()
-    dt, t = 1.0 / 400, 0.0
-    c.follow(t, quat_from_euler(0.02, -0.01, 0.5), np.zeros(3))
-    assert not c.check_enter(c.q, np.array([1.0, 0.5, 0.0]))  # normal flight: follows the 000 filter
-    # a 360-deg roll at up to 20 rad/s (triangular rate profile over 0.63 s), biased gyro
-    n = 252
-    peak = 2 * math.pi / (0.5 * n * dt)
-    bias = np.array([3e-3, -3e-3, 2e-3])
-    tilts, roll_true, w_prev = [], 0.02, 0.0
-    for k in range(1, n + 1):
-        t = k * dt
-        w = peak * (k / (n / 2) if k <= n / 2 else (n - k) / (n / 2))
-        roll_true += 0.5 * (w + w_prev) * dt
-        w_prev = w
-        gyro = np.array([w, 0.0, 0.0]) + bias
-        if not c.active:   # the 000 filter (here: the truth) is followed until the rate is too high
-            q_filter = quat_from_euler(roll_true, -0.01, 0.5)
-            c.follow(t, q_filter, gyro)
-            assert c.check_enter(q_filter, gyro) == (w + bias[0] > 6.0)
-            continue
-        c.propagate(t, gyro)
-        tilts.append(quat_tilt(c.q))
-    assert c.active and c.activations == 1 and max(tilts) > math.radians(178)
-    roll, pitch, yaw = quat_to_euler(c.q)
-    assert abs(roll - 0.02) < math.radians(1.0) and abs(pitch + 0.01) < math.radians(1.0)
-    assert abs(yaw - 0.5) < math.radians(1.0)
-    assert c.back_near_level()
-    q, rate = c.estimate(t + 0.01, 0.05)   # carried over the delay by the newest gyro
-    assert rate == pytest.approx(c.gyro) and np.linalg.norm(q) == pytest.approx(1.0)
-
-
-def test_gyro_carrier_rejects_bad_thresholds():
-    from flight.estimation.attitude_filter import GyroCarrier
-    with pytest.raises(ValueError):
-        GyroCarrier(enter_tilt_deg=20.0, exit_tilt_deg=30.0)
-
-
 def test_reinitialise_restarts_the_filter_at_a_given_attitude():
     filt = AttitudeFilter(INERTIA)
     filt.update([(0.0, np.zeros(3), np.array([0.0, 0.0, 9.81]))], None, np.zeros(3), 0.0)
@@ -406,8 +352,8 @@ def test_bias_state_converges_to_a_constant_gyro_bias():
         INERTIA, AttitudeFilterParams(init_bias_var=0.0, bias_process_var=1e-30))
     out = simulate([with_b, without_b], t_end=20.0, angles0=angles, control="none", seed=3, gyro_bias=bias)
     late = out["t"] >= 15.0
-    err_b = np.degrees(np.abs(wrap(out["est"][0] - out["truth"])))[late]
-    err_0 = np.degrees(np.abs(wrap(out["est"][1] - out["truth"])))[late]
+    err_b = np.degrees(np.abs(wrap_angle(out["est"][0] - out["truth"])))[late]
+    err_0 = np.degrees(np.abs(wrap_angle(out["est"][1] - out["truth"])))[late]
     print("gyro bias: estimated", with_b.gyro_bias, "true", bias,
           "| late mean |angle error| (deg) with", err_b.mean(axis=0), "without", err_0.mean(axis=0))
     assert with_b.gyro_bias == pytest.approx(bias, abs=1e-3)
@@ -425,15 +371,15 @@ def test_bias_state_converges_to_a_constant_gyro_bias():
 
 # ------------------------------------------------------------------ Euler kinematics
 def test_euler_rate_excess_matches_the_quaternion_kinematics():
-    from flight.estimation.attitude_filter import euler_rate_excess, quat_integrate
-    from flight.quat import quat_to_euler
+    from flight.estimation.attitude_filter import euler_rate_excess
+    from flight.quat import quat_integrate, quat_to_euler
     rng = np.random.default_rng(0)
     for _ in range(20):
         e0 = rng.uniform([-0.8, -0.8, -3.0], [0.8, 0.8, 3.0])
         w = rng.normal(0.0, 1.0, 3)
         h = 1e-6
         q = quat_integrate(quat_from_euler(*e0), w, h)
-        euler_rate = wrap(np.array(quat_to_euler(q)) - e0) / h
+        euler_rate = wrap_angle(np.array(quat_to_euler(q)) - e0) / h
         assert w + euler_rate_excess(e0[0], e0[1], w) == pytest.approx(euler_rate, abs=1e-4)
     assert euler_rate_excess(0.0, 0.0, [1.0, -2.0, 3.0]) == pytest.approx(np.zeros(3))
 
@@ -474,7 +420,7 @@ def test_euler_kinematics_keep_a_banked_turn():
             e = f.update(imu, mag, np.zeros(3), t_now)
             if t_now >= 1.0:
                 truth = np.array([roll, 0.0, yaw_rate * t_now])
-                worst = np.maximum(worst, np.degrees(np.abs(wrap(e.euler_rad - truth))))
+                worst = np.maximum(worst, np.degrees(np.abs(wrap_angle(e.euler_rad - truth))))
         errs[kin] = worst
     print("banked turn: max |error| (deg) with kinematics", errs[True], "000 as printed", errs[False])
     assert np.all(errs[True][:2] < 0.5)
@@ -692,11 +638,11 @@ class _PerAxisReference:
     @staticmethod
     def _rewrap(x):
         a = float(x[A, 0])
-        s = float(wrap(a)) - a
+        s = float(wrap_angle(a)) - a
         if s != 0.0:
             x[A, 0] += s
             x[AF, 0] += s
-        x[AF, 0] = x[A, 0] + float(wrap(float(x[AF, 0] - x[A, 0])))
+        x[AF, 0] = x[A, 0] + float(wrap_angle(float(x[AF, 0] - x[A, 0])))
 
     def _predict(self, t0, t1):
         for h, u in self._pieces(t0, t1):
@@ -790,22 +736,22 @@ class _PerAxisReference:
         angle_ok = [rp is not None, rp is not None, False]
         if rp is not None:
             for i in range(2):
-                mid = self._a_prev[i] + 0.5 * float(wrap(rp[i] - self._a_prev[i]))
-                self._af[i] = float(wrap(self._af[i] + c * float(wrap(mid - self._af[i]))))
+                mid = self._a_prev[i] + 0.5 * float(wrap_angle(rp[i] - self._a_prev[i]))
+                self._af[i] = float(wrap_angle(self._af[i] + c * float(wrap_angle(mid - self._af[i]))))
                 self._a_prev[i] = rp[i]
         if self._yaw_hold is not None:
             dt_hold = t - max(self._yaw_hold_t, t - h)
             if dt_hold > 0:
-                self._yaw_hold = float(wrap(self._yaw_hold + float(gyro[2]) * dt_hold))
+                self._yaw_hold = float(wrap_angle(self._yaw_hold + float(gyro[2]) * dt_hold))
                 self._yaw_hold_t = t
-            mid = self._a_prev[2] + 0.5 * float(wrap(self._yaw_hold - self._a_prev[2]))
-            self._af[2] = float(wrap(self._af[2] + c * float(wrap(mid - self._af[2]))))
+            mid = self._a_prev[2] + 0.5 * float(wrap_angle(self._yaw_hold - self._a_prev[2]))
+            self._af[2] = float(wrap_angle(self._af[2] + c * float(wrap_angle(mid - self._af[2]))))
             self._a_prev[2] = self._yaw_hold
             angle_ok[2] = self._yaw_seen
         for i, kf in enumerate(self.kfs):
             if angle_ok[i]:
                 pred = float(kf.x[self._angle_meas_idx, 0])
-                kf.update(np.array([[self._wf[i]], [pred + float(wrap(self._af[i] - pred))]]), R=self._r[i], H=self._h)
+                kf.update(np.array([[self._wf[i]], [pred + float(wrap_angle(self._af[i] - pred))]]), R=self._r[i], H=self._h)
             else:
                 kf.update(np.array([[self._wf[i]], [0.0]]), R=self._r[i], H=self._h_rate_only)
             self._rewrap(kf.x)
@@ -852,7 +798,7 @@ class _PerAxisReference:
     def reinitialise(self, euler, rate):
         if self._t_kf is None:
             return
-        euler, rate = wrap(np.asarray(euler, dtype=np.float64)), np.asarray(rate, dtype=np.float64)
+        euler, rate = wrap_angle(np.asarray(euler, dtype=np.float64)), np.asarray(rate, dtype=np.float64)
         for i, kf in enumerate(self.kfs):
             kf.x[W, 0] = kf.x[WF, 0] = rate[i] - kf.x[B, 0]
             kf.x[A, 0] = kf.x[AF, 0] = euler[i]
@@ -896,7 +842,7 @@ class _PerAxisReference:
                 for i in range(3):
                     xs[i] = f @ xs[i] + bd @ np.array([[u[i]], [e[i]]])
                     ps[i] = f @ ps[i] @ f.T + self._q(i, qw, qa, qb)
-        euler = wrap(np.array([x[A, 0] for x in xs]))
+        euler = wrap_angle(np.array([x[A, 0] for x in xs]))
         return AttitudeEstimate(euler, np.array([x[W, 0] for x in xs]), quat_from_euler(*euler),
                                 np.array([pp[A, A] for pp in ps]), np.array([pp[W, W] for pp in ps]), float(delay))
 

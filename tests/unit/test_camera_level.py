@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from flight.estimation.attitude_filter import CameraLevel
+from flight.estimation.camera_level import CameraLevel
 from flight.quat import quat_from_euler
 
 

@@ -1,9 +1,8 @@
 import numpy as np
 import pytest
 
-from flight.control.laws import (altitude_law, attitude_from_thrust_vector, attitude_law,
-                            position_law, wrap_angle)
-from flight.quat import quat_from_euler, quat_to_rotation
+from flight.control.laws import altitude_law, attitude_from_thrust_vector, attitude_law, position_law
+from flight.quat import quat_from_euler, quat_to_rotation, wrap_angle
 
 G = 9.81
 

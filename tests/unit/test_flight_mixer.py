@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
 
-from flight.control.mixer import mix, pwm_to_thrust, thrust_to_pwm
+from flight.control.mixer import mix
+from flight.motor_model import pwm_to_thrust, thrust_to_pwm
 from flight.vehicle import load_vehicle
 
 

@@ -1,8 +1,11 @@
+import math
+
 import numpy as np
 import pytest
 
-from flight.quat import (quat_conjugate, quat_from_euler, quat_multiply, quat_normalize,
-                         quat_to_euler, quat_to_rotation, rotate_vector)
+from flight.quat import (quat_conjugate, quat_from_euler, quat_from_rotation, quat_integrate, quat_multiply,
+                         quat_normalize, quat_to_euler, quat_to_rotation, rotate_vector, wrap_angle,
+                         wrap_angle_float)
 
 
 def rx(a):
@@ -49,3 +52,50 @@ def test_normalize():
     np.testing.assert_allclose(quat_normalize([2, 0, 0, 0]), [1, 0, 0, 0])
     with pytest.raises(ValueError):
         quat_normalize([0, 0, 0, 0])
+
+
+def test_wrap_angle_one_formula_for_floats_numpy_and_jax():
+    """[-pi, pi), and the float, numpy and jax.numpy forms give the same bits (the 200/400 Hz
+    loops use the float form, the batch code the array forms)."""
+    import jax.numpy as jnp
+    rng = np.random.default_rng(3)
+    a = np.concatenate([rng.uniform(-20.0, 20.0, 2000), [0.0, -0.0, np.pi, -np.pi, 2 * np.pi, -3 * np.pi]])
+    w = wrap_angle(a)
+    assert w.dtype == np.float64 and np.all(w >= -np.pi) and np.all(w < np.pi)
+    np.testing.assert_allclose(np.cos(w), np.cos(a), atol=1e-12)
+    assert wrap_angle(np.pi) == -np.pi and wrap_angle(-np.pi) == -np.pi
+    floats = np.array([wrap_angle_float(float(x)) for x in a])
+    np.testing.assert_array_equal(floats.view(np.int64), w.view(np.int64))
+    assert type(wrap_angle_float(1.0)) is float
+    a32 = a.astype(np.float32)
+    np.testing.assert_array_equal(np.asarray(wrap_angle(jnp.asarray(a32), jnp)),
+                                  (a32 + np.float32(np.pi)) % np.float32(2 * np.pi) - np.float32(np.pi))
+
+
+def test_quat_multiply_numpy_and_jax_give_the_same_product():
+    """One product: numpy's (checked 4-vectors) and jax.numpy's (the iLQR model) agree."""
+    import jax.numpy as jnp
+    a = quat_from_euler(0.3, -0.2, 1.0)
+    b = quat_from_euler(-1.1, 0.4, -2.0)
+    np.testing.assert_allclose(np.asarray(quat_multiply(jnp.asarray(a, jnp.float32), jnp.asarray(b, jnp.float32), jnp)),
+                               quat_multiply(a, b), atol=1e-6)
+    with pytest.raises(ValueError):
+        quat_multiply(a, [1.0, 0.0, 0.0])
+
+
+def test_quat_integrate_turns_by_the_body_rate():
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    for _ in range(200):   # 0.5 s at 2 pi rad/s about body x: half a turn
+        q = quat_integrate(q, [2 * math.pi, 0.0, 0.0], 1.0 / 400)
+    assert abs(abs(quat_to_euler(q)[0]) - math.pi) < 1e-9
+    # body rate: from a 90 deg yaw, a body-x turn is a world-y turn
+    q = quat_integrate(quat_from_euler(0.0, 0.0, math.pi / 2), [0.3, 0.0, 0.0], 1.0)
+    assert quat_to_rotation(q)[:, 2] == pytest.approx([math.sin(0.3), 0.0, math.cos(0.3)], abs=1e-12)
+
+
+def test_quat_from_rotation_inverts_quat_to_rotation():
+    rng = np.random.default_rng(2)
+    for _ in range(200):
+        q = quat_normalize(rng.normal(size=4))
+        q = -q if q[0] < 0 else q
+        np.testing.assert_allclose(quat_from_rotation(quat_to_rotation(q)), q, atol=1e-12)

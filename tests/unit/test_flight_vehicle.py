@@ -1,3 +1,6 @@
+import dataclasses
+import math
+
 import numpy as np
 import pytest
 
@@ -58,6 +61,10 @@ def test_unknown_name():
     (lambda s: s.replace("inertia_kg_m2 = [7.5e-3, 7.5e-3, 14.2e-3]",
                          "inertia_kg_m2 = [7.5e-3, 7.5e-3]"), "inertia_kg_m2"),
     (lambda s: s + "\nmass_gk = 1.0\n", "mass_gk"),
+    (lambda s: s.replace("motor_time_constant_s = 0.02\n", ""), "motor_time_constant_s"),
+    (lambda s: s.replace("pwm_max_us = 2000\n", ""), "pwm_max_us"),
+    (lambda s: s.replace("thrust_coefficient_kf = 4.0e-7\n", "").replace("moment_coefficient_km = 6.4e-9\n", "")
+     .replace("max_rotor_speed_rad_s = 2500.0\n", ""), "thrust_coefficient_kf"),
 ])
 def test_bad_field_names_file_and_field(tmp_path, edit, field):
     src = (VEHICLES_DIR / "x250.toml").read_text()
@@ -87,3 +94,58 @@ def test_airframe_tilt_limit_lowers_the_position_service_limit(tmp_path):
     p.write_text((VEHICLES_DIR / "x250.toml").read_text() + "\nmax_tilt_deg = -5\n")
     with pytest.raises(VehicleError, match="max_tilt_deg"):
         load_vehicle(str(p))
+
+
+def test_motor_time_constant_comes_from_the_vehicle_file_everywhere(tmp_path):
+    """A copy of x250.toml with slower motors: the simulator's plant, the position EKF's motor
+    input (built as services/position.py builds it) and the iLQR planner's dynamics all lag by
+    the file's time constant: after one step of a doubled command each gives the speed lag's
+    exact forces for 0.05 s, not for the stock 0.02 s."""
+    import jax
+
+    from flight.control.ilqr import PROJECT, ILQRSolver, hover_state
+    from flight.control.predict import nominal_params
+    from flight.estimation.position_ekf import LaggedMotorInput
+    from flight.motor_model import MotorModel
+    from simulator.plant import Plant
+
+    src = (VEHICLES_DIR / "x250.toml").read_text()
+    assert "motor_time_constant_s = 0.02\n" in src
+    p = tmp_path / "slow_motors.toml"
+    p.write_text(src.replace("motor_time_constant_s = 0.02\n", "motor_time_constant_s = 0.05\n"))
+    stock, slow = load_vehicle("x250"), load_vehicle(str(p))
+    assert slow.motor_time_constant_s == 0.05
+    assert dataclasses.replace(slow, motor_time_constant_s=stock.motor_time_constant_s) == stock
+
+    h = PROJECT.dt_s   # one planner step
+    hover = stock.hover_thrust_per_motor_n
+
+    def expected(tau):  # sqrt(f) moves to sqrt(c) as exp(-t / tau); c = 2 hover
+        s = math.sqrt(2 * hover) + (math.sqrt(hover) - math.sqrt(2 * hover)) * math.exp(-h / tau)
+        return s * s
+
+    def plant(v):
+        pl = Plant(v, position_m=(0.0, 0.0, 10.0), motor_thrust_n=np.full(4, hover))
+        pl.advance(h / 10, 10, np.full(4, 2 * hover), np.zeros(3))
+        return pl.motor_thrust_n
+
+    def ekf_input(v):
+        lag = LaggedMotorInput(v.motor_time_constant_s)
+        lag.add(0.0, np.full(4, hover))
+        lag.add(0.0, np.full(4, 2 * hover))   # held from t = 0
+        lag.mean_to(h)
+        return lag.forces
+
+    def planner(v):
+        solver = ILQRSolver(v, PROJECT, warm_up=False)
+        assert solver.models_motors and solver.motor_time_constant_s == v.motor_time_constant_s
+        x = np.concatenate([hover_state([0.0, 0.0, 10.0]), np.full(4, hover)])
+        u = np.full(4, math.sqrt(2.0) * solver.u_hover_rad_s)   # kf u^2 = 2 hover
+        return np.asarray(jax.jit(solver.dynamics)(x, u))[13:17]
+
+    for v, tau in ((stock, 0.02), (slow, 0.05)):
+        assert MotorModel.of(v).time_constant_s == tau and nominal_params(v)["tau"] == np.float32(tau)
+        np.testing.assert_allclose(plant(v), expected(tau), rtol=1e-12)
+        np.testing.assert_allclose(ekf_input(v), expected(tau), rtol=1e-12)
+        np.testing.assert_allclose(planner(v), expected(tau), rtol=1e-5)   # float32
+    assert expected(0.05) < expected(0.02) - 0.1   # the slow motors are well behind

@@ -8,8 +8,8 @@ import pytest
 import schemas
 from flight.control.flip_runner import loop_rate_hz
 from flight.control.mission import MissionError, MissionPlanner, MissionRunner
-from flight.control.plan import RotorPlan, body_state, propagate_attitude
-from flight.quat import quat_from_euler, quat_to_euler
+from flight.control.plan import RotorPlan, body_state
+from flight.quat import quat_from_euler, quat_integrate, quat_to_euler
 from services.stack import load_mission
 
 
@@ -51,7 +51,7 @@ def test_body_state_carries_the_estimates_to_now():
     x = body_state(1.005, att, pos)
     assert np.allclose(x[0:3], [1.015, 2.0, 4.985])
     assert quat_to_euler(x[6:10])[0] == pytest.approx(0.25)
-    assert np.allclose(propagate_attitude(q, [0.0, 0.0, 0.0], 1.0), q)
+    assert np.allclose(quat_integrate(q, [0.0, 0.0, 0.0], 1.0), q)
 
 
 def test_body_state_carries_the_translation_by_the_model():

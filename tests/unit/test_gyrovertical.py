@@ -14,9 +14,9 @@ import pytest
 from flight.estimation.gyrovertical import (DT_REF, FLU_TO_DOC, G, GyroIntegrator, GyroVertical,
                                             GyroVerticalParams, doc_jacobian, doc_observation, doc_to_flu,
                                             evaluate, flu_to_doc, make_training_sequences, piecewise_variance,
-                                            rms_error_deg, run_sequence, wrap)
+                                            rms_error_deg, run_sequence)
 from flight.estimation.gyrovertical_training import train
-from flight.quat import quat_from_euler, quat_to_euler, quat_to_rotation
+from flight.quat import quat_from_euler, quat_to_euler, quat_to_rotation, wrap_angle
 
 BIAS = math.radians(0.05)  # 0.05 deg/s = 180 deg/h, the document's bias
 
@@ -131,7 +131,7 @@ def test_axis_mapping_and_observation_model():
             np.testing.assert_allclose((zp - zbar) / eps, H[:, k], atol=1e-5)
             # the correction keeps the yaw of the propagated quaternion (away from gimbal lock)
             if abs(pitch) < 1.3:
-                assert wrap(quat_to_euler(g2.quaternion)[2] - yaw) == pytest.approx(0.0, abs=1e-9)
+                assert wrap_angle(quat_to_euler(g2.quaternion)[2] - yaw) == pytest.approx(0.0, abs=1e-9)
 
 
 def test_params_functions_vector_dict():
@@ -167,8 +167,8 @@ def test_converges_at_rest_from_wrong_start(truth, start):
     f = GyroVertical(dt=dt, q0=quat_from_euler(math.radians(start[0]), math.radians(start[1]), 0.7))
     er, ep = run_sequence(f, gyro, accel)
     tail = slice(-200, None)
-    assert abs(np.degrees(wrap(er - roll))[tail]).max() < 0.3
-    assert abs(np.degrees(wrap(ep - pitch))[tail]).max() < 0.3
+    assert abs(np.degrees(wrap_angle(er - roll))[tail]).max() < 0.3
+    assert abs(np.degrees(wrap_angle(ep - pitch))[tail]).max() < 0.3
     assert np.all(np.isfinite(f.P)) and np.all(np.linalg.eigvalsh(f.P) > 0)
 
 
@@ -195,14 +195,14 @@ def test_bias_bounded_with_correction_grows_without():
     ra, pa = run_sequence(GyroVertical(dt=dt, q0=q0), gyro, accel)
     ri, pi_ = run_sequence(GyroIntegrator(dt, q0), gyro, accel)
     rf, pf = run_sequence(GyroVertical(dt=dt, q0=q0, adaptive=False), gyro, accel)
-    tilt_i = np.degrees(np.hypot(wrap(ri - roll), wrap(pi_ - pitch)))
+    tilt_i = np.degrees(np.hypot(wrap_angle(ri - roll), wrap_angle(pi_ - pitch)))
     rms = {"adaptive": (rms_error_deg(ra, roll), rms_error_deg(pa, pitch)),
            "fixed": (rms_error_deg(rf, roll), rms_error_deg(pf, pitch)),
            "integration": (rms_error_deg(ri, roll), rms_error_deg(pi_, pitch))}
     print("\n120 s, 0.05 deg/s bias, RMS (roll, pitch) deg:", {k: tuple(round(v, 3) for v in x) for k, x in rms.items()},
           "max |err| adaptive roll %.3f pitch %.3f, integration tilt at 30/60/120 s: %.2f %.2f %.2f" % (
-              np.degrees(np.abs(wrap(ra - roll))).max(), np.degrees(np.abs(pa - pitch)).max(), *(tilt_i[np.searchsorted(tt, s) - 1] for s in (30.0, 60.0, 120.0))))
-    assert np.degrees(np.abs(wrap(ra - roll))).max() < 1.2   # "~1 deg": measured 0.86
+              np.degrees(np.abs(wrap_angle(ra - roll))).max(), np.degrees(np.abs(pa - pitch)).max(), *(tilt_i[np.searchsorted(tt, s) - 1] for s in (30.0, 60.0, 120.0))))
+    assert np.degrees(np.abs(wrap_angle(ra - roll))).max() < 1.2   # "~1 deg": measured 0.86
     assert np.degrees(np.abs(pa - pitch)).max() < 1.2        # measured 0.99
     assert max(rms["adaptive"]) < 0.5
     # without correction the error grows about in proportion to time (sqrt(2)*0.05 deg/s)
@@ -228,7 +228,7 @@ def test_sustained_acceleration_adaptive_beats_fixed():
                        ("fixed", GyroVertical(dt=dt, q0=q0, adaptive=False)),
                        ("integration", GyroIntegrator(dt, q0))):
         r, p = run_sequence(filt, gyro, accel)
-        out[name] = (rms_error_deg(r, troll), float(np.degrees(np.abs(wrap(r - troll))).max()))
+        out[name] = (rms_error_deg(r, troll), float(np.degrees(np.abs(wrap_angle(r - troll))).max()))
     print("\n3 m/s^2 for 4 s, roll (RMS, max) deg:", {k: tuple(round(x, 3) for x in v) for k, v in out.items()})
     assert out["adaptive"][0] < 0.5 * out["fixed"][0]
     assert out["adaptive"][1] < 0.5 * out["fixed"][1]
@@ -254,7 +254,7 @@ def test_roll_flip_through_inverted():
                        ("fixed", GyroVertical(dt=DT_REF, q0=q0, adaptive=False))):
         r, p = run_sequence(filt, gyro, accel)
         assert np.all(np.isfinite(r)) and np.all(np.isfinite(p)) and np.all(np.isfinite(filt.P))
-        res[name] = (float(np.degrees(np.abs(wrap(r - roll))).max()), float(np.degrees(np.abs(p - pitch)).max()))
+        res[name] = (float(np.degrees(np.abs(wrap_angle(r - roll))).max()), float(np.degrees(np.abs(p - pitch)).max()))
     print("\nroll flip, max |error| (roll, pitch) deg:", {k: tuple(round(x, 3) for x in v) for k, v in res.items()})
     assert res["adaptive"][0] < 3.0 and res["adaptive"][1] < 3.0
 

@@ -20,10 +20,10 @@ from flight.control.ilqr import (
     make_cost,
     make_cost_derivatives,
     make_dynamics,
-    motor_forces_update,
     solver_compiler_options,
     warm_start,
 )
+from flight.motor_model import thrust_step
 from flight.quat import quat_from_euler
 from flight.vehicle import load_vehicle
 
@@ -241,11 +241,11 @@ def test_backward_pass_is_the_riccati_recursion():
 
 
 def test_motor_lag_model_forces_follow_the_command_exactly():
-    """With motor_time_constant_s the rotor forces are states: hover is an equilibrium and a
+    """With models_motors the rotor forces are states: hover is an equilibrium and a
     step of the command is followed as the rotor speed's lag (flight/motor_model.py, the
     plant's motors): sqrt(f) moves to sqrt(c) as exp(-t / tau)."""
-    tau, dt = 0.02, 0.025
-    f = make_dynamics(VEHICLE, dt, "rk4", motor_time_constant_s=tau)
+    tau, dt = VEHICLE.motor_time_constant_s, 0.025
+    f = make_dynamics(VEHICLE, dt, "rk4", models_motors=True)
     hover_n = VEHICLE.hover_thrust_per_motor_n
     x = jnp.concatenate([jnp.asarray(hover_state([0, 0, 5])), jnp.full(4, hover_n)])
     u = jnp.full(4, hover_rotor_speed_rad_s(VEHICLE))
@@ -253,7 +253,7 @@ def test_motor_lag_model_forces_follow_the_command_exactly():
     x_step = f(x, u * np.sqrt(2.0))
     d = np.exp(-dt / tau)
     np.testing.assert_allclose(x_step[13:17], hover_n * (np.sqrt(2) - (np.sqrt(2) - 1) * d) ** 2, rtol=1e-6)
-    np.testing.assert_allclose(motor_forces_update(np.full(4, hover_n), np.full(4, 2 * hover_n), dt, tau),
+    np.testing.assert_allclose(thrust_step(np.full(4, hover_n), np.full(4, 2 * hover_n), dt, tau),
                                x_step[13:17], rtol=1e-6)
     assert 0 < x_step[5] < 2 * 9.81 * dt  # accelerates up, less than with the thrust at once
 

@@ -7,9 +7,9 @@ import pytest
 
 from bench.support.sim_reference import (ref_mix, ref_motor_forces_update, ref_pwm_to_thrust, ref_scale_collective,
                                          ref_thrust_to_pwm)
-from flight.control.mixer import (mix, mix_floats, pwm_to_thrust, pwm_to_thrust_floats, thrust_to_pwm,
-                                  thrust_to_pwm_floats)
-from flight.control.plan import motor_forces_update, scale_collective
+from flight.control.mixer import mix, mix_floats
+from flight.control.plan import scale_collective
+from flight.motor_model import pwm_to_thrust, pwm_to_thrust_floats, thrust_step, thrust_to_pwm, thrust_to_pwm_floats
 from flight.vehicle import load_vehicle
 
 
@@ -108,7 +108,7 @@ def test_scale_collective_and_motor_lag_match_reference(veh):
         np.testing.assert_allclose(scale_collective(a, list(f), factor), ref_scale_collective(a, f, factor),
                                    rtol=1e-12, atol=1e-12)
         g = rng.uniform(0.0, veh.max_thrust_n, 4)
-        np.testing.assert_array_equal(motor_forces_update(f, g, 0.0025, 0.02),
+        np.testing.assert_array_equal(thrust_step(f, g, 0.0025, 0.02),
                                       ref_motor_forces_update(f, g, 0.0025, 0.02))
     # a copy of the allocation (another object) and many force vectors at once
     np.testing.assert_allclose(scale_collective(a.copy(), f, 1.1), ref_scale_collective(a, f, 1.1), rtol=1e-12)

@@ -11,7 +11,6 @@ import pytest
 
 from flight import motor_model
 from flight.motor_model import MotorModel
-from flight.control.plan import motor_forces_update
 from flight.vehicle import load_vehicle
 from simulator.plant import Plant
 
@@ -50,7 +49,7 @@ def test_thrust_space_forms_are_the_speed_lag():
         h = rng.uniform(1e-4, 0.05)
         w = motors.speed_step(motors.speed_command(f0), motors.speed_command(c), h)
         np.testing.assert_allclose(motors.thrust_step(f0, c, h), motors.thrust(w), rtol=1e-12)
-        np.testing.assert_allclose(motor_forces_update(f0, c, h, motors.time_constant_s), motors.thrust(w),
+        np.testing.assert_allclose(motor_model.thrust_step(f0, c, h, motors.time_constant_s), motors.thrust(w),
                                    rtol=1e-12)
         np.testing.assert_allclose(motors.torque(w), veh.yaw_moment_m * motors.thrust(w), rtol=1e-9)
         end, mean = motor_model.thrust_step_and_mean(f0, c, h, motors.time_constant_s)
@@ -60,6 +59,38 @@ def test_thrust_space_forms_are_the_speed_lag():
         np.testing.assert_allclose(mean, fine, rtol=1e-6)
         np.testing.assert_allclose(end, motors.thrust(w), rtol=1e-12)
 
+
+
+def test_one_formula_on_floats_numpy_and_jax():
+    """The lag's float forms (the 400 Hz driver, the simulator, the EKF's input), its numpy
+    form and its JAX form (the planner's dynamics, root_step_and_mean on jnp arrays) give the
+    same bits: one formula."""
+    import jax.numpy as jnp
+    rng = np.random.default_rng(7)
+    tau = 0.03
+    for _ in range(200):
+        f0, c = rng.uniform(0.0, 8.0, 4), rng.uniform(0.0, 8.0, 4)
+        c[rng.random(4) < 0.2] = 0.0
+        h = rng.uniform(1e-4, 0.05)
+        d = motor_model.decay(h, tau)
+        weights = motor_model.mean_weights(h, tau)
+        end = motor_model.thrust_step(f0, c, h, tau)   # 4-vectors: its float path
+        np.testing.assert_array_equal(end, motor_model.thrust_step(f0[None], c[None], h, tau)[0])  # numpy
+        np.testing.assert_array_equal(end, motor_model.thrust_step_floats(f0.tolist(), c.tolist(), d))
+        ends, means = motor_model.thrust_step_and_mean_floats(f0.tolist(), c.tolist(), weights)
+        end_np, mean_np = motor_model.thrust_step_and_mean(f0, c, h, tau)
+        np.testing.assert_array_equal(ends, end_np)
+        np.testing.assert_array_equal(means, mean_np)
+        np.testing.assert_array_equal(end_np, end)
+        end_j, mean_j = motor_model.root_step_and_mean(jnp.sqrt(jnp.asarray(f0, jnp.float32)),
+                                                       jnp.sqrt(jnp.asarray(c, jnp.float32)), weights)
+        np.testing.assert_allclose(np.asarray(end_j), end_np, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(np.asarray(mean_j), mean_np, rtol=1e-5, atol=1e-6)
+    # the speed form, at RK4's stage times
+    half, half2, full, end = motor_model.rk4_stage_decays(0.01, tau)
+    assert (half, full) == (motor_model.decay(0.005, tau), motor_model.decay(0.01, tau)) and half2 == half and end == full
+    assert motor_model.speed_derivative(100.0, 400.0, tau) == 300.0 / tau
+    assert motor_model.speed_command_floats([4.0, 0.0, -1.0], 1e-6) == [2000.0, 0.0, 0.0]
 
 # --------------------------------------------------------------------------- against RotorPy
 

@@ -8,7 +8,8 @@ import pytest
 
 from bench.support.sim_reference import RefImu, RefMagnetometer, RefPlant, RefSimulator
 from flight.control.laws import attitude_law, position_law
-from flight.control.mixer import mix, thrust_to_pwm
+from flight.control.mixer import mix
+from flight.motor_model import thrust_to_pwm
 from flight.quat import quat_from_euler, quat_to_euler, quat_to_rotation
 from flight.vehicle import load_vehicle
 from simulator import SimConfig, Simulator

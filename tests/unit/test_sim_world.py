@@ -4,7 +4,8 @@ from flight.camera import marker_grid
 import pytest
 
 from flight.control.laws import attitude_law, position_law
-from flight.control.mixer import mix, thrust_to_pwm
+from flight.control.mixer import mix
+from flight.motor_model import thrust_to_pwm
 from flight.quat import quat_from_euler, quat_to_euler
 from flight.vehicle import load_vehicle
 from simulator import SimConfig, Simulator
@@ -168,3 +169,13 @@ def test_battery_drains_and_sags_under_thrust():
     b = sim.battery.fields()
     assert 5.0 < b["current_a"] < 15.0 and b["voltage_v"] < rest - 0.2
     assert 1.0 < b["consumed_mah"] < 5.0 and b["remaining"] < 1.0
+
+
+def test_simulator_imports_no_control_code():
+    """The simulator is the vehicle, not its autopilot: it may use the motors' model
+    (flight/motor_model.py, PWM map included) but nothing of flight/control/."""
+    import subprocess
+    import sys
+    code = ("import sys, simulator, simulator.world, simulator.plant, simulator.sensors; "
+            "sys.exit(any(m.startswith('flight.control') for m in sys.modules))")
+    assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 import schemas
-from flight.control.mixer import mix, thrust_to_pwm
+from flight.control.mixer import mix
+from flight.motor_model import thrust_to_pwm
 from flight.vehicle import load_vehicle
 from services.motors import PARAMS, MotorDriver
 from tests.unit.services.fake_io import FakeIO

@@ -1,0 +1,95 @@
+"""The camera's level: the attitude estimate's roll/pitch offset measured against the vision
+pose's attitude (CameraLevel). Pure: no I/O."""
+from __future__ import annotations
+
+import bisect
+import math
+import operator
+from collections import deque
+
+import numpy as np
+
+from flight.estimation.attitude_filter import floats3
+from flight.quat import quat_to_euler
+
+_first = operator.itemgetter(0)
+
+
+class CameraLevel:
+    """Roll/pitch offset of the attitude estimate, measured against the camera's attitude.
+
+    The accelerometer's bias tilts the estimate's "level": 0.01 m/s^2 is 0.06 deg, and the
+    acceleration reference cannot see it (the filter's attitude settles where the rotated
+    accelerometer agrees with the EKF's velocity change). The vision pose's attitude has no
+    such bias (about 0.15 deg of noise per frame, stamped with the exposure time), so the
+    difference between the estimate at a frame's exposure time (from a short history) and
+    the frame's roll/pitch, low-passed over time_constant_s, is the offset to subtract from
+    the published estimate. Frames taken while the vehicle turned faster than max_rate_rad_s
+    (a millisecond of timing error is then visible), tilted past max_tilt_rad, outside the
+    history, or disagreeing by more than gate_rad with the current offset are not used
+    (counted by reason in `rejected`). Pure: no I/O."""
+
+    def __init__(self, time_constant_s: float = 2.0, max_rate_rad_s: float = 1.0,
+                 max_tilt_rad: float = 0.5, gate_rad: float = 0.05, history_s: float = 0.5,
+                 max_offset_rad: float = 0.05):
+        if not (time_constant_s > 0 and max_rate_rad_s > 0 and max_tilt_rad > 0 and gate_rad > 0
+                and history_s > 0 and max_offset_rad > 0):
+            raise ValueError("camera level: every setting must be positive")
+        self.time_constant_s = time_constant_s
+        self.max_rate_rad_s = max_rate_rad_s
+        self.max_tilt_rad = max_tilt_rad
+        self.gate_rad = gate_rad
+        self.history_s = history_s
+        self.max_offset_rad = max_offset_rad
+        self.offset_rad = np.zeros(2)   # (roll, pitch): estimate minus camera
+        self.fused = 0
+        self.rejected: dict[str, int] = {}
+        self._history: deque = deque()  # (t, roll, pitch, |rate|), oldest first
+        self._last_fused_t = None
+
+    def record(self, t_s: float, euler_rad, rate_rad_s) -> None:
+        """The estimate (before the offset is removed) at t_s, in time order."""
+        if self._history and t_s <= self._history[-1][0]:
+            return
+        p, q, r = floats3(rate_rad_s)
+        self._history.append((float(t_s), float(euler_rad[0]), float(euler_rad[1]), math.sqrt(p * p + q * q + r * r)))
+        while self._history and self._history[0][0] < t_s - self.history_s:
+            self._history.popleft()
+
+    def _reject(self, reason: str) -> bool:
+        self.rejected[reason] = self.rejected.get(reason, 0) + 1
+        return False
+
+    def fuse(self, t_exposure_s: float, quaternion_wxyz) -> bool:
+        """One camera attitude at its exposure time; True when it moved the offset."""
+        q = np.asarray(quaternion_wxyz, dtype=np.float64)
+        if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) < 0.5:
+            return self._reject("camera_level_bad_quaternion")
+        roll, pitch, _ = quat_to_euler(q / np.linalg.norm(q))
+        h = self._history
+        if len(h) < 2 or not (h[0][0] <= t_exposure_s <= h[-1][0]):
+            return self._reject("camera_level_outside_history")
+        i = bisect.bisect_left(h, t_exposure_s, lo=1, key=_first)   # the first sample at or after it
+        (t0, r0, p0, w0), (t1, r1, p1, w1) = h[i - 1], h[i]
+        f = (t_exposure_s - t0) / (t1 - t0) if t1 > t0 else 1.0
+        est = np.array([r0 + f * (r1 - r0), p0 + f * (p1 - p0)])
+        if max(w0, w1) > self.max_rate_rad_s:
+            return self._reject("camera_level_turning")
+        if max(abs(roll), abs(pitch), *np.abs(est)) > self.max_tilt_rad:
+            return self._reject("camera_level_tilted")
+        diff = est - np.array([roll, pitch])
+        if np.any(np.abs(diff - self.offset_rad) > self.gate_rad):
+            return self._reject("camera_level_inconsistent")
+        dt = (t_exposure_s - self._last_fused_t) if self._last_fused_t is not None else 0.05
+        gain = min(1.0, max(dt, 0.0) / self.time_constant_s)
+        self.offset_rad = np.clip(self.offset_rad + gain * (diff - self.offset_rad),
+                                  -self.max_offset_rad, self.max_offset_rad)
+        self._last_fused_t = t_exposure_s
+        self.fused += 1
+        return True
+
+    def apply(self, euler_rad) -> np.ndarray:
+        """The estimate's (roll, pitch, yaw) with the offset removed."""
+        roll, pitch, yaw = floats3(euler_rad)
+        d_roll, d_pitch = self.offset_rad.tolist()
+        return np.array([roll - d_roll, pitch - d_pitch, yaw])

@@ -1,0 +1,74 @@
+"""The gyro carrier: a quaternion carried by the gyros through the attitudes (inversion, fast
+turns) the per-axis filter of 000 (attitude_filter.py) cannot hold. Pure: no I/O."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from flight.estimation.attitude_filter import floats3
+from flight.quat import quat_integrate, quat_tilt
+
+
+class GyroCarrier:
+    """A quaternion carried by the gyros through attitudes the 000 filter cannot hold.
+
+    The 000 filter is three independent Euler-angle axes with the body rate taken
+    as the Euler rate: fine near level, wrong when tilted far or turning fast, and
+    it cannot represent inversion.  Near level the carrier just follows that
+    filter (``follow``: its estimate is used unchanged, so normal flight is
+    exactly 000).  Once tilted past ``enter_tilt_deg`` or turning faster than
+    ``enter_rate_rad_s`` it becomes ``active``: every IMU sample turns the
+    quaternion by the gyro (``propagate``; gyro bias ~3e-3 rad/s, so a 1 s flip
+    drifts well under a degree), and the attitude service publishes it.  When
+    back within ``exit_tilt_deg`` and slower than ``exit_rate_rad_s``,
+    ``back_near_level`` says so and the service re-initialises the 000 filter
+    from it (hysteresis between the two thresholds avoids chattering).
+    """
+
+    def __init__(self, enter_tilt_deg: float = 45.0, exit_tilt_deg: float = 30.0,
+                 enter_rate_rad_s: float = 6.0, exit_rate_rad_s: float = 2.0):
+        if not (0.0 < exit_tilt_deg <= enter_tilt_deg < 180.0 and 0.0 < exit_rate_rad_s <= enter_rate_rad_s):
+            raise ValueError("GyroCarrier: need 0 < exit_tilt <= enter_tilt < 180 and 0 < exit_rate <= enter_rate")
+        self.enter_tilt = math.radians(enter_tilt_deg)
+        self.exit_tilt = math.radians(exit_tilt_deg)
+        self.enter_rate = float(enter_rate_rad_s)
+        self.exit_rate = float(exit_rate_rad_s)
+        self.q = np.array([1.0, 0.0, 0.0, 0.0])
+        self.t: float | None = None
+        self.gyro = np.zeros(3)
+        self.active = False
+        self.activations = 0
+
+    def follow(self, t_s: float, q, gyro) -> None:
+        """Inactive: take the 000 filter's attitude at its newest sample time and that sample's gyro."""
+        w, x, y, z = q.tolist() if isinstance(q, np.ndarray) else q
+        n = math.sqrt(w * w + x * x + y * y + z * z)
+        self.q = np.array([w / n, x / n, y / n, z / n])
+        self.t = float(t_s)
+        self.gyro = np.array(gyro, dtype=np.float64)
+
+    def check_enter(self, q, rate) -> bool:
+        """Become active when the attitude (q, rate) is beyond what the 000 filter represents."""
+        if not self.active and self.t is not None and (
+                quat_tilt(q) > self.enter_tilt or math.hypot(*floats3(rate)) > self.enter_rate):
+            self.active = True
+            self.activations += 1
+        return self.active
+
+    def propagate(self, t_s: float, gyro) -> None:
+        """One IMU sample: turn by the mean of the previous and this gyro over the interval."""
+        gyro = np.asarray(gyro, dtype=np.float64)
+        if self.t is None or not t_s > self.t:
+            return
+        self.q = quat_integrate(self.q, 0.5 * (self.gyro + gyro), t_s - self.t)
+        self.t = float(t_s)
+        self.gyro = gyro.copy()
+
+    def back_near_level(self) -> bool:
+        return self.active and quat_tilt(self.q) < self.exit_tilt and float(np.linalg.norm(self.gyro)) < self.exit_rate
+
+    def estimate(self, t_now: float, max_delay_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """(quaternion, body rate) at t_now: carried over the transport delay by the newest gyro."""
+        delay = min(max(0.0, t_now - (self.t if self.t is not None else t_now)), max_delay_s)
+        return quat_integrate(self.q, self.gyro, delay), self.gyro.copy()
