@@ -47,7 +47,7 @@ from schemas.flightlog import read_log  # noqa: E402
 
 TICK = os.sysconf("SC_CLK_TCK")
 TARGETS = {"altitude_loss_m": 1.0, "xy_drift_m": 0.27, "recovery_s": 0.5}
-SOLVE_RATE_HZ = 100.0  # the project's re-solve rate (flight/flip_runner.DEFAULT_RATE_HZ)
+SOLVE_RATE_HZ = 100.0  # the project's re-solve rate (flight/control/flip_runner.DEFAULT_RATE_HZ)
 
 
 def planner_pid(root_pid: int) -> int | None:

@@ -9,12 +9,12 @@ The flights are a `zenpilot sweep` (deploy/sweep.py): every flight `zenpilot fly
 `planner.flip_method`, as tasks on a Dask LocalCluster of --workers processes (or the cluster
 of --scheduler); a flight already in --out from the same command is not flown again, and
 --out/sweep.csv and sweep.parquet hold every flight's metrics. Each flight's metrics.json's
-`flip` object (flight/flip.flip_metrics on the simulator truth) is tabulated as
+`flip` object (flight/control/flip.flip_metrics on the simulator truth) is tabulated as
 median (worst) over the completed flights of the seeds. Scenarios (deploy/sweep.SCENARIOS):
 +10 % mass (the plant's only: sim.mass_scale, the planner keeps the airframe file's 0.82 kg),
 a 2 m/s wind across the roll (world y), 20 % of camera frames lost. `--state estimate`
 (default): the stack's own estimators (the attitude level's gyro carrier through the
-inversion, see flight/attitude_filter.GyroCarrier), so the seeds change the sensor noise the
+inversion, see flight/estimation/gyro_carrier.GyroCarrier), so the seeds change the sensor noise the
 controllers read. `--state truth` (the ablation): the camera is not used by the
 controllers and the seeds change only sensor noise nobody reads: flights repeat.
 Lockstep: solve times are wall-clock measurements of this machine under its load (two

@@ -5,7 +5,7 @@
 
 For each row: the prediction (flight/control/predict.py: the nominal's plans and gains replayed over
 --rollouts drawn cases), then --flights other cases drawn from the same uncertainty, each
-flown by the planner's full controller (flight/flip_runner.FlipController: the phase machine
+flown by the planner's full controller (flight/control/flip_runner.FlipController: the phase machine
 and the iLQR re-solved at 100 Hz from the state) on the simulator's plant (simulator/plant.py:
 RK4 at 2 kHz, its own motor lag and drag), with the case's mass, inertia, thrust, motor lag,
 wind and gusts, control delay and start error, on the true state. Prints, per flip figure,

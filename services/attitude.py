@@ -17,7 +17,7 @@ Stale inputs: a run whose newest IMU sample (or truth) is older than `state_time
 publishes no command (counted once per sample, "stale_state": a loop resumed after a freeze must not steer on
 old samples; the motor driver's failsafe covers the gap). A position setpoint older than
 `setpoint_timeout_s` is not used: in the air (the last fresh one asked for thrust) the level
-holds level and descends on its own (flight/failsafe.Descent: the accelerometer's vertical
+holds level and descends on its own (flight/control/failsafe.Descent: the accelerometer's vertical
 speed, a thrust ramp to a slow sink, thrust cut past the ground estimated from the last
 pos/state; counted "failsafe_engaged", "failsafe_landed"); fresh setpoints take over again.
 """

@@ -12,7 +12,7 @@ estimate x (pos/state position/velocity and att/state quaternion/rates, each
 carried forward over its age; with a 17-state plan, the rotor forces its own
 commands imply through the motor lag), clipped to the rotor limits, as thrust
 kf u^2 through the motor map, the collective divided by the position EKF's
-thrust scale (pos/state; flight/plan.scale_collective). The newest plan is used; when it has expired the
+thrust scale (pos/state; flight/control/plan.scale_collective). The newest plan is used; when it has expired the
 previous one while it lasts ("plan_fallback_previous"), then the attitude
 level's command ("plan_fallback_hover"): both counted per output in health.
 

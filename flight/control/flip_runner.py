@@ -10,7 +10,7 @@ FlipController is one mission `flip` item's controller for one method:
   A solve that is not usable (non-finite, or neither converged nor better than its
   warm start) is counted and no plan is sent: the motor driver keeps the previous
   plan while it lasts, then falls back to the cascaded hover laws.
-* "baseline": Appendix И's model-free flip (flight/flip.BaselineFlip), its rotor
+* "baseline": Appendix И's model-free flip (flight/control/flip.BaselineFlip), its rotor
   commands sent as a plan of horizon 1 with zero gains.
 
 After recovery (the phase machine's "land") the controller holds hover at the

@@ -45,20 +45,21 @@ CPU_SOLVER_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": ""}
 SMALL_LOOP_BYTES = 1_000_000
 
 
-def _request_small_loop_hoisting() -> None:
+def request_small_loop_hoisting() -> bool:
     """Add the small-loop threshold to XLA_FLAGS. XLA reads XLA_FLAGS once, at the process's
-    first JAX operation, and it has no per-jit form, so this runs when flight.control.ilqr is imported
-    (the planner service, the bench and the tests import it before computing anything); after
-    an earlier JAX operation it has no effect (slower, same plans). Left alone when XLA_FLAGS
-    already sets backend options, or with ZENPILOT_XLA_DEFAULTS=1."""
+    first JAX operation, and it has no per-jit form: the first ILQRSolver of a process asks for
+    it before compiling (importing this module computes nothing with JAX). After an earlier JAX
+    operation it has no effect (slower, same plans): returns False then. Left alone when
+    XLA_FLAGS already sets backend options, or with ZENPILOT_XLA_DEFAULTS=1."""
+    from jax._src import xla_bridge
     flags = os.environ.get("XLA_FLAGS", "")
     if os.environ.get("ZENPILOT_XLA_DEFAULTS") == "1" or "xla_backend_extra_options" in flags:
-        return
+        return True
+    if xla_bridge.backends_are_initialized():
+        return False
     option = f"--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold={SMALL_LOOP_BYTES}"
     os.environ["XLA_FLAGS"] = f"{flags} {option}".strip()
-
-
-_request_small_loop_hoisting()
+    return True
 
 
 def use_one_solver_thread() -> bool:
@@ -610,6 +611,7 @@ class ILQRSolver:
     solve() in flight never compiles (same shapes every call)."""
 
     def __init__(self, vehicle: Vehicle, config: ILQRConfig, warm_up: bool = True):
+        request_small_loop_hoisting()
         self.vehicle = vehicle
         self.config = config
         self.motor_time_constant_s = vehicle.motor_time_constant_s if config.models_motors else None

@@ -13,7 +13,7 @@ from flight.quat import wrap_angle_float
 
 # Law (8)'s angle loop asks at most for the rate this fraction of the airframe's angular
 # acceleration can stop (stopping_rate): the attitude service's default and the baseline
-# flip's own hold (flight/flip.BaselineFlip) share it.
+# flip's own hold (flight/control/flip.BaselineFlip) share it.
 STOPPING_ACCEL_FRACTION = 0.5
 
 

@@ -3,7 +3,7 @@
 Two steps, both pure (no I/O):
 
 1. ``fly_nominal``: the flip item flown once on the planner's own model by the planner's own
-   controller (flight/flip_runner.FlipController: phase machine, adaptive targets, iLQR
+   controller (flight/control/flip_runner.FlipController: phase machine, adaptive targets, iLQR
    re-solved at its rate), from a hover at the item's altitude. What the motor driver applies
    at each tick, u = u_plan + K (x - x_plan), is kept as a time-varying affine policy
    (u_plan, K, x_plan per tick).
@@ -17,8 +17,8 @@ Two steps, both pure (no I/O):
 The rollouts replay the nominal flight's plans with their feedback gains; in flight the
 planner also re-plans from where the vehicle is, so the prediction is the pessimistic side
 of the stack (it does not re-target a vehicle that fell behind). The metrics are those of
-flight/flip.flip_metrics, on the nominal phases' clock, and the loss from the turn's start
-(flight/flip.heights: the height where the roll starts, less the lowest point after the peak).
+flight/control/flip.flip_metrics, on the nominal phases' clock, and the loss from the turn's start
+(flight/control/flip.heights: the height where the roll starts, less the lowest point after the peak).
 """
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ from flight.control.flip import TURN_START_RAD
 from flight.quat import quat_multiply, wrap_angle
 from flight.vehicle import Vehicle
 
-# the flip's metric thresholds (flight/flip.flip_metrics' defaults)
+# the flip's metric thresholds (flight/control/flip.flip_metrics' defaults)
 LEVEL_TOLERANCE_RAD = math.radians(5.0)
 LEVEL_RATE_RAD_S = 0.5
 HOLD_S = 0.2
@@ -379,7 +379,7 @@ def make_rollouts(nominal: NominalFlip, uncertainty: Uncertainty, max_delay_tick
 
 
 def metrics_from_series(series: np.ndarray, flip_tick: int, tick_s: float, altitude_m: float) -> dict:
-    """Flip metrics (flight/flip.flip_metrics' definitions) of N series (N, T, 6), vectorised.
+    """Flip metrics (flight/control/flip.flip_metrics' definitions) of N series (N, T, 6), vectorised.
     The accumulated roll is taken relative to the flip's first tick."""
     z, xy = series[:, :, 0], series[:, :, 1:3]
     roll = series[:, :, 3] - series[:, flip_tick:flip_tick + 1, 3]
@@ -403,7 +403,7 @@ def metrics_from_series(series: np.ndarray, flip_tick: int, tick_s: float, altit
     in_span = after & (ticks[None, :] <= end[:, None])
     z_span = np.where(in_span, z, np.inf)
     lowest_span = z_span.min(axis=1)
-    # from the turn's start (flight/flip.heights' turn_loss): the height where the roll passes
+    # from the turn's start (flight/control/flip.heights' turn_loss): the height where the roll passes
     # TURN_START_RAD, less the lowest point after the peak (a climb before the turn is not a gain)
     turn_start = np.argmax(after & (roll > TURN_START_RAD), axis=1)
     peak = np.argmax(np.where(in_span, z, -np.inf), axis=1)

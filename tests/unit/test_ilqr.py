@@ -301,8 +301,8 @@ print(json.dumps({"whole": planner.loops_compiled_whole(), "controls": plan.cont
 
 @pytest.mark.skipif(jax.default_backend() != "cpu", reason="XLA's CPU runtime option")
 def test_small_loop_hoisting_compiles_the_thesis_solve_whole_and_plans_the_same():
-    """flight.control.ilqr asks XLA (XLA_FLAGS, on import) to compile small while loops as one
-    function each: a fresh process that imports it gets the THESIS solve's loops so, and
+    """An ILQRSolver asks XLA (XLA_FLAGS, before its first compile) to compile small while loops as
+    one function each: a fresh process that builds one gets the THESIS solve's loops so, and
     plans as a process left at XLA's defaults (ZENPILOT_XLA_DEFAULTS=1) does."""
     import json
     import os
@@ -317,3 +317,15 @@ def test_small_loop_hoisting_compiles_the_thesis_solve_whole_and_plans_the_same(
     assert hoisted["whole"] >= 3 and default["whole"] <= 1
     np.testing.assert_allclose(hoisted["controls"], default["controls"], rtol=1e-4, atol=1e-2)
     assert hoisted["cost"] == pytest.approx(default["cost"], rel=1e-4)
+
+
+def test_importing_the_solver_changes_no_environment():
+    import os
+    import subprocess
+    import sys
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    code = ("import os, jax; before = dict(os.environ)\n"
+            "import flight.control.ilqr, services.mavlink_logic, services.planner, services.motors\n"
+            "print(sorted(k for k in os.environ if os.environ.get(k) != before.get(k)))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=120)
+    assert out.stdout.strip().splitlines()[-1] == "[]", out.stderr
