@@ -16,7 +16,7 @@ the same command (resume). Results: <out>/sweep.csv and sweep.parquet (one row p
 flight: the grid values, status, wall time, attempts, metrics.json flattened with dots)
 and <out>/sweep-<dimension>.png, the chosen metric against each swept dimension.
 
-This module's grid expansion is pure (tests/unit/test_sweep.py); Dask, pyarrow and
+This module's grid expansion is pure (tests/unit/deploy/test_sweep.py); Dask, pyarrow and
 matplotlib are imported only by the functions that need them.
 """
 from __future__ import annotations

@@ -36,7 +36,7 @@ if TYPE_CHECKING:
     from services.stack import Stack
 
 # What each service publishes (topics below zp/<vehicle>/), besides what every service
-# publishes: its health and, in lockstep, its sync. tests/unit/test_security.py checks this
+# publishes: its health and, in lockstep, its sync. tests/unit/services/test_security.py checks this
 # against the services' code (every rt.publisher(schemas.X) call).
 PUBLISHES: dict[str, tuple[str, ...]] = {
     "sim": ("sim/imu", "sim/baro", "sim/mag", "sim/camera", "sim/truth", "sim/battery", "@lockstep/clock/*"),

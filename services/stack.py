@@ -333,7 +333,7 @@ def check_compatible(where: str, params: dict[str, dict[str, Any]]) -> None:
     sim, ekf = params.get("sim", {}), params.get("position", {}).get("ekf", {})
     ekf = ekf if isinstance(ekf, dict) else {}   # not a table: the position service says so
     if "camera_latency_s" not in sim and "max_delay_s" not in ekf:
-        return   # the defaults fit (tests/unit/test_params.py); the simulator and the EKF stay unloaded
+        return   # the defaults fit (tests/unit/services/test_params.py); the simulator and the EKF stay unloaded
     from flight.estimation.position_ekf import PositionEKFParams
     from services.params.sim import PARAMS as SIM
 

@@ -16,7 +16,7 @@ from schemas.fuzz import Garbage
 from services.stack import LOCKSTEP_PARTICIPANTS
 
 # a huge array in a flight: ~180 KB, over every bound but the plan's, mission's and camera's
-# (those get 1.8 MB arrays in tests/unit/test_fuzz_inputs.py); 1.8 MB at 60/s to every
+# (those get 1.8 MB arrays in tests/unit/services/test_fuzz_inputs.py); 1.8 MB at 60/s to every
 # subscriber would measure the loopback network, not the services
 HUGE_ITEMS = 20_000
 LINGER_S = 3.0

@@ -1,6 +1,6 @@
 """The simulator's and the mixer's former numpy implementations (zenpilot a2ef311), kept
-verbatim as the reference the float rewrites are checked against (tests/unit/test_sim_fast.py,
-tests/unit/test_mixer_fast.py) and timed against (bench/sim_step.py). Not used in flight.
+verbatim as the reference the float rewrites are checked against (tests/unit/simulator/test_fast.py,
+tests/unit/flight/control/test_mixer_fast.py) and timed against (bench/sim_step.py). Not used in flight.
 
 RefPlant's motors were changed with the plant's (issue 26): the rotor speeds are the motor
 states (flight.motor_model), advanced by the lag's exact step, RK4's stages seeing the exact

@@ -35,7 +35,7 @@ from flight.vehicle import Vehicle
 # How XLA runs the solver on the CPU. Its runtime launches a kernel per fused operation and
 # goes through its executor at every step of a while loop (the scans), which on matrices this
 # small costs more than the arithmetic. Two settings (bench/ilqr.py, THESIS setting 0.46 ms
-# -> 0.22 ms, PROJECT 2.1 -> 1.2 ms; the plans the same, tests/unit/test_ilqr.py):
+# -> 0.22 ms, PROJECT 2.1 -> 1.2 ms; the plans the same, tests/unit/flight/control/test_ilqr.py):
 # - YNNPACK off for the solver's jit: XLA hands it the small dots (the backward pass's F' V F),
 #   each call several of XLA's own fused loops, and a loop holding one is never compiled whole;
 # - XLA's small-while-loop hoisting for loops touching under SMALL_LOOP_BYTES: such a loop is

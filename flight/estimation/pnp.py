@@ -36,7 +36,7 @@ and tens of ms at 700 corners). The Gauss-Newton normal equations are formed in 
 camera frame, J^T J = B^T (K^T K) B with B = diag(R_cw, R_cw), from the normalised
 image coordinates, in a buffer made once per frame. Same algorithm, iterations and
 decisions as before: bench/support/pnp_reference.py keeps the former implementation and
-tests/unit/test_pnp.py holds the two equal.
+tests/unit/flight/estimation/test_pnp.py holds the two equal.
 """
 from __future__ import annotations
 

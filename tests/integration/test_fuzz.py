@@ -4,7 +4,7 @@ the lockstep clock and sync keys included. No service crashes, every rejection i
 no NaN reaches the motors, the hover holds, and the flight is the very flight flown without
 the garbage (same truth, same motor outputs, message for message): garbage on a clock or
 sync key is counted and dropped, never taken for a tick. The in-process fuzz of every
-inbox (>= 10^5 messages) is tests/unit/test_fuzz_inputs.py; 10^6 is bench/fuzz.py."""
+inbox (>= 10^5 messages) is tests/unit/services/test_fuzz_inputs.py; 10^6 is bench/fuzz.py."""
 
 import math
 

@@ -22,7 +22,7 @@ from flight.control.ilqr import hover_state
 from flight.quat import quat_from_euler, quat_to_euler
 from flight.vehicle import load_vehicle
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[4]))
 
 
 def state(z=5.0, roll=0.0, rates=(0.0, 0.0, 0.0), v=(0.0, 0.0, 0.0)):

@@ -19,7 +19,7 @@ from flight.control.predict import (
 )
 from flight.vehicle import load_vehicle
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[4]
 
 
 @pytest.fixture(scope="module")

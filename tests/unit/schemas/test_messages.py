@@ -89,7 +89,7 @@ def test_key_expressions_map_back_to_messages():
 def test_reference_page_is_current():
     """docs/messages.md is generated; regenerate with `python -m schemas.reference > docs/messages.md`."""
     from pathlib import Path
-    page = Path(__file__).resolve().parents[2] / "docs" / "messages.md"
+    page = Path(__file__).resolve().parents[3] / "docs" / "messages.md"
     assert page.read_text() == render()
 
 

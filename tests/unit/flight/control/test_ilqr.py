@@ -1,6 +1,7 @@
 """iLQR behaviour: model, cost, convergence, gains, warm start, compile-once."""
 import dataclasses
 import itertools
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -308,7 +309,7 @@ def test_small_loop_hoisting_compiles_the_thesis_solve_whole_and_plans_the_same(
     import os
     import subprocess
     import sys
-    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    root = str(Path(__file__).resolve().parents[4])
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "ZENPILOT_XLA_DEFAULTS")}
     runs = [subprocess.Popen([sys.executable, "-c", PLAN_IN_A_FRESH_PROCESS], cwd=root, text=True,
                              stdout=subprocess.PIPE, env=dict(env, **extra))
@@ -323,7 +324,7 @@ def test_importing_the_solver_changes_no_environment():
     import os
     import subprocess
     import sys
-    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    root = str(Path(__file__).resolve().parents[4])
     code = ("import os, jax; before = dict(os.environ)\n"
             "import flight.control.ilqr, services.mavlink_logic, services.planner, services.motors\n"
             "print(sorted(k for k in os.environ if os.environ.get(k) != before.get(k)))")

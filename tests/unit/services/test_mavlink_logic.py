@@ -560,7 +560,7 @@ def test_an_unsigned_link_off_this_machine_is_refused_at_start():
     import subprocess
     import sys
     from pathlib import Path
-    root = Path(__file__).resolve().parents[2]
+    root = Path(__file__).resolve().parents[3]
     proc = subprocess.run([sys.executable, "-m", "services.mavlink", "--endpoint", "udpin:0.0.0.0:14599"],
                           cwd=root, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2, proc.stdout + proc.stderr

@@ -126,7 +126,7 @@ def test_a_stopped_process_is_seen_at_once_and_again_when_it_runs(tmp_path):
 
 
 def test_stack_restart_keys_are_checked(tmp_path):
-    base = (Path(__file__).resolve().parents[2] / "deploy" / "stacks" / "default.toml").read_text()
+    base = (Path(__file__).resolve().parents[3] / "deploy" / "stacks" / "default.toml").read_text()
     stack = load_stack(None)
     assert stack.service("attitude").restart == "on-failure" and stack.service("recorder").restart == "never"
     assert stack.service("sim").restart == "never" and stack.service("attitude").restart_limit == 3

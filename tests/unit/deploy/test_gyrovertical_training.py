@@ -23,7 +23,7 @@ from flight.quat import quat_from_euler
 from flight.vehicle import load_vehicle
 from deploy.manoeuvres import FLIP_ALTITUDE_M, Segment, fly, manoeuvres
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 BIAS = np.radians([0.05, 0.05, 0.05])
 
 

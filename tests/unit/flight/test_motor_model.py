@@ -159,6 +159,6 @@ def test_plant_matches_rotorpy_multirotor_within_a_millimetre(name):
     assert d["yaw_deg"] <= 0.01, d
 
 
-if __name__ == "__main__":  # the figures: python -m tests.unit.test_motor_model
+if __name__ == "__main__":  # the figures: python -m tests.unit.flight.test_motor_model
     for n in ("x250", "q820"):
         print(n, fly_both(n))

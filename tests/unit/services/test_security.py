@@ -9,7 +9,7 @@ import schemas
 from services import security
 from services.stack import DEFAULT_STACK, StackError, load_stack
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 SERVICES = "\n".join(f'[services.{n}]\nmachine = "{m}"\nrate_hz = {r}\n' for n, m, r in (
     ("sim", "vehicle", 400.0), ("motors", "vehicle", 400.0), ("attitude", "vehicle", 200.0),

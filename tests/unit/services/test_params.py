@@ -17,7 +17,7 @@ from services.params import Param, values
 from services.params.reference import DECLARED, render
 from services.stack import DEFAULT_STACK, SERVICE_MODULES, StackError, check_compatible, load_stack, resolve_params
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 WHERE = "s.toml: [services.attitude.params]"
 
 

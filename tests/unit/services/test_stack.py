@@ -9,7 +9,7 @@ import pytest
 from flight.control.mission import MissionError, MissionRunner
 from services.stack import SERVICE_MODULES, StackError, available_missions, load_mission, load_stack, resolve_params
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def test_default_stack_loads():
