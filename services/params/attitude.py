@@ -54,10 +54,10 @@ PARAMS = {
     "imu_rate_hz": Param(400.0, "Hz", 0.0, min_exclusive=True,
                          doc="the gyro-vertical's sample rate (its variances are per sample)"),
     "camera_level": Param(True, doc="remove the accelerometer bias's tilt with the camera's attitude (vision/pose, "
-                                    "low-passed: attitude_filter.py CameraLevel); false: no camera at this "
+                                    "low-passed: camera_level.py CameraLevel); false: no camera at this "
                                     "level (000)"),
-    "camera_level_settings": Param({}, doc="CameraLevel's settings (flight/estimation/attitude_filter.py)"),
+    "camera_level_settings": Param({}, doc="CameraLevel's settings (flight/estimation/camera_level.py)"),
     # the 000 filter (Euler axes, body rate as Euler rate) cannot follow a flip (001)
     "carrier": Param({}, doc="past these tilts and rates a gyro-integrated quaternion carries the estimate, the "
-                             "filter restarts from it near level (attitude_filter.py GyroCarrier's settings)"),
+                             "filter restarts from it near level (gyro_carrier.py GyroCarrier's settings)"),
 }
