@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -15,8 +16,14 @@ from services.stack import StackError
 
 
 def started(router):
-    """A stand-in for a service: its command line names the router, as `-e ROUTER` does."""
-    return subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", "-e", router])
+    """A stand-in for a service: its command line names the router, as `-e ROUTER` does. Returned
+    once it does: between fork and exec the child's command line is still pytest's."""
+    p = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", "-e", router])
+    cmdline = f"/proc/{p.pid}/cmdline"
+    deadline = time.monotonic() + 10.0
+    while router.encode() not in open(cmdline, "rb").read() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return p
 
 
 def record(state_dir, router, pids):
