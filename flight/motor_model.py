@@ -43,6 +43,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from flight.vehicle import per_vehicle_cache
+
 
 def decay(dt_s: float, time_constant_s, exp=math.exp):
     """exp(-dt / tau): the fraction of a rotor-speed error left after dt_s. exp: jnp.exp
@@ -221,20 +223,7 @@ class _PwmConsts:
         self.min_thrust = float(vehicle.min_thrust_n)
 
 
-_PWM_CONSTS: dict[int, tuple] = {}  # id(vehicle) -> (vehicle, its _PwmConsts)
-
-
-def _pwm_consts(vehicle) -> _PwmConsts:
-    # keyed by identity (hashing a dataclass of tuples costs more than the map); the entry
-    # holds the vehicle, so an id is never reused while its entry is alive
-    entry = _PWM_CONSTS.get(id(vehicle))
-    if entry is not None and entry[0] is vehicle:
-        return entry[1]
-    if len(_PWM_CONSTS) >= 64:
-        _PWM_CONSTS.clear()
-    c = _PwmConsts(vehicle)
-    _PWM_CONSTS[id(vehicle)] = (vehicle, c)
-    return c
+_pwm_consts = per_vehicle_cache(_PwmConsts)
 
 
 def thrust_to_pwm(vehicle, forces_n) -> np.ndarray:

@@ -210,3 +210,21 @@ def load_vehicle(name_or_path: str) -> Vehicle:
     except tomllib.TOMLDecodeError as e:
         raise VehicleError(f"{path}: not valid TOML: {e}") from None
     return vehicle_from_dict(data, str(path))
+
+
+def per_vehicle_cache(make):
+    """A getter of make(vehicle), made once per vehicle object: keyed by identity (hashing a
+    dataclass of tuples costs more than the 400 Hz work it serves); an entry holds its vehicle,
+    so an id is never reused while the entry lives."""
+    cache: dict[int, tuple] = {}
+
+    def get(vehicle):
+        entry = cache.get(id(vehicle))
+        if entry is not None and entry[0] is vehicle:
+            return entry[1]
+        if len(cache) >= 64:
+            cache.clear()
+        value = make(vehicle)
+        cache[id(vehicle)] = (vehicle, value)
+        return value
+    return get

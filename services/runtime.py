@@ -28,6 +28,7 @@ Lockstep protocol (deterministic; like PX4 SITL lockstep):
 
 from __future__ import annotations
 
+import abc
 import argparse
 import gc
 import json
@@ -340,14 +341,15 @@ class Publisher:
 
 
 # ---------------------------------------------------------------- runtime
-class ParamAccess:
+class ParamAccess(abc.ABC):
     """Reading a service's resolved parameters, with errors that say where they were set: the
     Runtime's in flight, a fake's in the services' unit tests."""
 
     params: dict[str, Any]
 
+    @abc.abstractmethod
     def where(self) -> str:
-        raise NotImplementedError
+        """Where the parameters were set (file and section), for error messages."""
 
     def table(self, key: str, from_dict: Callable[[dict], Any]) -> Any:
         """A nested parameter table, validated by its owner's from_dict."""
@@ -364,8 +366,9 @@ class ParamAccess:
         self.on_param(key, lambda v: arr.__setitem__(slice(None), v))
         return arr
 
+    @abc.abstractmethod
     def on_param(self, key: str, callback: Callable[[Any], None]) -> None:
-        raise NotImplementedError
+        """Call `callback(new_value)` when the parameter `key` changes in flight."""
 
 
 class Runtime(ParamAccess):
@@ -563,11 +566,6 @@ class Runtime(ParamAccess):
         print(f"zenpilot-{self.name}: param {key} = {new} (from {msg['header']['source']})", flush=True)
 
     # -- lockstep wiring (services/lockstep.py; callbacks on Zenoh's threads) ---------
-    @property
-    def gone(self) -> set[str]:
-        """Lockstep participants dropped from the clock (dead or frozen)."""
-        return self.progress.gone
-
     def _sync_tick(self, upstream: str) -> int:
         """The lockstep tag of a message from `upstream` arriving now (Inbox visibility)."""
         if upstream == "sim" or upstream not in LOCKSTEP_PARTICIPANTS:

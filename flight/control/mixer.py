@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from flight.motor_model import clip_float
-from flight.vehicle import Vehicle
+from flight.vehicle import Vehicle, per_vehicle_cache
 
 _EPS = 1e-12
 
@@ -27,20 +27,7 @@ class _Consts:
         self.limit = self.hi - self.lo
 
 
-_CONSTS: dict[int, tuple[Vehicle, _Consts]] = {}  # id(vehicle) -> (vehicle, its constants)
-
-
-def _consts(vehicle: Vehicle) -> _Consts:
-    # keyed by identity (hashing a dataclass of tuples costs more than the mixing); the
-    # entry holds the vehicle, so an id is never reused while its entry is alive
-    entry = _CONSTS.get(id(vehicle))
-    if entry is not None and entry[0] is vehicle:
-        return entry[1]
-    if len(_CONSTS) >= 64:
-        _CONSTS.clear()
-    c = _Consts(vehicle)
-    _CONSTS[id(vehicle)] = (vehicle, c)
-    return c
+_consts = per_vehicle_cache(_Consts)
 
 
 def _spread(f: np.ndarray) -> float:
