@@ -78,14 +78,14 @@ ACTION_COMMANDS = frozenset((mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_C
                              mavlink.MAV_CMD_MISSION_START, mavlink.MAV_CMD_DO_SET_MISSION_CURRENT,
                              MAV_CMD_FLIP))
 
-# streams: message name -> (message id, default rate Hz)
+# streams: message name -> (message id, default rate Hz). HIGHRES_IMU is off by default: its
+# 400 Hz IMU input costs CPU; SET_MESSAGE_INTERVAL turns it on
 STREAMS = {
     "HEARTBEAT": (0, 1.0), "SYS_STATUS": (1, 1.0), "SYSTEM_TIME": (2, 1.0), "ATTITUDE": (30, 25.0),
     "ATTITUDE_QUATERNION": (31, 10.0), "LOCAL_POSITION_NED": (32, 25.0), "GLOBAL_POSITION_INT": (33, 10.0),
     "MISSION_CURRENT": (42, 1.0), "HIGHRES_IMU": (105, 0.0), "BATTERY_STATUS": (147, 1.0),
     "HOME_POSITION": (242, 0.2), "EXTENDED_SYS_STATE": (245, 1.0), "AUTOPILOT_VERSION": (148, 0.0),
 }
-# HIGHRES_IMU is off by default: its 400 Hz IMU input costs CPU; SET_MESSAGE_INTERVAL turns it on
 STREAM_BY_ID = {mid: name for name, (mid, _) in STREAMS.items()}
 
 # Parameters over MAVLink (the one list), generated from the declarations that name a MAVLink
@@ -264,7 +264,7 @@ class Bridge:
         self.mission_sent_wall: float | None = None  # sent, not yet seen in the planner's setpoint
         self.mission_first_phases: tuple = ()
         self.mission_live = False          # the setpoint's `item` indexes flying_seq
-        self.offboard: dict | None = None  # {"kind", "target", "velocity", "yaw", "wall", "sent_wall"}
+        self.offboard: dict | None = None  # {"kind", "target", "velocity", "yaw", "wall", "sent"}
         self.last_stack_t: float | None = None
         self.takeoff_pending: dict | None = None  # a takeoff acked IN_PROGRESS: {"peer", "altitude", "wall"}
         self.prearm_said: tuple[str, float] = ("", -math.inf)

@@ -128,18 +128,18 @@ class FlipConfig:
     # False (thesis): recovery targets the heading the flip started with (yaw 0). True: the
     # heading it has now, so the recovery levels and stops every rate, yaw's too, and
     # leaves turning back to the flip's heading to the hold that follows (the plus frame's
-    # yaw authority is its weakest: turning back at up to 0.5 rad/s kept the body rates
-    # above the level criterion for 0.1 s after the tilt was within it, stack seed 19).
+    # yaw authority is its weakest: turning back at once keeps the body rates above the
+    # level criterion after the tilt is within it).
     recovery_hold_heading: bool = False
-    # The hold after recovery (the runner's settle, at the flip's altitude). None (as before):
-    # hold where the recovery ended, so the plan brakes the turn's lateral speed and comes
+    # The hold after recovery (the runner's settle, at the flip's altitude). None: hold
+    # where the recovery ended, so the plan brakes the turn's lateral speed and comes
     # back, tilting past the level criterion (5 deg) for a while after the recovery. A
     # value: stop along a straight line at this deceleration (0.5 m/s^2 asks ~3 deg of tilt)
     # and hold where it stops.
     settle_decel_m_s2: float | None = None
     # ... and its heading: None, straight back to the flip's (yaw 0); a value: from the one
     # the recovery ended with back to yaw 0 at this rate (the level criterion allows 0.5 rad/s
-    # of body rate in all; returning 12 deg at once took 0.58 rad/s, stack seed 19)
+    # of body rate in all)
     settle_yaw_rate_rad_s: float | None = None
     # The flip's own reference (lookahead only) starts the turn windup_s after the phase
     # does (the time to climb, climb_m) and may wind up in it: a roll of -windup_rad and
@@ -158,19 +158,11 @@ class FlipConfig:
 
 
 THESIS_FLIP = FlipConfig(takeoff_hover_check=False)
-# the project's flip (the one source: flight/control/flip_runner.py and bench/flip_sim.py fly it): a
-# look-ahead quintic turn of 0.9 s, 0.3 s after the phase starts, with the altitude target 1.5 m
-# above the start: the plan climbs in those 0.3 s and carries the upward speed through the
-# inverted half (stack on estimates, seeds 0/1/2/15: altitude loss 0.93-0.97 m without a climb,
-# 0.20-0.23 m with 1 m; with 1.5 m none on any seed, +10 % mass too: the vehicle peaks ~1.6 m
-# above the start and bottoms out ~0.3 m above it on truth, drift 0.23 m either way (bench/
-# flip_sim.py, climb 1.0 / 1.2 / 1.3 / 1.5 m: loss 0.12 / 0 / 0 / 0 m, lowest point after the
-# peak -0.12 / +0.04 / +0.14 / +0.28 m about the start). No wind-up roll with the climb: pushing towards
-# +y first only moved the turn's lateral swing (+-0.25 m about the start) towards -y.
-# recovery_coast stays off: on truth it levels sooner (stack, seed 0: recovery
-# 0.66 -> 0.47 s, overshoot 16 -> 12 deg), but on estimates without the recovery's velocity
-# feedback a biased attitude estimate pushes the vehicle sideways unchecked and the hold then
-# brakes it tilted (stack on the estimators of be5319e, seeds 0 and 1: 1.3 -> 2.4 s)
+# The project's flip (the one source: flight/control/flip_runner.py and bench/flip_sim.py fly it):
+# a look-ahead quintic turn of 0.9 s, 0.3 s after the phase starts, with the altitude target 1.5 m
+# above the start, so the plan climbs in those 0.3 s and carries the upward speed through the
+# inverted half; no wind-up roll (with the climb it only shifts the turn's lateral swing). The
+# climbs, wind-ups and recoveries tried: docs/flip-history.md.
 PROJECT_FLIP = FlipConfig(lookahead=True, flip_duration_s=0.9, windup_s=0.3, climb_m=1.5, recovery_coast=True,
                           recovery_hold_heading=True, settle_decel_m_s2=0.5, settle_yaw_rate_rad_s=0.25)
 
@@ -374,7 +366,7 @@ class BaselineConfig:
     attitude_gain: float = 16.0            # law (8) of 000, k = alpha (take-off, hold)
     # law (8)'s rate demand capped as the stack's attitude service caps it (0: law (8) as
     # printed): uncapped, the q820's saturated hold can limit-cycle and, the mixer raising
-    # the collective to keep the torque, climb away (flip grid, baseline seed 11: 138 m)
+    # the collective to keep the torque, climb away (docs/results.md)
     stopping_accel_fraction: float = STOPPING_ACCEL_FRACTION
     position_gain: float = 4.0             # laws (9)-(11) of 000, k = alpha
     hold_max_tilt_rad: float = 0.6         # the hold's position laws (before the flip): at most
@@ -504,7 +496,7 @@ def flip_metrics(t_s, position_m, quaternion, rate_rad_s, phase,
     """Metrics of one flip over a time series (N samples); phase: N phase names/Phases.
 
     The flip starts at the first 'flip' sample; the turn is complete when the accumulated
-    roll reaches 360 deg - level_tolerance; recovery ends at the first later sample from
+    roll reaches 360 deg - level_tolerance_rad; recovery ends at the first later sample from
     which tilt and body-rate norm stay within limits for hold_s (or to the series' end).
     """
     t = np.asarray(t_s, dtype=np.float64)

@@ -34,8 +34,8 @@ from flight.vehicle import Vehicle
 
 # How XLA runs the solver on the CPU. Its runtime launches a kernel per fused operation and
 # goes through its executor at every step of a while loop (the scans), which on matrices this
-# small costs more than the arithmetic. Two settings (bench/ilqr.py, THESIS setting 0.46 ms
-# -> 0.22 ms, PROJECT 2.1 -> 1.2 ms; the plans the same, tests/unit/flight/control/test_ilqr.py):
+# small costs more than the arithmetic. Two settings, which leave the plans the same
+# (tests/unit/flight/control/test_ilqr.py; their speed-up: bench/ilqr.py, docs/changelog.md):
 # - YNNPACK off for the solver's jit: XLA hands it the small dots (the backward pass's F' V F),
 #   each call several of XLA's own fused loops, and a loop holding one is never compiled whole;
 # - XLA's small-while-loop hoisting for loops touching under SMALL_LOOP_BYTES: such a loop is
@@ -67,15 +67,13 @@ def use_one_solver_thread() -> bool:
     solves in a real-time loop (the planner service), called before its first JAX operation.
 
     By default XLA's CPU client dispatches a call asynchronously (a thread of its own takes
-    it, the caller waits on a future) and runs it on an intra-op pool of one thread per CPU.
-    Measured on the 2-core machine (PROJECT solves at 125 Hz, 500 of them): ~4.7 wake-ups per
-    solve on each of the pool's 2 threads, 2 more dispatch threads, 2.1 ms of CPU per solve;
-    in a real-time flight each hand-off waits for a CPU that the real-time loops may hold.
-    Synchronous dispatch (jax_cpu_enable_async_dispatch off) and a pool of one thread (NPROC=1,
-    which XLA's DefaultThreadPoolSize reads when the client is created): one wake-up per solve
-    (the caller -> the pool's thread and back), 1.2 ms of CPU per solve. The same executable
-    runs: the plans are the same bits. Returns False when JAX's CPU client exists already
-    (too late: nothing changed)."""
+    it, the caller waits on a future) and runs it on an intra-op pool of one thread per CPU:
+    several thread wake-ups per solve, and in a real-time flight each hand-off waits for a CPU
+    that the real-time loops may hold. Synchronous dispatch (jax_cpu_enable_async_dispatch off)
+    and a pool of one thread (NPROC=1, which XLA's DefaultThreadPoolSize reads when the client
+    is created) leave one wake-up per solve and less CPU (docs/flip-history.md, "In real
+    time"). The same executable runs: the plans are the same bits. Returns False when JAX's
+    CPU client exists already (too late: nothing changed)."""
     from jax._src import xla_bridge
     if xla_bridge.backends_are_initialized():  # the client is created once, at the first JAX operation
         return False
@@ -141,10 +139,8 @@ THESIS = ILQRConfig(
 
 # Horizontal position weighted 900: the flip's drift is the lateral impulse of the one
 # rotor pair that rolls a plus frame, and the plan keeps it small at the price of height,
-# which the flip's climb (PROJECT_FLIP.climb_m, flight/control/flip.py) buys back (closed loop on
-# the plant, bench/flip_sim.py, climb 1 m: weight 250 -> 600 -> 900, loss 0.00 / 0.00 /
-# 0.12 m, drift 0.39 / 0.25 / 0.23 m; without the climb, 250 lost 0.89 m; the project's
-# 1.5 m climb: 900 loses none, drift 0.23 m).
+# which the flip's climb (PROJECT_FLIP.climb_m, flight/control/flip.py) buys back (the weights
+# and climbs tried: docs/flip-history.md, "A climb before the turn").
 PROJECT = ILQRConfig(
     name="project", dt_s=0.025, horizon=32, max_iterations=8, integrator="rk4",
     state_weight=(900.0, 900.0, 40.0, 4.0, 4.0, 4.0, 60.0, 10.0, 10.0, 5.0),

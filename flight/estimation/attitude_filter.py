@@ -415,7 +415,7 @@ class _Discretiser:
 
     Steps are rounded to 0.1 ms (the key is h in units of 0.1 ms): in real time every interval
     differs; 0.1 ms is far below the model's time constants (tau = 20 ms).  A miss costs a few
-    microseconds (the closed form; scipy's matrix exponentials took milliseconds)."""
+    microseconds (the closed form, not a matrix exponential)."""
 
     def __init__(self, lpf_tau_s: float, rate_var, angle_var, bias_var):
         self.k = 1.0 / lpf_tau_s
@@ -477,11 +477,11 @@ def _update(x, p, z_rate: float, z_angle, r_rate: float, r_angle: float, lag: bo
     """Kalman update of one axis with the low-passed gyro z_rate (and the angle z_angle, None: rate only).
 
     H = [[0, 1, 0, 0, 1], [0, 0, 0, 1, 0]] (lag: the gyro reads wf + b, the angle af) or
-    [[1, 0, 0, 0, 1], [0, 0, 1, 0, 0]].  filterpy's Joseph form (I-KH) P (I-KH)^T + K R K^T
-    expands to P - K C^T - C K^T + K S K^T (C = P H^T, S = H C + R); with the optimal gain
-    K = C S^-1 the last term is K C^T, so P - K C^T, computed here on the upper triangle
-    (symmetric by construction, where the per-axis code symmetrised afterwards).  S is 2x2
-    and inverted in closed form; rate only is the 1x1 case (filterpy's zeroed H row)."""
+    [[1, 0, 0, 0, 1], [0, 0, 1, 0, 0]].  The Joseph form (I-KH) P (I-KH)^T + K R K^T (filterpy's,
+    which the unit tests compare against) expands to P - K C^T - C K^T + K S K^T (C = P H^T,
+    S = H C + R); with the optimal gain K = C S^-1 the last term is K C^T, so P - K C^T, computed
+    here on the upper triangle (symmetric by construction).  S is 2x2 and inverted in closed
+    form; rate only is the 1x1 case (filterpy's zeroed H row)."""
     w, wf, a, af, b = x
     p00, p01, p02, p03, p04, p11, p12, p13, p14, p22, p23, p24, p33, p34, p44 = p
     if lag:   # C = P H^T: c the rate column (P_1 + P_4), d the angle column (P_3)
@@ -1085,7 +1085,7 @@ class AttitudeFilter:
 
 # The per-axis filter of 000 as printed (an ablation): no gyro-bias state, the body rate taken
 # as the Euler rate, the angle random walk 000 needs to absorb both; with the attitude
-# service's acceleration_compensation = "slope" it is the stack's estimator before the
-# aided tilt (README: attitude steps on estimates 5-12 % / 0.6-1.0 s with it).
+# service's acceleration_compensation = "slope" it is 000's attitude level (its figures:
+# docs/results.md).
 FILTER_000 = {"angle_process_var": (1e-5, 1e-5, 1e-5), "euler_kinematics": False,
               "init_bias_var": 0.0, "bias_process_var": (1e-12, 1e-12, 1e-12)}

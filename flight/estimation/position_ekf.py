@@ -98,8 +98,8 @@ mean, f and the Jacobian run in plain floats (:func:`_step`, term for term the
 expressions of :func:`f`, :func:`rk4_step` and :func:`jacobian_f`), products with an
 H that only selects states are taken as P's blocks and columns (exactly what the
 products with the 0/1 matrix give), and the chi-square gate comes from a closed form
-rather than scipy.stats (~0.3 s of import).  The unit tests hold the filter to its
-former all-numpy form (tests/unit/flight/estimation/test_position_ekf.py, ``_RefEKF``).
+rather than scipy.stats (~0.3 s of import).  The unit tests hold the filter to an
+all-numpy form of it (tests/unit/flight/estimation/test_position_ekf.py, ``_RefEKF``).
 """
 from __future__ import annotations
 
