@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/flip_heights.py runs/flip-grid/ilqr-project-nominal-seed*
 
-metrics.json's altitude_loss_m is the issue's: from the hover altitude before the flip
+metrics.json's altitude_loss_m is the flip's reported loss: from the hover altitude before the flip
 phase (the baseline's from the roll's start: its full-thrust climb counts as take-off).
 A flip that climbs before its turn can be judged by more than that; per flight, on the
 simulator truth (sim/truth) from the flip phase's start (planner/setpoint's phase):
@@ -13,7 +13,7 @@ simulator truth (sim/truth) from the flip phase's start (planner/setpoint's phas
     turn_loss  the turn's start minus that lowest point: the loss measured from the roll
     fall       the peak minus that lowest point
     excursion  farthest horizontal distance from the flip's start to the log's end (the hold
-               after the recovery included, which the issue's drift metric is not)
+               after the recovery included, which metrics.json's xy_drift_m is not)
 """
 from __future__ import annotations
 

@@ -22,7 +22,7 @@ average at the start and the part of the flight another real-time process ran be
 during the flip item (`stalls`: nothing of the stack can run then, whatever its priority).
 `--threads`: the planner's CPU per thread name (from /proc/PID/task) after start-up.
 
-Targets (docs/flip.md and the real-time issue): altitude loss <= 1.0 m (aim 0.5), XY drift
+Targets (docs/flip.md): altitude loss <= 1.0 m (aim 0.5), XY drift
 <= 0.27 m, recovery <= 0.5 s, every seed completed, >= 100 plans/s. plans/s is plans over
 the item's span, so in real time a flight with no re-solve lost reads 99.9-100.1 (the
 span's end points jitter by a fraction of a period) and one lost re-solve ~99.65: the

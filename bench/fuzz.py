@@ -1,4 +1,4 @@
-"""Fuzz every input during a long hover: 10^6 invalid messages at >= 600/s (issue 22, item 9).
+"""Fuzz every input during a long hover: 10^6 invalid messages at >= 600/s.
 
     PYTHONPATH=. python bench/fuzz.py [--messages 1000000] [--rate 600] [--realtime] [--estimators]
 

@@ -1,4 +1,4 @@
-"""Position hold in a steady wind with gusts, on the stack's estimates (issue 26: RMS <= 3 cm).
+"""Position hold in a steady wind with gusts, on the stack's estimates (target: RMS <= 3 cm).
 
     python bench/gust_hold.py [--seeds 0 1 2] [--ki 0 16] [--wind 2 0 0] [--gust-std 0.5]
 

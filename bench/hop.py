@@ -49,9 +49,7 @@ Topologies:
           services' flags (-e ROUTER). Zenoh's gossip lets the two peers find each other
           through the router and open a direct link: the header says what A is linked to.
   routed  A and B in client mode (-m client -e ROUTER): every message goes A -> router -> B,
-          the router's own hop. (Not with peers: in a probe with zenoh 1.10.2, two peers
-          linked only to the router, gossip off or no listening endpoints, received nothing
-          from each other in 3 s; so on one machine the stack's data takes the direct link.)
+          the router's own hop (peers would take the direct link; docs/performance.md).
   direct  no router: B listens on a free port, A connects to it.
 
 The blocks (one variant, one topology, --pings round trips after --warm unrecorded ones)

@@ -7,7 +7,7 @@ a hover 0.5 m below and 0.3 m beside the target). The thesis's solver is forced 
 5 iterations (tol 0) so both do the same amount of work; the project's runs its
 5 iterations (relative tolerance 0). Prints compile times, median solve times over
 alternating rounds and the median of the rounds' ratios, timed two ways: on the device
-(the same device arrays in, every output computed; how the thesis's code was timed before)
+(the same device arrays in, every output computed: how the thesis's code is timed)
 and end to end (numpy in, numpy out, as the planner service calls it), then the PROJECT configuration's
 solve time and MPC rate; then the planner's start-up in a fresh process: compiling, and
 loading from the compile cache the planner service keeps (flight.control.ilqr.use_compile_cache).
@@ -27,8 +27,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-# flight.control.ilqr first: on import it sets an XLA option that XLA reads at the process's first
-# JAX operation, and bench.ilqr_thesis computes its weight matrices on import.
+# bench.ilqr_thesis computes its weight matrices (JAX) on import, so the process's first JAX
+# operation comes before the first ILQRSolver asks for XLA's small-loop option
+# (flight.control.ilqr.request_small_loop_hoisting): "loops compiled whole" says whether it took.
 from flight.control.ilqr import PROJECT, THESIS, ILQRSolver, hover_state, solver_compiler_options, warm_start  # noqa: I001
 from bench.ilqr_thesis import make_thesis_ilqr
 from flight.vehicle import load_vehicle

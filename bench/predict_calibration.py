@@ -9,7 +9,7 @@ flown by the planner's full controller (flight/control/flip_runner.FlipControlle
 and the iLQR re-solved at 100 Hz from the state) on the simulator's plant (simulator/plant.py:
 RK4 at 2 kHz, its own motor lag and drag), with the case's mass, inertia, thrust, motor lag,
 wind and gusts, control delay and start error, on the true state. Prints, per flip figure,
-the fraction of flown flips inside the predicted band (the issue's target: >= 90 %).
+the fraction of flown flips inside the predicted band (target: >= 90 %).
 
 This calibrates the predictor against re-planning on the simulator's plant; the stack's
 estimators and transport are not in these flights.

@@ -11,7 +11,7 @@ overflow). For the stack: the imu->pwm latency (the IMU sample's time to the mot
 output that used it) and the CPU of the vehicle's services together and of everything.
 
 `--load N` keeps N busy processes (normal priority) beside the stack: `--load 1` takes one
-of the two cores. Figures are printed beside the targets of the real-time issue.
+of the two cores. Figures are printed beside their targets (docs/performance.md).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
-# flight/estimation/pnp.py as of zenpilot ab1f93b (before the vectorised rewrite), kept verbatim
-# below these comments as the reference the new solver is checked against (tests/unit/flight/estimation/test_pnp.py)
-# and timed against (bench/vision.py). Not used in flight.
+# flight/estimation/pnp.py as of zenpilot ab1f93b, verbatim (full SVD, per-marker loops):
+# the reference the solver is checked against (tests/unit/flight/estimation/test_pnp.py) and
+# timed against (bench/vision.py). Not used in flight.
 """Pose of the vehicle from the pixel corners of floor markers (planar PnP).
 
 Pure numpy: this module takes pixel corners only, so any detector (the

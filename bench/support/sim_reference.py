@@ -1,10 +1,9 @@
-"""The simulator's and the mixer's former numpy implementations (zenpilot a2ef311), kept
-verbatim as the reference the float rewrites are checked against (tests/unit/simulator/test_fast.py,
+"""The simulator and the mixer in plain numpy (from zenpilot a2ef311): the reference the
+float versions are checked against (tests/unit/simulator/test_fast.py,
 tests/unit/flight/control/test_mixer_fast.py) and timed against (bench/sim_step.py). Not used in flight.
 
-RefPlant's motors were changed with the plant's (issue 26): the rotor speeds are the motor
-states (flight.motor_model), advanced by the lag's exact step, RK4's stages seeing the exact
-speeds at their times.
+RefPlant's motors are the plant's: the rotor speeds are the motor states (flight.motor_model),
+advanced by the lag's exact step, RK4's stages seeing the exact speeds at their times.
 """
 from __future__ import annotations
 
@@ -226,8 +225,7 @@ def ref_pwm_to_thrust(vehicle: Vehicle, pwm_us) -> np.ndarray:
 
 
 def ref_motor_forces_update(forces_n, command_n, dt_s: float, motor_time_constant_s: float) -> np.ndarray:
-    """Rotor forces after dt_s under a held command, the rotor speed lagging (issue 26: was
-    the force lagging, c + (f - c) exp(-dt / tau))."""
+    """Rotor forces after dt_s under a held command, the rotor speed lagging."""
     decay = math.exp(-dt_s / motor_time_constant_s)
     sc = np.sqrt(np.maximum(np.asarray(command_n, float), 0.0))
     s = sc + (np.sqrt(np.maximum(np.asarray(forces_n, float), 0.0)) - sc) * decay
