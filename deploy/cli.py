@@ -6,6 +6,7 @@
   zenpilot down [--router R | --all]     stop what `zenpilot up -d` started
   zenpilot sweep [--param S.K=V1,V2] [--seeds 0-99] [--workers N | --scheduler ADDR]
                                          fly a grid of lockstep flights on Dask, one table
+  zenpilot predict [--mission M]         predict a mission's flips before flying them
   zenpilot report DIR                    redraw a flight's plots, print its metrics, write report.html
   zenpilot view [--port 8765]            live Foxglove view of a running stack (WebSocket)
   zenpilot log info|recover RUN_OR_FILE  what a flight log holds; recover a cut one

@@ -27,20 +27,20 @@ from services.stack import SERVICE_MODULES, Stack, StackError
 ROUTER_START_TIMEOUT_S = 10.0
 STOP_GRACE_S = 5.0        # a service's time to finish after SIGTERM before SIGKILL
 # The recorder's: it writes what arrived last and the log's summary (the log is then complete),
-# and in lockstep rewrites the log in sample-time order, ~1.2 s per MB of log on 2 busy cores
-# (a 20 s hover: 4.5 MB, 5.4 s). Running out of time would cost that order, never the log.
+# and in lockstep rewrites the log in sample-time order, which takes time per MB of log
+# (docs/performance.md, "Lockstep"). Running out of time would cost that order, never the log.
 RECORDER_GRACE_S = 30.0
 RECORDER_GRACE_S_PER_MB = 3.0
 DELIVERY_S = 0.3   # after the services stop, for their last messages to reach the recorder
 # One thread per Zenoh runtime pool: a 400 Hz service needs no more, and on a
 # small computer (2 cores here, a Raspberry Pi on the vehicle) fewer threads
-# means fewer context switches (measured: lockstep 1.04x -> 1.25x real time).
+# means fewer context switches (docs/performance.md, "Lockstep").
 ZENOH_RUNTIME = ("(app: (worker_threads: 1), acc: (worker_threads: 1), tx: (worker_threads: 1), "
                  "rx: (worker_threads: 1), net: (worker_threads: 1))")
 
 # The services' linear algebra is small (3x3 .. 13x13, a PnP of a few hundred points): one BLAS
-# thread. A second one only spin-waits, and beside real-time loops on 2 cores it took 40 % of a
-# core from the flip's planner (measured: vision's PnP in a real-time flip).
+# thread. A second one only spin-waits, and beside real-time loops on 2 cores it takes CPU from
+# the flip's planner (docs/performance.md).
 SERVICE_THREADS = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 

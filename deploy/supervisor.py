@@ -16,7 +16,7 @@ A restart waits a back-off (BACKOFF_S, doubled per restart of that service, at m
 BACKOFF_MAX_S) and starts the same command line; its output is appended to the service's log.
 
 Restarts happen in real time only. In lockstep a lost participant is dropped from the clock
-(services/runtime.py) and a new process cannot rejoin a clock already running, so there the
+(services/lockstep.py) and a new process cannot rejoin a clock already running, so there the
 supervisor reports and the flight stops as it did without it. The simulator is never restarted
 (a new world mid-flight), nor by default the recorder (it would begin a new log over the old one:
 `restart = "never"` is its default; a cut log is made whole by `zenpilot log recover`).

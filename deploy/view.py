@@ -5,7 +5,7 @@ only listens (it publishes nothing, so a lockstep flight's log is the same with 
 it) and serves, with foxglove-sdk, on loopback by default:
 
 - every message of zp/<vehicle>/** on a JSON channel named by its key, with the JSON Schema
-  flight.mcap uses (deploy/flightlog.json_schema): the same topics and fields as the log, so
+  flight.mcap uses (schemas/flightlog.json_schema): the same topics and fields as the log, so
   one layout (docs/foxglove-layout.json) serves both; plots of setpoints, attitude, rates,
   motor outputs and each service's health come from these;
 - the well-known channels of services/foxglove_map.py (poses and transforms of truth and

@@ -26,9 +26,9 @@ and the force's mean over the step, exact for a held command (e = sqrt(f) - sqrt
 
     mean f = c + 2 sqrt(c) e w1 + e^2 w2,   w1 = (tau / h)(1 - d),   w2 = (tau / 2h)(1 - d^2)
 
-(The former model lagged the force itself, f' = (c - f) / tau: against RotorPy's multirotor,
-whose rotors lag in speed, it drifted 8.5 mm over 3 s on the x250 and 4.8 cm and 3 deg of yaw
-on the q820; this one agrees to ~1e-9 m, tests/unit/flight/test_motor_model.py.)
+A rotor lags in speed, not in thrust: against RotorPy's multirotor this model agrees to
+rounding where a thrust lag drifts by millimetres (tests/unit/flight/test_motor_model.py;
+docs/flip-history.md, "The motors lag in rotor speed").
 
 Pure numpy and math. root_step and root_step_and_mean are plain arithmetic, so they run on
 floats, numpy arrays and JAX arrays alike (flight/control/ilqr.py, flight/control/predict.py);

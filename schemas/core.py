@@ -312,7 +312,7 @@ _get_ident = threading.get_ident
 def _new_packer() -> msgpack.Packer:
     if len(_packers) > 256:   # threads come and go: keep the table small
         _packers.clear()
-    _packers[_get_ident()] = p = msgpack.Packer(use_bin_type=True)  # the options of the old msgpack.packb call
+    _packers[_get_ident()] = p = msgpack.Packer(use_bin_type=True)  # as msgpack.packb(use_bin_type=True)
     return p
 
 

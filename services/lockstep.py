@@ -1,6 +1,6 @@
 """The lockstep protocol (as PX4 SITL's lockstep), both halves in one module.
 
-The simulator drives a clock; each participant (schemas.LOCKSTEP_PARTICIPANTS) runs the work
+The simulator drives a clock; each participant (services.stack.LOCKSTEP_PARTICIPANTS) runs the work
 due at a simulated tick once the outputs it depends on for that tick are in, and the
 simulator steps the physics only when the outputs it applies (PWM, mission state) are in.
 Same seed, same flight, bit for bit.

@@ -161,8 +161,7 @@ def apply_session(conf, sec: Security, machine: str) -> None:
         {"user": user, "password": password, "dictionary_file": str(sec.login_file(machine))}))
     conf.insert_json5("transport/link/tls", json.dumps(tls_config(sec, machine)))
     # Two peers that open a link to each other at once, with user/password, may both be refused
-    # for good (zenoh issue 2577; measured: 2 of 15 three-peer meshes left incomplete): only the
-    # peer with the greater id opens, as in the open stack's race-free case.
+    # for good (zenoh issue 2577; docs/security.md): only the peer with the greater id opens.
     conf.insert_json5("scouting/gossip/autoconnect_strategy",
                       '{peer: {to_router: "always", to_peer: "greater-zid"}}')
 

@@ -2,8 +2,9 @@
 
 Publishes sim/imu, sim/baro, sim/mag, sim/camera and sim/truth at their own
 rates; applies the motor driver's PWM. In lockstep it drives the clock: it
-publishes @lockstep/clock for each tick and advances only when every service due
-at that tick has reported done. It stops by itself `linger_s` after the
+publishes @lockstep/clock for each tick and steps the physics once the runs whose
+outputs it applies (the motors' PWM, the planner's mission state) are done
+(services/lockstep.py). It stops by itself `linger_s` after the
 mission completes (or fails), or after `max_duration_s`.
 """
 

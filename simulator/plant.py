@@ -10,7 +10,7 @@ rotor speeds with the lag's exact step (RK4's stages see the exact speeds at the
 The integrator runs on plain Python floats: the simulator takes 5 RK4 steps (20
 derivative evaluations) per 400 Hz tick, and numpy's ~1 us per call on 3- and
 4-vectors made that most of the simulator's time. The equations are the ones of
-:meth:`Plant.derivative`; tests/unit/simulator/test_fast.py checks it against the former numpy
+:meth:`Plant.derivative`; tests/unit/simulator/test_fast.py checks it against a plain numpy
 integrator (bench/support/sim_reference.py): the two agree to rounding.
 """
 from __future__ import annotations
@@ -328,7 +328,7 @@ class Plant:
         self.landed = landed
 
     def _store(self, *state: float) -> None:
-        self.x = np.array(state)  # a new array, as the numpy integrator made (views of the old stay put)
+        self.x = np.array(state)  # a new array: views of the old state stay put
 
     def _apply_ground(self, wind_m_s) -> None:
         """At z = 0: rest (zero motion, level, keep yaw) unless the net force lifts off."""

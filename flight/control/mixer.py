@@ -3,7 +3,7 @@ map that follows it is the motors' own, flight/motor_model.py).
 
 The 400 Hz path (mix) works on Python floats with the vehicle's M^-1 and limits read once
 per vehicle: numpy's ~1 us per call on 4-vectors was most of its time.
-tests/unit/flight/control/test_mixer_fast.py checks it against the former numpy version
+tests/unit/flight/control/test_mixer_fast.py checks it against a plain numpy version
 (bench/support/sim_reference.py), saturation cases included.
 """
 from __future__ import annotations

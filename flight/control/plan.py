@@ -88,7 +88,7 @@ def body_state(t_s: float, att: dict, pos: dict, vehicle=None, rotor_forces_n=No
     attitude. Without, at constant velocity. A pos/state is up to a period and a hop old
     (10-12 ms at 100 Hz): through a flip the vertical acceleration swings by 2 g, and a
     velocity 0.1-0.2 m/s stale made the plan, and the driver's feedback on it, lag the turn
-    (stack on truth, weights 350: 0.32 m drift and 26 deg overshoot against 0.25 / 19)."""
+    (docs/flip-history.md, "Estimation through the flip")."""
     a_age = max(0.0, t_s - att["header"]["t_s"])
     p_age = max(0.0, t_s - pos["header"]["t_s"])
     v = np.asarray(pos["velocity_m_s"], dtype=np.float64)

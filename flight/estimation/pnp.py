@@ -31,12 +31,12 @@ Cost (bench/vision.py): ~0.3-0.5 ms a frame whether 5 or 200 markers are seen. E
 step over the points is one numpy operation over all corners (a frame at the flip's
 5 m sees ~180 markers, ~700 corners), nothing per marker or per point in Python. The
 DLT null vector comes from the system's 9 x 9 Gram matrix (24 moments), with the thin
-SVD deciding near-degenerate cases (the former full SVD also built a 2N x 2N U: 16 MB
-and tens of ms at 700 corners). The Gauss-Newton normal equations are formed in the
-camera frame, J^T J = B^T (K^T K) B with B = diag(R_cw, R_cw), from the normalised
-image coordinates, in a buffer made once per frame. Same algorithm, iterations and
-decisions as before: bench/support/pnp_reference.py keeps the former implementation and
-tests/unit/flight/estimation/test_pnp.py holds the two equal.
+SVD deciding near-degenerate cases (a full SVD would also build a 2N x 2N U: 16 MB at
+700 corners). The Gauss-Newton normal equations are formed in the camera frame,
+J^T J = B^T (K^T K) B with B = diag(R_cw, R_cw), from the normalised image coordinates,
+in a buffer made once per frame. bench/support/pnp_reference.py is the same algorithm
+written plainly (full SVD, per-marker loops); tests/unit/flight/estimation/test_pnp.py
+holds the two to the same poses and decisions.
 """
 from __future__ import annotations
 
