@@ -27,8 +27,9 @@ from services.stack import SERVICE_MODULES, Stack, StackError
 ROUTER_START_TIMEOUT_S = 10.0
 STOP_GRACE_S = 5.0        # a service's time to finish after SIGTERM before SIGKILL
 # The recorder's: it writes what arrived last and the log's summary (the log is then complete),
-# and in lockstep rewrites the log in sample-time order, which takes time per MB of log
-# (docs/performance.md, "Lockstep"). Running out of time would cost that order, never the log.
+# and in lockstep rewrites the log in sample-time order (~1.2 s per MB on 2 busy cores,
+# docs/performance.md): 3 s per MB leaves a margin. Running out of time would cost that order,
+# never the log.
 RECORDER_GRACE_S = 30.0
 RECORDER_GRACE_S_PER_MB = 3.0
 DELIVERY_S = 0.3   # after the services stop, for their last messages to reach the recorder
