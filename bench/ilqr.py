@@ -27,11 +27,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-# bench.ilqr_thesis computes its weight matrices (JAX) on import, so the process's first JAX
-# operation comes before the first ILQRSolver asks for XLA's small-loop option
-# (flight.control.ilqr.request_small_loop_hoisting): "loops compiled whole" says whether it took.
-from flight.control.ilqr import PROJECT, THESIS, ILQRSolver, hover_state, solver_compiler_options, warm_start  # noqa: I001
-from bench.ilqr_thesis import make_thesis_ilqr
+# XLA reads its flags at the process's first JAX operation, and bench.ilqr_thesis computes its
+# weight matrices (JAX) on import: the small-loop option the planner flies with is asked for
+# first, as the planner's first ILQRSolver does ("loops compiled whole" says whether it took).
+from flight.control.ilqr import (PROJECT, THESIS, ILQRSolver, hover_state, request_small_loop_hoisting,  # noqa: I001
+                                 solver_compiler_options, warm_start)
+request_small_loop_hoisting()
+from bench.ilqr_thesis import make_thesis_ilqr  # noqa: E402
 from flight.vehicle import load_vehicle
 
 
