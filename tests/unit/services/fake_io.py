@@ -85,6 +85,11 @@ class FakeIO(ParamAccess):
     def problem(self, text: str) -> None:
         self.problems.append(text)
 
+    def reject(self, key: str, exc: schemas.SchemaError) -> None:
+        """As the Runtime counts a dropped message: by reason."""
+        self.rejected[exc.reason] = self.rejected.get(exc.reason, 0) + 1
+        self.problems.append(f"dropped a message on {key}: {exc}")
+
     def count_run(self, t: float) -> None:
         pass
 
