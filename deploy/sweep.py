@@ -37,9 +37,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from services.params import values
+from services.params import Param
 from services.params.reference import DECLARED
-from services.stack import StackError, load_stack, parse_overrides, resolve_params
+from services.stack import StackError, check_param, load_stack, parse_overrides
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -102,18 +102,18 @@ def split_values(text: str) -> list[str]:
     return out
 
 
-def param_defaults(service: str) -> dict[str, Any]:
-    """A service's declared parameters and their defaults (services/params/). Names and types are
-    checked here; bounds and choices the service checks at start (a refused value is a failed flight)."""
-    return values(DECLARED.get(service, {}))
+def param_declarations(service: str) -> dict[str, Param]:
+    """A service's declared parameters (services/params/): what the grid's values are checked against."""
+    return DECLARED.get(service, {})
 
 
 def check_setting(item: str, stack, option: str = "--param",
-                  defaults_of: Callable[[str], dict] = param_defaults) -> tuple[str, str]:
+                  declared_of: Callable[[str], dict] = param_declarations) -> tuple[str, str]:
     """'service.key=value' checked against the stack's services and the service's declared
-    parameters (name and type), as the service will check it; returns ('service.key', value
-    as it goes to `fly --set`). A number for a list of numbers is every element: attitude.k=8
-    is [8.0,8.0,8.0]."""
+    parameters (name, type, bounds, choices) with the check the service makes at start
+    (services/stack.py check_param), so no flight is flown to be refused; returns ('service.key',
+    value as it goes to `fly --set`). A number for a list of numbers is every element:
+    attitude.k=8 is [8.0,8.0,8.0]."""
     name, sep, raw = item.partition("=")
     service, dot, key = name.strip().partition(".")
     if not sep or not dot or not key or not raw.strip():
@@ -121,17 +121,15 @@ def check_setting(item: str, stack, option: str = "--param",
     if service not in stack.services:
         raise StackError(f"{option} {item!r}: no service {service!r} in {stack.path} "
                          f"(services: {', '.join(stack.services)})")
-    defaults = defaults_of(service)
+    declared = declared_of(service)
     value = parse_overrides([f"{key}={raw.strip()}"])[key]
-    default = defaults.get(key)
-    if (isinstance(default, (list, tuple)) and default and all(isinstance(d, float) for d in default)
+    d = declared.get(key)
+    default = d.default if isinstance(d, Param) else d
+    if (isinstance(default, (list, tuple)) and default and all(isinstance(x, float) for x in default)
             and isinstance(value, (int, float)) and not isinstance(value, bool)):
         value = [float(value)] * len(default)
         raw = "[" + ",".join(repr(v) for v in value) + "]"
-    try:
-        resolve_params(defaults, {key: value}, f"{option} {service}")
-    except StackError as exc:
-        raise StackError(f"{option} {item!r}: {exc}") from None
+    check_param(declared, key, value, f"{option} {item!r}: {service}")
     return f"{service}.{key}", raw.strip()
 
 
@@ -181,11 +179,13 @@ class Grid:
 
 def expand_grid(missions: list[str], seeds: str, params: list[str] | None = None,
                 scenarios: list[str] | None = None, sets: list[str] | None = None, stack_path: str | None = None,
-                defaults_of: Callable[[str], dict] = param_defaults, check_mission: Callable[[str], Any] | None = None,
+                declared_of: Callable[[str], dict] = param_declarations,
+                check_mission: Callable[[str], Any] | None = None,
                 scenario_table: dict[str, tuple[str, ...]] = SCENARIOS) -> Grid:
     """Every flight of the grid, seed-major (a sweep cut short has every other point at its
-    first seeds). Refuses, with what is wrong, an unknown service, parameter or scenario, a value
-    of the wrong type, a bad seed range and a dimension given twice."""
+    first seeds). Refuses before any flight, with what is wrong, an unknown service, parameter
+    or scenario, a value of the wrong type, out of its bounds or not among its choices, a bad
+    seed range and a dimension given twice."""
     stack = load_stack(stack_path)
     seed_list = parse_seeds(seeds)
     missions = [m for text in (missions or ["hover"]) for m in split_values(text) if m]
@@ -202,8 +202,8 @@ def expand_grid(missions: list[str], seeds: str, params: list[str] | None = None
             raise StackError(f"--scenario {s!r}: unknown (scenarios: {', '.join(scenario_table)})")
     if len(set(names)) != len(names):
         raise StackError(f"--scenario: a scenario given twice ({', '.join(names)})")
-    scen_sets = {s: [check_setting(i, stack, f"--scenario {s}", defaults_of) for i in scenario_table[s]] for s in names}
-    fixed = [check_setting(i, stack, "--set", defaults_of) for i in sets or []]
+    scen_sets = {s: [check_setting(i, stack, f"--scenario {s}", declared_of) for i in scenario_table[s]] for s in names}
+    fixed = [check_setting(i, stack, "--set", declared_of) for i in sets or []]
     axes: list[tuple[str, list[tuple[str, str]]]] = []
     for item in params or []:
         name, sep, raw = item.partition("=")
@@ -212,7 +212,7 @@ def expand_grid(missions: list[str], seeds: str, params: list[str] | None = None
         values = split_values(raw)
         if not all(values):
             raise StackError(f"--param {item!r}: an empty value")
-        checked = [check_setting(f"{name.strip()}={v}", stack, "--param", defaults_of) for v in values]
+        checked = [check_setting(f"{name.strip()}={v}", stack, "--param", declared_of) for v in values]
         key = checked[0][0]
         if key in [a for a, _ in axes]:
             raise StackError(f"--param {key}: given twice (give every value in one --param {key}=V1,V2,...)")
@@ -604,7 +604,8 @@ def add_parser(sub) -> None:
                     help="mission name(s) or file(s) (default: hover; repeatable)")
     sp.add_argument("--seeds", default="0", help="seeds: a range 0-99, a list 1,3,5, or both 0-4,10 (default 0)")
     sp.add_argument("--param", action="append", metavar="SERVICE.KEY=V1,V2,...",
-                    help="a swept parameter and its values, checked against the service's PARAMS "
+                    help="a swept parameter and its values, checked against the service's declared parameters "
+                         "(name, type, bounds, choices) before any flight "
                          "(a number for a list of numbers sets every element: attitude.k=8 is [8,8,8]; "
                          "list values in brackets: attitude.k=[8,8,6],[12,12,6]); repeatable, one per parameter")
     sp.add_argument("--scenario", action="append", metavar="NAME[,NAME2,...]",

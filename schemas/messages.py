@@ -371,8 +371,9 @@ PLANNER_FLIP_PREDICTION = Message(
 PARAM_SET = Message(
     "param_set", "param/set", 1,
     "Set a running service's parameter (the MAVLink parameter protocol): the "
-    "service named applies it if the key is one of its numeric parameters and the "
-    "length matches; otherwise it counts the message as rejected.",
+    "service named applies it if the value passes the check of its declaration that "
+    "start-up makes (a numeric parameter, this length, within its bounds); otherwise it "
+    "counts the message as rejected (param_rejected) and keeps the old value.",
     (
         F("service", "str", "service the parameter belongs to"),
         F("key", "str", "parameter key in the stack file"),

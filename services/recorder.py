@@ -17,6 +17,9 @@ messages made from them (services/foxglove_map.py: transforms, poses, the 3D sce
 Foxglove shows the flight without configuration: written as the messages come in real time,
 made from the sorted stream in lockstep (the conversion keeps state, e.g. the newest
 attitude: it must see the messages in a deterministic order).
+
+What it does with each message is FlightRecorder's (no Zenoh: tests/unit/services/test_recorder.py);
+run() only subscribes, keeps the loop and the signals, and prints what was written.
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ import zenoh
 
 import schemas
 from flight.vehicle import load_vehicle
-from schemas.flightlog import LOG_NAME, FlightLogWriter, sort_log
+from schemas.flightlog import LOG_NAME, Derive, FlightLogWriter, sort_log
 from services.foxglove_map import FoxgloveMap, MarkerGrid
 from services.runtime import Runtime, main_guard, service_parser
 
@@ -50,79 +53,127 @@ QUIET_STEPS = 3
 DRAIN_MAX_S = 3.0
 
 
-def run(args) -> None:
-    rt = Runtime(NAME, args, PARAMS, announce=False)   # alive once it listens: the launcher waits for that
-    out_dir = Path(args.out)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    path = out_dir / LOG_NAME
-    sorted_path = path.with_name(path.name + ".sorted")
-    sorted_path.unlink(missing_ok=True)   # a rewrite a previous recorder did not finish
-    log = FlightLogWriter(path)
-    own_health = schemas.HEALTH.key(rt.vehicle_id, NAME)
-    live_foxglove = FoxgloveMap(load_vehicle(rt.vehicle_name).motor_positions_m, rt.vehicle_id,
-                                MarkerGrid.for_stack(rt.stack), poses=False)   # real time: as messages come
-    arrived: deque[tuple[str, bytes]] = deque()   # append/popleft are thread safe
-    # per key, what to do with its messages: the message's decode, SKIP, or None (no
-    # message defined); looked up once per key, not per message
-    decoders: dict[str, Callable[[bytes], dict] | object | None] = {}
+class FlightRecorder:
+    """The recorder's logic: each message received goes into the flight log, decoded strictly
+    (a malformed one, or one on a key no message is defined for, is counted by `io.reject` and
+    dropped), the log handed to the OS at least every `flush_s` of `clock` time and closed
+    complete by `close`. `io` is the service's Runtime in flight, a fake in the unit tests; no
+    Zenoh here. `receive` only queues (safe from another thread); the rest runs on one thread.
 
-    def decoder_for(key: str):
-        if key == own_health or "/alive/" in key:
+    foxglove: real time only, the Foxglove messages made from the bus messages as they come
+    (lockstep makes them from the sorted stream instead: `sort`)."""
+
+    def __init__(self, io, path: Path, vehicle_id: int | str, foxglove: FoxgloveMap | None = None,
+                 clock: Callable[[], float] = time.monotonic, flush_s: float = FLUSH_S):
+        self.io = io
+        self.path = Path(path)
+        self.sorted_path = self.path.with_name(self.path.name + ".sorted")
+        self.sorted_path.unlink(missing_ok=True)   # a rewrite a previous recorder did not finish
+        self.log = FlightLogWriter(self.path)
+        self.own_health = schemas.HEALTH.key(vehicle_id, NAME)
+        self.foxglove = foxglove
+        self.clock = clock
+        self.flush_s = flush_s
+        self.arrived: deque[tuple[str, bytes]] = deque()   # append/popleft are thread safe
+        # per key, what to do with its messages: the message's decode, SKIP, or None (no
+        # message defined); looked up once per key, not per message
+        self.decoders: dict[str, Callable[[bytes], dict] | object | None] = {}
+        self.stop_asked_at: float | None = None   # clock time of the stop request
+        self.quiet_steps = 0                      # steps since then with nothing new
+        self.next_flush = clock() + flush_s
+
+    def receive(self, key: str, payload: bytes) -> None:
+        self.arrived.append((key, payload))
+
+    def _decoder_for(self, key: str):
+        if key == self.own_health or "/alive/" in key:
             found = SKIP
         else:
             definition = schemas.message_for_key(key)
             found = None if definition is None else definition.decode
-        if len(decoders) < MAX_KEYS:  # keys come from the network: bound the cache
-            decoders[key] = found
+        if len(self.decoders) < MAX_KEYS:  # keys come from the network: bound the cache
+            self.decoders[key] = found
         return found
 
-    def on_sample(sample: zenoh.Sample) -> None:
-        arrived.append((str(sample.key_expr), sample.payload.to_bytes()))
-
-    def write_arrived() -> int:
+    def write_arrived(self) -> int:
+        """Log what has arrived; returns how many messages were taken (logged or not)."""
+        arrived, decoders, log, foxglove = self.arrived, self.decoders, self.log, self.foxglove
         n = len(arrived)
         for _ in range(n):
             key, payload = arrived.popleft()
             decode = decoders.get(key, _UNSEEN)
             if decode is _UNSEEN:
-                decode = decoder_for(key)
+                decode = self._decoder_for(key)
             if decode is SKIP:
                 continue
             if decode is None:
-                rt.reject(key, schemas.SchemaError("malformed", "?", f"no message is defined for key {key}"))
+                self.io.reject(key, schemas.SchemaError("malformed", "?", f"no message is defined for key {key}"))
                 continue
             try:
                 msg = decode(payload)
             except schemas.SchemaError as exc:
-                rt.reject(key, exc)
+                self.io.reject(key, exc)
                 continue
             log.write(key, msg)
-            if not args.lockstep and live_foxglove.wants(key, msg["header"]["t_s"]):
+            if foxglove is not None and foxglove.wants(key, msg["header"]["t_s"]):
                 t_ns = int(round(msg["header"]["t_s"] * 1e9))
-                for topic, name, schema_data, data in live_foxglove.encoded(key, msg):
+                for topic, name, schema_data, data in foxglove.encoded(key, msg):
                     log.add(log.channel(topic, name, schema_data, "protobuf", "protobuf"), t_ns, data)
         return n
 
-    stop_asked = [0.0, 0]   # when the stop was asked (monotonic), loop periods since with nothing new
+    def ask_stop(self) -> None:
+        """A stop was asked (SIGTERM/SIGINT): drain, then `step` says done."""
+        if self.stop_asked_at is None:
+            self.stop_asked_at = self.clock()
 
-    def ask_stop(*_) -> None:
-        if not stop_asked[0]:
-            stop_asked[0] = time.monotonic()
+    def step(self) -> bool:
+        """One loop period: log what arrived, flush when due. True once asked to stop and
+        nothing came for QUIET_STEPS steps, or DRAIN_MAX_S after the request."""
+        got = self.write_arrived()
+        done = False
+        if self.stop_asked_at is not None:
+            self.quiet_steps = 0 if got else self.quiet_steps + 1
+            done = self.quiet_steps >= QUIET_STEPS or self.clock() - self.stop_asked_at > DRAIN_MAX_S
+        if self.clock() >= self.next_flush:
+            self.log.flush()
+            self.next_flush = self.clock() + self.flush_s
+        return done
+
+    def close(self) -> str:
+        """Log the rest and write the summary: the log is complete. Returns what was done."""
+        self.write_arrived()
+        self.log.close()
+        rejected = self.io.rejected
+        return (f"wrote {self.log.count} messages to {self.path}; rejected {sum(rejected.values())} "
+                f"{json.dumps(rejected, sort_keys=True)}")
+
+    def sort(self, derive: Derive | None = None) -> int:
+        """Lockstep, after close: rewrite the log in (sample time, key, sequence) order, each
+        message once (schemas.flightlog.sort_log), through a temporary file that replaces it
+        when done. Returns the messages kept."""
+        n = sort_log(self.path, self.sorted_path, derive=derive)
+        os.replace(self.sorted_path, self.path)
+        return n
+
+
+def run(args) -> None:
+    rt = Runtime(NAME, args, PARAMS, announce=False)   # alive once it listens: the launcher waits for that
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    motors = load_vehicle(rt.vehicle_name).motor_positions_m
+    live_foxglove = None if args.lockstep else FoxgloveMap(motors, rt.vehicle_id, MarkerGrid.for_stack(rt.stack),
+                                                            poses=False)
+    rec = FlightRecorder(rt, out_dir / LOG_NAME, rt.vehicle_id, live_foxglove)
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        rec.receive(str(sample.key_expr), sample.payload.to_bytes())
 
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, ask_stop)
-    next_flush = time.monotonic() + FLUSH_S
+        signal.signal(sig, lambda *_: rec.ask_stop())
 
     def step(_t: float) -> None:
-        nonlocal next_flush
-        got = write_arrived()
-        if stop_asked[0]:
-            stop_asked[1] = 0 if got else stop_asked[1] + 1
-            if stop_asked[1] >= QUIET_STEPS or time.monotonic() - stop_asked[0] > DRAIN_MAX_S:
-                rt.stop_event.set()
-        if time.monotonic() >= next_flush:
-            log.flush()
-            next_flush = time.monotonic() + FLUSH_S
+        if rec.step():
+            rt.stop_event.set()
 
     rt.subscribe(rt.key("**"), on_sample)
     rt.announce_alive()
@@ -131,18 +182,13 @@ def run(args) -> None:
     try:
         rt.run(step)   # returns on SIGTERM/SIGINT, its session closed
     finally:
-        write_arrived()
-        log.close()
-        summary = (f"wrote {log.count} messages to {path}; rejected {sum(rt.rejected.values())} "
-                   f"{json.dumps(rt.rejected, sort_keys=True)}")
-        print(f"zenpilot-recorder: {summary}", flush=True)
+        print(f"zenpilot-recorder: {rec.close()}", flush=True)
     if args.lockstep:
         t0 = time.monotonic()
-        sorted_foxglove = FoxgloveMap(load_vehicle(rt.vehicle_name).motor_positions_m, rt.vehicle_id,
-                                      MarkerGrid.for_stack(rt.stack), poses=False)   # lockstep: from the sorted stream
-        n = sort_log(path, sorted_path, derive=sorted_foxglove.encoded_stored)
-        os.replace(sorted_path, path)
-        print(f"zenpilot-recorder: sorted by sample time: {n} messages ({log.count - n} repeats dropped) "
+        sorted_foxglove = FoxgloveMap(motors, rt.vehicle_id, MarkerGrid.for_stack(rt.stack),
+                                      poses=False)   # lockstep: from the sorted stream
+        n = rec.sort(derive=sorted_foxglove.encoded_stored)
+        print(f"zenpilot-recorder: sorted by sample time: {n} messages ({rec.log.count - n} repeats dropped) "
               f"in {time.monotonic() - t0:.1f} s", flush=True)
 
 

@@ -45,8 +45,9 @@ import zenoh
 
 import schemas
 from services import lockstep, security
-from services.stack import (LOCKSTEP_PARTICIPANTS, SERVICES_LISTEN, Stack, StackError, check_compatible, load_stack,
-                            parse_overrides, resolve_params)
+from services.params import Param
+from services.stack import (LOCKSTEP_PARTICIPANTS, SERVICES_LISTEN, Stack, StackError, check_compatible, check_param,
+                            load_stack, parse_overrides, resolve_params)
 
 HEALTH_PERIOD_S = 1.0
 LATE_S = 0.005        # a wake-up later than this past its deadline counts as late
@@ -346,6 +347,8 @@ class ParamAccess(abc.ABC):
     Runtime's in flight, a fake's in the services' unit tests."""
 
     params: dict[str, Any]
+    declared: dict[str, Any]   # name -> services.params.Param (or a bare default): what params were checked against
+    _param_callbacks: dict[str, list[Callable[[Any], None]]]
 
     @abc.abstractmethod
     def where(self) -> str:
@@ -370,6 +373,24 @@ class ParamAccess(abc.ABC):
     def on_param(self, key: str, callback: Callable[[Any], None]) -> None:
         """Call `callback(new_value)` when the parameter `key` changes in flight."""
 
+    def set_param(self, key: str, value: list[float], source: str = "test") -> Any:
+        """A param/set of `key` to `value` (numbers, as the message carries them: one for a
+        scalar), checked against its declaration as start-up checks the stack file's
+        (services/stack.py check_param: type, length, bounds, choices), then applied and its
+        callbacks called. Refused with StackError naming the key and the bound: the old value stays."""
+        d = self.declared.get(key)
+        default = d.default if isinstance(d, Param) else d
+        given: Any = list(value)
+        if isinstance(default, (int, float)) and not isinstance(default, bool) and len(given) == 1:
+            given = given[0]   # a scalar parameter: its one number, an int where it is declared one
+            if isinstance(default, int) and float(given).is_integer():
+                given = int(given)
+        new = check_param(self.declared, key, given, f"param/set from {source}: {self.name}")
+        self.params[key] = new
+        for cb in self._param_callbacks.get(key, []):
+            cb(new)
+        return new
+
 
 class Runtime(ParamAccess):
     def __init__(self, name: str, args: argparse.Namespace, param_defaults: dict[str, Any] | None = None,
@@ -382,7 +403,8 @@ class Runtime(ParamAccess):
             given = dict(spec.params) if spec else {}
             overrides = parse_overrides(getattr(args, "param", None))
             given.update(overrides)
-            self.params = resolve_params(param_defaults or {}, given, f"{self.stack.path}: [services.{name}.params]")
+            self.declared = param_defaults or {}
+            self.params = resolve_params(self.declared, given, f"{self.stack.path}: [services.{name}.params]")
             if overrides:   # this service's --param may clash with another service's settings in the file
                 check_compatible(f"{self.stack.path} with --param",
                                  {**{n: s.params for n, s in self.stack.services.items()}, name: given})
@@ -550,20 +572,15 @@ class Runtime(ParamAccess):
             return
         if msg["service"] != self.name:
             return
-        key, value, current = msg["key"], msg["value"], self.params.get(msg["key"])
-        if isinstance(current, bool) or not (
-                (isinstance(current, (int, float)) and len(value) == 1)
-                or (isinstance(current, list) and len(current) == len(value)
-                    and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in current))):
-            self.rejected["param_rejected"] = self.rejected.get("param_rejected", 0) + 1
-            self.problem(f"param/set {key}={value}: not a numeric parameter of this length")
+        key, source = msg["key"], msg["header"]["source"]
+        try:
+            new = self.set_param(key, msg["value"], source)
+        except StackError as exc:   # unknown, wrong type or length, out of bounds: counted, the old value kept
+            with self._count_lock:
+                self.rejected["param_rejected"] = self.rejected.get("param_rejected", 0) + 1
+            self.problem(f"refused {exc}" + (f"; {key} stays {self.params[key]}" if key in self.params else ""))
             return
-        new = [float(v) for v in value] if isinstance(current, list) else (
-            int(value[0]) if isinstance(current, int) else float(value[0]))
-        self.params[key] = new
-        for cb in self._param_callbacks.get(key, []):
-            cb(new)
-        print(f"zenpilot-{self.name}: param {key} = {new} (from {msg['header']['source']})", flush=True)
+        print(f"zenpilot-{self.name}: param {key} = {new} (from {source})", flush=True)
 
     # -- lockstep wiring (services/lockstep.py; callbacks on Zenoh's threads) ---------
     def _sync_tick(self, upstream: str) -> int:

@@ -292,11 +292,18 @@ def resolve_params(declared: dict[str, Any], given: dict[str, Any], where: str) 
     for key, d in declared.items():
         out[key] = d.value() if isinstance(d, Param) else d
     for key, value in given.items():
-        if key not in declared:
-            raise StackError(f"{where}: unknown parameter {key!r} (known: {', '.join(sorted(declared))})")
-        decl = declared[key] if isinstance(declared[key], Param) else Param(declared[key])
-        out[key] = _checked(decl, value, f"{where}.{key}")
+        out[key] = check_param(declared, key, value, where)
     return out
+
+
+def check_param(declared: dict[str, Any], key: str, value: Any, where: str) -> Any:
+    """One value given for `key`, checked against its declaration as resolve_params checks each
+    (start-up, a sweep's grid, param/set in flight): returned as the service holds it (an int
+    for a float parameter becomes a float), or refused with `where`.key and what is wrong."""
+    if key not in declared:
+        raise StackError(f"{where}: unknown parameter {key!r} (known: {', '.join(sorted(declared))})")
+    decl = declared[key] if isinstance(declared[key], Param) else Param(declared[key])
+    return _checked(decl, value, f"{where}.{key}")
 
 
 def _checked(decl: Param, value: Any, where: str) -> Any:

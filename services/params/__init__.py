@@ -7,7 +7,8 @@ TUNABLE) without loading the services. What uses them:
 
 - services/stack.py `resolve_params`: a stack file's values (and `--param`/`--set`) over the
   defaults, refused at start-up with the file, section and key when of the wrong type, out of
-  bounds or not among the choices;
+  bounds or not among the choices; its per-value `check_param` also checks a sweep's grid
+  (deploy/sweep.py) and, in flight, a `param/set` (services/runtime.py ParamAccess.set_param);
 - services/mavlink_logic.py: the parameters with `mavlink=` are the ones a ground station tunes
   in flight, under those names and within those bounds;
 - services/params/reference.py: docs/parameters.md.

@@ -48,7 +48,9 @@ def render() -> str:
         "station tunes it by in flight. A stack file (`deploy/stacks/default.toml`) sets only what "
         "differs, under `[services.NAME.params]`; `zenpilot fly --set SERVICE.KEY=VALUE` for one "
         "flight. A service refuses an unknown key, a wrong type, a value out of bounds or not among "
-        "the choices at start, with the file, section and key. Bounds are inclusive unless the "
+        "the choices at start, with the file, section and key; `zenpilot sweep` refuses them in its "
+        "grid before any flight, and a running service refuses them on `param/set` (counted as "
+        "`param_rejected`, the old value kept), by the same check. Bounds are inclusive unless the "
         "interval says otherwise (`(0, 0.5]`: above 0, at most 0.5); a list's bounds hold for each "
         "element. A `{}` default is a nested table its owner (named in the description) checks.",
         "",

@@ -1,8 +1,9 @@
 """`zenpilot sweep` on a 2-worker Dask LocalCluster: two lockstep flights at a time, each with
 its own router and folder, gathered into one table; a task that cannot fly is retried once and
-reported, not lost; a second run skips what is done. The failing flights ask for an attitude
-state source the service does not have: a string, as the parameter's declared type, so the grid
-accepts it, and the service refuses it at start (a missing mission is refused before any flight)."""
+reported, not lost; a second run skips what is done. The failing flights give the attitude
+filter's table a key it does not have: a table, as the parameter's declared type, so the grid
+accepts it, and the filter's owner refuses it at start (a missing mission, or a value out of its
+declared bounds, is refused before any flight)."""
 
 import csv
 import json
@@ -16,11 +17,11 @@ from tests.integration.conftest import ROOT
 pytestmark = pytest.mark.integration
 
 SHORT = "tests/integration/missions/hover-short.toml"
-SOURCES = "attitude.state_source=estimate,bogus"
+FILTERS = "attitude.filter={},{bogus=1}"   # {}: the default
 
 
 def sweep(out, *extra, mission=SHORT, timeout=240):
-    argv = [sys.executable, "-m", "deploy.cli", "sweep", "--mission", mission, "--param", SOURCES, "--seeds", "0-1",
+    argv = [sys.executable, "-m", "deploy.cli", "sweep", "--mission", mission, "--param", FILTERS, "--seeds", "0-1",
             "--workers", "2", "--out", str(out), *extra]
     return subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=timeout)
 
@@ -35,14 +36,17 @@ def test_two_worker_sweep_table_failures_and_resume(tmp_path):
     missing = sweep(out, mission="tests/integration/missions/no-such-mission.toml")
     assert missing.returncode == 2 and "no-such-mission" in missing.stderr, missing.stderr
     assert not (out / "sweep.csv").exists()
+    bounded = sweep(out, "--set", "sim.mass_scale=20")
+    assert bounded.returncode == 2 and "sim.mass_scale: 20.0 outside [0.1, 10]" in bounded.stderr, bounded.stderr
+    assert not (out / "sweep.csv").exists()
     first = sweep(out)
     said = first.stdout + first.stderr
     assert first.returncode == 1, said            # a failed flight: exit status 1, after the table
     assert "2 worker(s)" in said
     rows = read_csv(out / "sweep.csv")
-    flown = {k: r for k, r in rows.items() if r["attitude.state_source"] == "estimate"}
-    failed = {k: r for k, r in rows.items() if r["attitude.state_source"] == "bogus"}
-    assert sorted(flown) == [f"hover-short-nominal-attitude.state_source=estimate-seed{s}" for s in (0, 1)], said
+    flown = {k: r for k, r in rows.items() if r["attitude.filter"] == "{}"}
+    failed = {k: r for k, r in rows.items() if r["attitude.filter"] == "{bogus=1}"}
+    assert sorted(flown) == [f"hover-short-nominal-attitude.filter=x-seed{s}" for s in (0, 1)], said
     assert len(failed) == 2
     for r in flown.values():
         assert r["status"] == "ok", r
@@ -50,7 +54,7 @@ def test_two_worker_sweep_table_failures_and_resume(tmp_path):
         assert float(r["position_rms_m"]) < 0.05
     for r in failed.values():   # reported in the table with why, after the retry
         assert r["status"] == "failed" and r["attempts"] == "2", r
-        assert "exit status 2" in r["error"] and "'bogus' not one of" in r["error"], r   # the service's own word
+        assert "exit status 2" in r["error"] and "unknown parameter(s) ['bogus']" in r["error"], r   # the owner's word
     # isolated: a folder each, its own router port (the command each flight ran)
     commands = [(out / k / "command.txt").read_text() for k in flown]
     ports = {c.split("--port ")[1].split()[0] for c in commands}
@@ -60,7 +64,7 @@ def test_two_worker_sweep_table_failures_and_resume(tmp_path):
     import pyarrow.parquet as pq
     table = pq.read_table(out / "sweep.parquet")
     assert table.num_rows == 4 and sorted(table.column("status").to_pylist()) == ["failed", "failed", "ok", "ok"]
-    assert (out / "sweep-attitude.state_source.png").stat().st_size > 1000   # the swept dimension's plot
+    assert (out / "sweep-attitude.filter.png").stat().st_size > 1000   # the swept dimension's plot
 
     # resume: the flown ones are skipped; the failed ones are tried again (and fail again)
     second = sweep(out)

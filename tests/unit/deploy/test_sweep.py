@@ -75,6 +75,14 @@ def test_list_values_kept_whole():
     (["attitude.k=8,12"], None, ["attitude.k=[1,1,1]"], "also fixed by --set"),
     (None, ["windy"], None, "unknown .*scenarios: nominal"),
     (None, None, ["sim.mass=2"], "unknown parameter 'mass'"),
+    # bounds and choices, as the service checks them at start: refused before any flight
+    (["attitude.k=8,500"], None, None,
+     r"--param 'attitude\.k=500': attitude\.k: \[500\.0, 500\.0, 500\.0\] outside \[0\.1, 200\] 1/s"),
+    (["attitude.k=[8,8,0]"], None, None, r"attitude\.k: \[8\.0, 8\.0, 0\.0\] outside \[0\.1, 200\]"),
+    (["sim.mass_scale=1.0,11"], None, None, r"--param 'sim\.mass_scale=11': sim\.mass_scale: 11\.0 outside \[0\.1, 10\]"),
+    (None, None, ["attitude.setpoint_timeout_s=0"],
+     r"--set 'attitude\.setpoint_timeout_s=0': attitude\.setpoint_timeout_s: 0\.0 outside \(0, inf\) s"),
+    (['attitude.state_source="estimate","guess"'], None, None, r"attitude\.state_source: 'guess' not one of"),
 ])
 def test_bad_grids_refused(params, scenarios, sets, said):
     with pytest.raises(StackError, match=said):
@@ -118,3 +126,23 @@ def test_sweep_help_documents_the_cluster(capsys):
     for word in ("--workers", "--scheduler", "LocalCluster", "tcp://", "--seeds", "--param", "--scenario",
                  "sweep.parquet", "retried"):
         assert word in text
+
+
+def test_a_scenario_out_of_bounds_is_refused_naming_it():
+    with pytest.raises(StackError, match=r"--scenario heavy 'sim\.mass_scale=20': sim\.mass_scale: 20\.0 "
+                                         r"outside \[0\.1, 10\]"):
+        expand_grid(["hover"], "0", None, ["heavy"], scenario_table={"heavy": ("sim.mass_scale=20",)})
+
+
+def test_a_value_out_of_bounds_stops_the_sweep_before_any_flight(tmp_path, monkeypatch):
+    import deploy.sweep
+
+    def fly(*a, **k):
+        raise AssertionError("a flight was started")
+    monkeypatch.setattr(deploy.sweep, "run_sweep", fly)
+    monkeypatch.setattr(deploy.sweep, "fly_task", fly)
+    args = build_parser().parse_args(["sweep", "--param", "attitude.k=8,12,300", "--seeds", "0-3",
+                                      "--out", str(tmp_path / "sweep")])
+    with pytest.raises(StackError, match=r"attitude\.k: \[300\.0, 300\.0, 300\.0\] outside \[0\.1, 200\]"):
+        args.func(args)
+    assert not (tmp_path / "sweep").exists()

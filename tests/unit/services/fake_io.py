@@ -54,6 +54,7 @@ class FakeIO(ParamAccess):
     def __init__(self, name: str, defaults: dict, params: dict | None = None, vehicle: str = "x250",
                  rate_hz: float = 200.0, lockstep: bool = True):
         self.name = name
+        self.declared = defaults
         self.params = resolve_params(defaults, params or {}, self.where())
         self.vehicle_name = vehicle
         self.rate_hz = rate_hz
@@ -76,14 +77,13 @@ class FakeIO(ParamAccess):
     def on_param(self, key: str, callback: Callable[[Any], None]) -> None:
         self._param_callbacks.setdefault(key, []).append(callback)
 
-    def set_param(self, key: str, value) -> None:
-        """As a param/set message does in flight."""
-        self.params[key] = value
-        for cb in self._param_callbacks.get(key, []):
-            cb(value)
-
     def problem(self, text: str) -> None:
         self.problems.append(text)
+
+    def reject(self, key: str, exc: schemas.SchemaError) -> None:
+        """As the Runtime counts a dropped message: by reason."""
+        self.rejected[exc.reason] = self.rejected.get(exc.reason, 0) + 1
+        self.problems.append(f"dropped a message on {key}: {exc}")
 
     def count_run(self, t: float) -> None:
         pass

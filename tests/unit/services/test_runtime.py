@@ -1,16 +1,20 @@
-"""The runtime's pieces that need no Zenoh session: inboxes (decode on the reader's thread,
-rejects and losses counted), scheduling requests."""
+"""The runtime's pieces that need no router: inboxes (decode on the reader's thread, rejects
+and losses counted), scheduling requests, param/set checked against the declarations."""
 
 import os
+import re
+import signal
 import threading
 from types import SimpleNamespace
 
-
+import pytest
 import zenoh
 
 import schemas
 from services import lockstep, runtime
 from services.runtime import RAW_QUEUE_MAX, Inbox, apply_scheduling
+from services.stack import StackError
+from tests.unit.services.fake_io import FakeIO
 
 
 class FakeRuntime:
@@ -200,3 +204,73 @@ def test_multicast_scouting_is_off_unless_asked_for():
     assert scouting() is False
     assert scouting("--no-multicast-scouting") is False
     assert scouting("--multicast-scouting") is True
+
+
+# ---------------------------------------------------------------- param/set in flight
+@pytest.fixture
+def attitude_runtime():
+    """The attitude service's Runtime as it starts (a Zenoh peer on loopback, no router)."""
+    from services.params.attitude import PARAMS
+
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    rt = runtime.Runtime("attitude", runtime.service_parser("attitude", "").parse_args([]), PARAMS)
+    try:
+        yield rt
+    finally:
+        rt.session.close()
+        for s, h in handlers.items():
+            signal.signal(s, h)
+
+
+def param_set(rt, key, value, service="attitude"):
+    rt._on_param_set(SimpleNamespace(payload=zenoh.ZBytes(schemas.PARAM_SET.encode(
+        1.0, 0, "mavlink", {"service": service, "key": key, "value": value}))))
+
+
+def test_param_set_within_the_declaration_applies_live(attitude_runtime):
+    rt = attitude_runtime
+    k = rt.live_array("k")
+    param_set(rt, "k", [8.0, 8.0, 6.0])
+    assert rt.params["k"] == [8.0, 8.0, 6.0] and list(k) == [8.0, 8.0, 6.0]
+    param_set(rt, "stopping_accel_fraction", [1.0])     # on the bound: inclusive
+    assert rt.params["stopping_accel_fraction"] == 1.0
+    param_set(rt, "k", [1.0, 1.0, 1.0], service="position")   # another service's: not this one's business
+    assert rt.params["k"] == [8.0, 8.0, 6.0] and "param_rejected" not in rt.rejected
+
+
+@pytest.mark.parametrize("key, value, said", [
+    ("k", [500.0, 16.0, 16.0],
+     r"param/set from mavlink: attitude\.k: \[500\.0, 16\.0, 16\.0\] outside \[0\.1, 200\] 1/s"),
+    ("k", [16.0, 16.0, 0.0], r"attitude\.k: .* outside \[0\.1, 200\]"),
+    ("setpoint_timeout_s", [0.0], r"attitude\.setpoint_timeout_s: 0\.0 outside \(0, inf\) s"),
+    ("stopping_accel_fraction", [1.5], r"outside \[0, 1\]"),
+    ("k", [8.0, 8.0], r"attitude\.k: expected 3 values, got 2"),
+    ("stopping_accel_fraction", [0.5, 0.5], r"expected float, got \[0\.5, 0\.5\]"),
+    ("state_source", [1.0], r"attitude\.state_source: expected str"),       # a choice is a string, never a number
+    ("compensate_acceleration", [1.0], r"expected bool"),
+    ("kk", [1.0], r"unknown parameter 'kk'"),
+])
+def test_param_set_out_of_its_declaration_refused_counted_and_the_old_value_kept(attitude_runtime, key, value, said):
+    rt = attitude_runtime
+    k = rt.live_array("k")
+    before = {name: list(v) if isinstance(v, list) else v for name, v in rt.params.items()}
+    param_set(rt, key, value)
+    assert rt.rejected == {"param_rejected": 1}
+    assert rt.params == before and list(k) == before["k"]
+    assert re.search(said, rt.detail), rt.detail
+    if key in before:
+        assert rt.detail.endswith(f"; {key} stays {before[key]}")
+
+
+def test_param_set_checks_an_integer_parameter_as_start_up_does():
+    """The check is the declarations' (services/stack.py check_param), shared with the services'
+    fakes: an int parameter takes a whole number, within its bounds."""
+    from services.params.mavlink import PARAMS
+
+    io = FakeIO("mavlink", PARAMS)
+    assert io.set_param("system_id", [3.0]) == 3 and type(io.params["system_id"]) is int
+    with pytest.raises(StackError, match=r"param/set from test: mavlink\.system_id: 300 outside \[1, 255\]"):
+        io.set_param("system_id", [300.0])
+    with pytest.raises(StackError, match=r"mavlink\.system_id: expected int, got 2\.5"):
+        io.set_param("system_id", [2.5])
+    assert io.params["system_id"] == 3
