@@ -59,14 +59,6 @@ class SimConfig:
                                       "is z = 0)", "m")
     initial_yaw_rad: float = _field(0.0, "heading at the start", "rad")
     battery_rate_hz: float = _field(10.0, "battery message rate", "Hz", 0.0, min_exclusive=True)
-    # 3S 1300 mAh: the usual pack of a 250 frame
-    battery_capacity_mah: float = _field(1300.0, "battery capacity", "mAh", 0.0, min_exclusive=True)
-    battery_cells: int = _field(3, "cells in series", "", 1)
-    battery_internal_resistance_ohm: float = _field(0.05, "the whole pack's internal resistance (0.4 V of sag "
-                                                    "in hover)", "ohm", 0.0)
-    battery_current_a_per_n: float = _field(2.0, "current per newton of total thrust (~8 A hovering 0.4 kg)",
-                                            "A/N", 0.0)
-    battery_idle_current_a: float = _field(0.3, "current of the electronics", "A", 0.0)
 
     @classmethod
     def from_dict(cls, d: dict) -> "SimConfig":
