@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from flight.quat import wrap_angle
+
 ATTITUDE_STEP_MIN_DEG = 1.0
 ATTITUDE_REF_TOL_DEG = 1e-3  # the attitude level's reference equals the setpoint's
 POSITION_STEP_MIN_M = 0.2
@@ -510,7 +512,7 @@ def _estimation(log, p, truth_t, truth_pos, truth_euler, landed) -> dict | None:
     if att:
         idx, air = truth_index(att)
         est = np.array([x["euler_rad"] for x in att])[air]
-        err = np.degrees((truth_euler[idx[air]] - est + np.pi) % (2 * np.pi) - np.pi)
+        err = np.degrees(wrap_angle(truth_euler[idx[air]] - est))
         if len(err):
             out["attitude_rms_deg"] = _f(np.sqrt(np.mean(np.sum(err**2, axis=1))))
             for i, axis in enumerate(("roll", "pitch", "yaw")):

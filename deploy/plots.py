@@ -11,6 +11,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from deploy.metrics import euler_from_quaternions  # noqa: E402
+from flight.quat import wrap_angle  # noqa: E402
 
 _DPI = 110
 
@@ -156,7 +157,7 @@ def _estimation_plot(log, p, t0, out: Path) -> Path | None:
         ta, eeul = _series(att, "euler_rad")
         for a, name in enumerate(("roll", "pitch", "yaw")):
             tru = np.interp(ta, tt, np.unwrap(teul[:, a]))
-            err = (tru - eeul[:, a] + np.pi) % (2 * np.pi) - np.pi  # wrap to [-pi, pi)
+            err = wrap_angle(tru - eeul[:, a])
             axes[1].plot(ta - t0, np.degrees(err), label=name, lw=0.8)
         axes[1].legend(loc="best")
     else:

@@ -40,6 +40,13 @@ class Vehicle:
     motor_time_constant_s: float  # s: the rotor speed's first-order lag (flight/motor_model.py)
     pwm_min_us: float  # the ESC's pulse width at 0 N ...
     pwm_max_us: float  # ... and at max_thrust_n (flight/motor_model.thrust_to_pwm)
+    # the flight pack (simulator/battery.py): current = idle + a_per_n * total thrust,
+    # voltage = cells * LiPo curve(charge left) - current * resistance
+    battery_capacity_mah: float
+    battery_cells: int
+    battery_internal_resistance_ohm: float
+    battery_current_a_per_n: float
+    battery_idle_current_a: float
     gravity_m_s2: float = 9.81
     min_thrust_n: float = 0.0
     # optional extras of document 001 (None when the file does not give them)
@@ -91,7 +98,8 @@ class Vehicle:
         return self.mass_kg * self.gravity_m_s2 / 4.0
 
 
-# field -> (kind, required); kinds: "str", "pos" (>0 float), "nonneg", "vec3pos", "xy4", "sign4"
+# field -> (kind, required); kinds: "str", "pos" (>0 float), "nonneg", "count" (int >= 1), "vec3pos", "xy4",
+# "sign4"
 _FIELDS: dict[str, tuple[str, bool]] = {
     "name": ("str", True),
     "description": ("str", False),
@@ -107,6 +115,11 @@ _FIELDS: dict[str, tuple[str, bool]] = {
     "motor_time_constant_s": ("pos", True),
     "pwm_min_us": ("pos", True),
     "pwm_max_us": ("pos", True),
+    "battery_capacity_mah": ("pos", True),
+    "battery_cells": ("count", True),
+    "battery_internal_resistance_ohm": ("nonneg", True),
+    "battery_current_a_per_n": ("nonneg", True),
+    "battery_idle_current_a": ("nonneg", True),
     "thrust_coefficient_kf": ("pos", False),
     "moment_coefficient_km": ("pos", False),
     "max_rotor_speed_rad_s": ("pos", False),
@@ -134,6 +147,10 @@ def _check(src: str, key: str, kind: str, v):
         if kind == "pos" and v <= 0 or kind == "nonneg" and v < 0:
             raise bad("must be > 0" if kind == "pos" else "must be >= 0")
         return float(v)
+    if kind == "count":
+        if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+            raise bad("must be an integer >= 1")
+        return v
     if kind == "vec3pos":
         if not isinstance(v, list) or len(v) != 3 or not all(_is_num(e) and e > 0 for e in v):
             raise bad("must be a list of 3 positive numbers")

@@ -34,8 +34,8 @@ import schemas
 from flight.control.failsafe import Descent, DescentParams
 from flight.control.laws import attitude_law, stopping_accel
 from flight.estimation.attitude_filter import AttitudeFilter, AttitudeFilterParams, accel_roll_pitch
-from flight.estimation.camera_level import CameraLevel
-from flight.estimation.gyro_carrier import GyroCarrier
+from flight.estimation.camera_level import CameraLevel, CameraLevelParams
+from flight.estimation.gyro_carrier import GyroCarrier, GyroCarrierParams
 from flight.estimation.gyrovertical import DEFAULT_PARAMS_FILE, GyroVertical, load_trained
 from flight.quat import quat_from_euler, quat_to_euler, quat_to_rotation, rotate_vector
 from flight.vehicle import load_vehicle
@@ -83,16 +83,10 @@ class AttitudeLoop:
             params = io.table("filter", AttitudeFilterParams.from_dict)
             self.filt = AttitudeFilter(np.asarray(vehicle.inertia_kg_m2), params, dt=1.0 / io.rate_hz,
                                        gravity_m_s2=vehicle.gravity_m_s2)
-            try:
-                self.carrier = GyroCarrier(**p["carrier"])
-            except (TypeError, ValueError) as exc:
-                raise ValueError(f"{io.where()} carrier: {exc}") from None
+            self.carrier = GyroCarrier(io.table("carrier", GyroCarrierParams.from_dict))
             self.carrier_horizon_s = params.max_delay_steps / io.rate_hz
             if p["camera_level"]:
-                try:
-                    self.level = CameraLevel(**p["camera_level_settings"])
-                except (TypeError, ValueError) as exc:
-                    raise ValueError(f"{io.where()} camera_level_settings: {exc}") from None
+                self.level = CameraLevel(io.table("camera_level_settings", CameraLevelParams.from_dict))
                 self.poses = io.inbox(schemas.VISION_POSE, "vision", keep=8)
             self.imu = io.inbox(schemas.IMU, "sim", keep=32)
             self.mag = io.inbox(schemas.MAG, "sim", keep=8)

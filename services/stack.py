@@ -36,7 +36,6 @@ stack file gives only what differs from the declared defaults (docs/parameters.m
 
 from __future__ import annotations
 
-import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -287,7 +286,7 @@ def parse_overrides(items: list[str] | None) -> dict[str, Any]:
 def resolve_params(declared: dict[str, Any], given: dict[str, Any], where: str) -> dict[str, Any]:
     """`given` over the declared defaults (name -> services.params.Param, or a bare default), as plain
     values; an unknown key, a wrong type, a value out of bounds or not among the choices is refused
-    with `where` and the key. A nested table (a dict) is passed on: its owner checks it."""
+    with `where` and the key, a nested table's keys too (`Param.check`, flight/param.py)."""
     out = {}
     for key, d in declared.items():
         out[key] = d.value() if isinstance(d, Param) else d
@@ -297,41 +296,16 @@ def resolve_params(declared: dict[str, Any], given: dict[str, Any], where: str) 
 
 
 def check_param(declared: dict[str, Any], key: str, value: Any, where: str) -> Any:
-    """One value given for `key`, checked against its declaration as resolve_params checks each
-    (start-up, a sweep's grid, param/set in flight): returned as the service holds it (an int
-    for a float parameter becomes a float), or refused with `where`.key and what is wrong."""
+    """One value given for `key`, checked against its declaration (Param.check) as resolve_params
+    checks each (start-up, a sweep's grid, param/set in flight): returned as the service holds it
+    (an int for a float parameter becomes a float), or refused with `where`.key and what is wrong."""
     if key not in declared:
         raise StackError(f"{where}: unknown parameter {key!r} (known: {', '.join(sorted(declared))})")
     decl = declared[key] if isinstance(declared[key], Param) else Param(declared[key])
-    return _checked(decl, value, f"{where}.{key}")
-
-
-def _checked(decl: Param, value: Any, where: str) -> Any:
-    default = decl.default
-    if isinstance(default, bool):
-        value = _expect(value, bool, where)
-    elif isinstance(default, float):
-        value = _expect(value, float, where)
-    elif isinstance(default, int):
-        value = _expect(value, int, where)
-    elif isinstance(default, str):
-        value = _expect(value, str, where)
-        if decl.choices and value not in decl.choices:
-            raise StackError(f"{where}: {value!r} not one of {decl.choices}")
-    elif isinstance(default, dict):  # a nested table: its owner validates the keys
-        value = _expect(value, dict, where)
-    elif isinstance(default, (list, tuple)):
-        value = _expect(value, list, where)
-        if len(value) != len(default):
-            raise StackError(f"{where}: expected {len(default)} values, got {len(value)}")
-        value = [_expect(v, float, f"{where}[{i}]") if isinstance(d, float) else v
-                 for i, (v, d) in enumerate(zip(value, default))]
-    if decl.min is not None or decl.max is not None:
-        for x in value if isinstance(value, list) else [value]:
-            if _is_number(x) and (not math.isfinite(x) or decl.out_of_bounds(x)):
-                unit = f" {decl.unit}" if decl.unit else ""
-                raise StackError(f"{where}: {value!r} outside {decl.bounds_text()}{unit}")
-    return value
+    try:
+        return decl.check(value, f"{where}.{key}")
+    except ValueError as exc:   # ParamError, or a nested table's owner's error: each names where
+        raise StackError(str(exc)) from None
 
 
 def check_compatible(where: str, params: dict[str, dict[str, Any]]) -> None:

@@ -15,6 +15,12 @@ _OCV_V = np.array([3.3, 3.55, 3.65, 3.72, 3.8, 3.95, 4.05, 4.2])
 
 
 class Battery:
+    @classmethod
+    def of(cls, vehicle) -> Battery:
+        """A full pack of this airframe (its vehicle file's battery_* numbers)."""
+        return cls(vehicle.battery_capacity_mah, vehicle.battery_cells, vehicle.battery_internal_resistance_ohm,
+                   vehicle.battery_current_a_per_n, vehicle.battery_idle_current_a)
+
     def __init__(self, capacity_mah: float, cells: int, internal_resistance_ohm: float,
                  current_a_per_n: float, idle_current_a: float):
         self.capacity_mah = capacity_mah

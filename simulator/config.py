@@ -1,25 +1,26 @@
-"""Simulator configuration (frozen dataclass, validated on construction)."""
+"""Simulator configuration (frozen dataclass, its fields declared with unit, bounds and a line of
+description, checked on construction: flight/param.py). The simulator service declares these as
+its parameters (services/params/sim.py)."""
 from __future__ import annotations
 
-import math
-import typing
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass
 
 from flight.camera import DEFAULT_CAMERA, DEFAULT_MARKERS, DEFAULT_PIXEL_NOISE_PX
+from flight.param import Declared, declared
 
 Vec3 = tuple[float, float, float]
 
 
 def _field(default, doc: str, unit: str = "", min: float | None = None, max: float | None = None,
            min_exclusive: bool = False):
-    """A setting with its unit, bounds (checked in __post_init__) and a line for docs/parameters.md
-    (the simulator service declares these as its parameters: services/params/sim.py)."""
-    return field(default=default, metadata={"doc": doc, "unit": unit, "min": min, "max": max,
-                                            "min_exclusive": min_exclusive})
+    """A setting declared with its line of description first (it reads best beside the default)."""
+    return declared(default, unit, min, max, doc, min_exclusive=min_exclusive)
 
 
 @dataclass(frozen=True)
-class SimConfig:
+class SimConfig(Declared):
+    label = "simulator"   # its errors read "simulator.KEY: ..."
+
     tick_rate_hz: float = _field(400.0, "rate the caller calls step()", "Hz", 0.0, min_exclusive=True)
     physics_substeps: int = _field(5, "RK4 steps per tick (2 kHz by default)", "", 1)
     imu_rate_hz: float = _field(400.0, "IMU sample rate (divides the tick rate)", "Hz", 0.0, min_exclusive=True)
@@ -59,43 +60,9 @@ class SimConfig:
                                       "is z = 0)", "m")
     initial_yaw_rad: float = _field(0.0, "heading at the start", "rad")
     battery_rate_hz: float = _field(10.0, "battery message rate", "Hz", 0.0, min_exclusive=True)
-    # 3S 1300 mAh: the usual pack of a 250 frame
-    battery_capacity_mah: float = _field(1300.0, "battery capacity", "mAh", 0.0, min_exclusive=True)
-    battery_cells: int = _field(3, "cells in series", "", 1)
-    battery_internal_resistance_ohm: float = _field(0.05, "the whole pack's internal resistance (0.4 V of sag "
-                                                    "in hover)", "ohm", 0.0)
-    battery_current_a_per_n: float = _field(2.0, "current per newton of total thrust (~8 A hovering 0.4 kg)",
-                                            "A/N", 0.0)
-    battery_idle_current_a: float = _field(0.3, "current of the electronics", "A", 0.0)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "SimConfig":
-        """Build from a plain dict (e.g. a TOML table); unknown keys / wrong types -> ValueError."""
-        if not isinstance(d, dict):
-            raise ValueError(f"simulator: expected a table, got {type(d).__name__}")
-        hints = typing.get_type_hints(cls)
-        kwargs = {}
-        for key, value in d.items():
-            if key not in hints:
-                raise ValueError(f"simulator.{key}: unknown key")
-            kwargs[key] = _coerce(key, hints[key], value)
-        return cls(**kwargs)
-
-    def to_dict(self) -> dict:
-        return {f.name: getattr(self, f.name) for f in fields(self)}
 
     def __post_init__(self):
-        hints = typing.get_type_hints(type(self))
-        for f in fields(self):
-            # also coerce on direct construction (lists -> tuples, ints -> floats)
-            object.__setattr__(self, f.name, _coerce(f.name, hints[f.name], getattr(self, f.name)))
-        for f in fields(self):   # the bounds each field declares
-            value, meta = getattr(self, f.name), f.metadata
-            lo, hi, above = meta["min"], meta["max"], meta["min_exclusive"]
-            if hi is not None and not lo <= value <= hi:
-                raise ValueError(f"simulator.{f.name}: must be in [{lo:g}, {hi:g}]")
-            if lo is not None and (value <= lo if above else value < lo):
-                raise ValueError(f"simulator.{f.name}: must be {'>' if above else '>='} {lo:g}")
+        super().__post_init__()
         if self.marker_size_m >= self.marker_spacing_m:
             raise ValueError("simulator.marker_size_m: markers would overlap (must be < marker_spacing_m)")
         if self.initial_position_m[2] < 0:
@@ -116,23 +83,3 @@ class SimConfig:
                              "must be a whole number >= 1")
         return int(n)
 
-
-def _is_num(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
-
-
-def _coerce(key: str, typ, value):
-    if typ is float:
-        if not _is_num(value) or not math.isfinite(value):
-            raise ValueError(f"simulator.{key}: expected a finite number, got {value!r}")
-        return float(value)
-    if typ is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ValueError(f"simulator.{key}: expected an integer, got {value!r}")
-        return value
-    if typ == Vec3:
-        if (not isinstance(value, (list, tuple)) or len(value) != 3
-                or not all(_is_num(e) and math.isfinite(e) for e in value)):
-            raise ValueError(f"simulator.{key}: expected a list of 3 numbers, got {value!r}")
-        return tuple(float(e) for e in value)
-    raise AssertionError(f"unhandled type {typ!r} for {key}")

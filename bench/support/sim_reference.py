@@ -332,8 +332,7 @@ class RefSimulator:
         self._pending_frames: deque = deque()   # (publish_tick, exposure_t_s, fields)
         self._outputs_tick = -1
         self._outputs: list = []
-        self.battery = Battery(cfg.battery_capacity_mah, cfg.battery_cells, cfg.battery_internal_resistance_ohm,
-                               cfg.battery_current_a_per_n, cfg.battery_idle_current_a)
+        self.battery = Battery.of(vehicle)
 
     @property
     def t(self) -> float:

@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from flight.param import Declared, declared
 from flight.quat import quat_from_euler, quat_multiply, quat_normalize, quat_to_euler
 
 GRAVITY_BAND = 0.15   # the accelerometer corrects roll/pitch only within 15 % of 1 g
@@ -82,25 +83,23 @@ class LevelEstimate:
 
 
 @dataclass(frozen=True)
-class DescentParams:
-    sink_rate_m_s: float = 0.5     # the descent's speed once ramped in
-    ramp_s: float = 1.0            # sink-rate reference ramp from 0 (and thrust slew, see below)
-    velocity_gain: float = 3.0     # 1/s, P of the sink-rate loop
-    integral_gain: float = 2.0     # 1/s^2, I of it (a wrong mass or thrust scale)
-    ground_margin_m: float = 1.0   # descend this far past the estimated ground before cutting
-    max_descent_s: float = 60.0    # cut after this long whatever the height says
-    max_thrust_fraction: float = 0.8  # of the rotors' total
+class DescentParams(Declared):
+    """The controlled descent's settings (the attitude level's and the motor driver's
+    `failsafe_descent` table)."""
 
-    @classmethod
-    def from_dict(cls, d: dict) -> "DescentParams":
-        unknown = set(d) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise ValueError(f"unknown descent setting(s) {sorted(unknown)}")
-        p = cls(**{k: float(v) for k, v in d.items()})
-        for k, v in p.__dict__.items():
-            if not (math.isfinite(v) and v > 0.0):
-                raise ValueError(f"{k} must be a positive number, got {v!r}")
-        return p
+    sink_rate_m_s: float = declared(0.5, "m/s", 0.0, min_exclusive=True, doc="the descent's speed once ramped in")
+    ramp_s: float = declared(1.0, "s", 0.0, min_exclusive=True,
+                             doc="the sink-rate reference ramps in from 0 over this long (and the thrust slews a "
+                                 "hover thrust per ramp_s at most)")
+    velocity_gain: float = declared(3.0, "1/s", 0.0, min_exclusive=True, doc="P of the sink-rate loop")
+    # the I term takes up a wrong mass or thrust scale
+    integral_gain: float = declared(2.0, "1/s^2", 0.0, min_exclusive=True, doc="I of the sink-rate loop")
+    ground_margin_m: float = declared(1.0, "m", 0.0, min_exclusive=True,
+                                      doc="descend this far past the estimated ground before cutting the motors")
+    max_descent_s: float = declared(60.0, "s", 0.0, min_exclusive=True,
+                                    doc="cut the motors after this long whatever the height says")
+    max_thrust_fraction: float = declared(0.8, "", 0.0, 1.0, min_exclusive=True,
+                                          doc="the most collective thrust the descent asks, of the rotors' total")
 
 
 class Descent:

@@ -73,13 +73,13 @@ variance; the first sample sets it.
 from __future__ import annotations
 
 import bisect
-import dataclasses
 import math
 import operator
 from dataclasses import dataclass
 
 import numpy as np
 
+from flight.param import Declared, declared
 from flight.quat import quat_from_euler, wrap_angle_float
 
 W, WF, A, AF, B = 0, 1, 2, 3, 4    # state indices per axis (B: the gyro bias)
@@ -132,134 +132,85 @@ def mag_yaw(field_body, roll: float, pitch: float, field_world=(0.0, 20.0, -45.0
 
 
 # ------------------------------------------------------------------ parameters
-def _vec3(name, v):
-    if isinstance(v, (int, float)) and not isinstance(v, bool):
-        v = (v, v, v)
-    try:
-        t = tuple(float(e) for e in v)
-    except TypeError:
-        raise ValueError(f"attitude_filter: {name} must be a number or 3 numbers, got {v!r}") from None
-    if len(t) != 3:
-        raise ValueError(f"attitude_filter: {name} must have 3 values, got {v!r}")
-    return t
-
-
-_VEC_FIELDS = ("rate_meas_var", "angle_meas_var", "rate_process_var", "angle_process_var", "bias_process_var")
-
-
 @dataclass(frozen=True)
-class AttitudeFilterParams:
-    """Parameters of :class:`AttitudeFilter`.  Per-axis tuples are (roll, pitch, yaw).
+class AttitudeFilterParams(Declared):
+    """Parameters of :class:`AttitudeFilter` (the attitude service's `filter` table).  Per-axis
+    tuples are (roll, pitch, yaw); one number stands for all three.
 
     Variances of the measurements are per IMU sample (400 Hz); the process
     noises are continuous densities (discretised exactly for each step).
     """
-    # (12): first-order low-pass on the gyro and on the accel/mag angles, k_f = 1/tau
-    lpf_tau_s: float = 0.02
-    # R: low-passed gyro rate, rad^2/s^2.  The raw gyro noise is 1e-5 per sample;
-    # after the low-pass it is ~6e-7 but coloured (correlated over ~tau), so the
-    # raw per-sample value is kept as a conservative white-noise equivalent.
-    rate_meas_var: tuple = (1e-5, 1e-5, 1e-5)
-    # R: low-passed accelerometer / magnetometer angle, rad^2.  The sensor noise
-    # alone is ~1e-6 (accel) and ~6e-4 (mag, 0.5 uT over a 20 uT horizontal field);
-    # roll/pitch use a larger value so the gyro carries the short term (the
-    # accelerometer pulls with a ~0.5 s time constant). In flight a multirotor's
-    # accelerometer reads "level" whenever it tilts to accelerate: the attitude
-    # service subtracts the position level's acceleration estimate first (without
-    # that, 1e-3 left the hover estimate 5 deg off; 5e-2 only slowed the drift).
-    # Yaw: the 50 Hz magnetometer is held over 8 IMU samples, so its per-sample
-    # variance is ~8x the sensor's 6e-4.
-    angle_meas_var: tuple = (1e-3, 1e-3, 5e-3)
-    # Q: density of the unmodelled angular acceleration (torque error, motor lag,
-    # disturbances), rad^2/s^3
-    rate_process_var: tuple = (50.0, 50.0, 20.0)
-    # Q: density of a random walk on the angle (what the model leaves out: scale errors,
-    # vibration), rad^2/s; sets how fast the angle measurement pulls the gyro-integrated
-    # angle.  1e-5 (~0.5 s) in 000, which also had to absorb the gyro bias and the
-    # body-vs-Euler rate; both are modelled here (bias state, euler_kinematics), so roll
-    # and pitch trust the gyro longer and average the acceleration reference's noise
-    # (~0.3 m/s^2, i.e. ~1.7 deg) over ~1 s.  Yaw (magnetometer) keeps 1e-5.
-    angle_process_var: tuple = (3e-6, 3e-6, 1e-5)
-    # Q: density of the gyro bias random walk, rad^2/s^3 (the simulator's walk is 1e-10;
-    # a MEMS gyro's bias also moves with temperature, hence the margin)
-    bias_process_var: tuple = (1e-9, 1e-9, 1e-9)
-    model_filter_lag: bool = True    # False: ablation "cascade without the filter lag in the model"
-    # True: the angles integrate the ZYX Euler rates of the estimated body rates (the other
-    # axes' estimates enter as a known input); False: 000 as printed, the body rate taken as the
-    # Euler rate (off by 12 % of the pitch rate in roll at 20 deg of roll and pitch)
-    euler_kinematics: bool = True
-    extrapolate: bool = True         # False: ablation without the extrapolator (15)
-    max_delay_steps: int = 10        # extrapolate at most this many dt (longer delays are capped)
-    mag_field_world_ut: tuple = (0.0, 20.0, -45.0)  # ENU, only its horizontal direction is used
-    init_angle_var: float = 1e-2     # rad^2 at initialisation (roll/pitch; yaw once the mag is seen)
-    init_rate_var: float = 1e-2      # rad^2/s^2
-    # gyro bias variance at start, rad^2/s^2 (a MEMS gyro's turn-on bias, ~0.2 deg/s);
-    # 0 with bias_process_var ~0 is the ablation "no bias state" (the bias stays 0)
-    init_bias_var: float = 1e-5
-    min_accel_g: float = 0.3         # |specific force| below this: no accel angle update (free fall)
-    max_gap_s: float = 0.5           # IMU silent for longer: re-initialise from the next sample
-    # Acceleration reference (``update(..., accel_ref=...)``, see AttitudeFilter): the
-    # correction c = a_ref - mean(R f + g) is bounded to this magnitude (an attitude error
-    # of ~18 deg in hover; the position level's acceleration noise is ~0.3 m/s^2), so a
-    # wrong reference or a stale history (after a flip) can only pull at a bounded rate ...
-    aid_max_correction_m_s2: float = 3.0
-    # ... and a reference whose window ended longer ago than this is not used (the raw
-    # accelerometer angles of 000 are, as without a reference)
-    aid_max_age_s: float = 0.25
+    lpf_tau_s: float = declared(0.02, "s", 0.0, min_exclusive=True,
+                                doc="(12): first-order low-pass on the gyro and on the accelerometer/magnetometer "
+                                    "angles, k_f = 1/tau")
+    # The raw gyro noise is 1e-5 per sample; after the low-pass it is ~6e-7 but coloured
+    # (correlated over ~tau), so the raw per-sample value is kept as a conservative white-noise
+    # equivalent.
+    rate_meas_var: tuple = declared((1e-5, 1e-5, 1e-5), "rad^2/s^2", 0.0, min_exclusive=True, per_axis=True,
+                                    doc="R: the low-passed gyro rate's variance per IMU sample")
+    # The sensor noise alone is ~1e-6 (accel) and ~6e-4 (mag, 0.5 uT over a 20 uT horizontal
+    # field); roll/pitch use a larger value so the gyro carries the short term (the accelerometer
+    # pulls with a ~0.5 s time constant). In flight a multirotor's accelerometer reads "level"
+    # whenever it tilts to accelerate: the attitude service subtracts the position level's
+    # acceleration estimate first (without that, 1e-3 left the hover estimate 5 deg off; 5e-2
+    # only slowed the drift). Yaw: the 50 Hz magnetometer is held over 8 IMU samples, so its
+    # per-sample variance is ~8x the sensor's 6e-4.
+    angle_meas_var: tuple = declared((1e-3, 1e-3, 5e-3), "rad^2", 0.0, min_exclusive=True, per_axis=True,
+                                     doc="R: the low-passed accelerometer (roll, pitch) and magnetometer (yaw) "
+                                         "angles' variance per IMU sample")
+    rate_process_var: tuple = declared((50.0, 50.0, 20.0), "rad^2/s^3", 0.0, min_exclusive=True, per_axis=True,
+                                       doc="Q: density of the unmodelled angular acceleration (torque error, "
+                                           "motor lag, disturbances)")
+    # What the model leaves out: scale errors, vibration. 1e-5 (~0.5 s) in 000, which also had
+    # to absorb the gyro bias and the body-vs-Euler rate; both are modelled here (bias state,
+    # euler_kinematics), so roll and pitch trust the gyro longer and average the acceleration
+    # reference's noise (~0.3 m/s^2, i.e. ~1.7 deg) over ~1 s. Yaw (magnetometer) keeps 1e-5.
+    angle_process_var: tuple = declared((3e-6, 3e-6, 1e-5), "rad^2/s", 0.0, min_exclusive=True, per_axis=True,
+                                        doc="Q: density of a random walk on the angles: how fast the angle "
+                                            "measurement pulls the gyro-integrated angle")
+    # the simulator's walk is 1e-10; a MEMS gyro's bias also moves with temperature, hence the margin
+    bias_process_var: tuple = declared((1e-9, 1e-9, 1e-9), "rad^2/s^3", 0.0, min_exclusive=True, per_axis=True,
+                                       doc="Q: density of the gyro bias random walk")
+    model_filter_lag: bool = declared(True, doc="the model holds the low-pass's lag; false: ablation \"cascade "
+                                                "without the filter lag in the model\"")
+    # Off by 12 % of the pitch rate in roll at 20 deg of roll and pitch when the body rate is
+    # taken as the Euler rate
+    euler_kinematics: bool = declared(True, doc="the angles integrate the ZYX Euler rates of the estimated body "
+                                                "rates (the other axes' estimates a known input); false: 000 as "
+                                                "printed, the body rate taken as the Euler rate")
+    extrapolate: bool = declared(True, doc="extrapolate the delayed estimate to now (15); false: ablation")
+    max_delay_steps: int = declared(10, "", 0, doc="extrapolate at most this many IMU steps (longer delays are "
+                                                   "capped)")
+    mag_field_world_ut: tuple = declared((0.0, 20.0, -45.0), "uT",
+                                         doc="Earth's magnetic field, world ENU: only its horizontal direction is "
+                                             "used (yaw)")
+    init_angle_var: float = declared(1e-2, "rad^2", 0.0, min_exclusive=True,
+                                     doc="angle variance at initialisation (roll, pitch; yaw once the "
+                                         "magnetometer is seen)")
+    init_rate_var: float = declared(1e-2, "rad^2/s^2", 0.0, min_exclusive=True,
+                                    doc="rate variance at initialisation")
+    # a MEMS gyro's turn-on bias, ~0.2 deg/s; 0 with bias_process_var ~0 is the ablation "no bias
+    # state" (the bias stays 0)
+    init_bias_var: float = declared(1e-5, "rad^2/s^2", 0.0, doc="gyro bias variance at start")
+    min_accel_g: float = declared(0.3, "g", 0.0, doc="specific force below this: no accelerometer angle update "
+                                                     "(free fall)")
+    max_gap_s: float = declared(0.5, "s", 0.0, min_exclusive=True,
+                                doc="IMU silent for longer: re-initialise from the next sample")
+    # Acceleration reference (``update(..., accel_ref=...)``, see AttitudeFilter): an attitude
+    # error of ~18 deg in hover; the position level's acceleration noise is ~0.3 m/s^2. A wrong
+    # reference or a stale history (after a flip) can only pull at a bounded rate ...
+    aid_max_correction_m_s2: float = declared(3.0, "m/s^2", 0.0, min_exclusive=True,
+                                              doc="the acceleration reference's correction is bounded to this "
+                                                  "magnitude")
+    # ... and without a recent one the raw accelerometer angles of 000 are used
+    aid_max_age_s: float = declared(0.25, "s", 0.0, min_exclusive=True,
+                                    doc="an acceleration reference whose window ended longer ago is not used")
 
     def __post_init__(self):
-        for name in _VEC_FIELDS:
-            t = _vec3(name, getattr(self, name))
-            if not all(math.isfinite(e) and e > 0 for e in t):
-                raise ValueError(f"attitude_filter: {name} must be positive finite, got {t}")
-            object.__setattr__(self, name, t)
-        fw = _vec3("mag_field_world_ut", self.mag_field_world_ut)
-        if not all(math.isfinite(e) for e in fw) or math.hypot(fw[0], fw[1]) <= 0:
-            raise ValueError(f"attitude_filter: mag_field_world_ut needs a horizontal component, got {fw}")
-        object.__setattr__(self, "mag_field_world_ut", fw)
-        for name in ("lpf_tau_s", "init_angle_var", "init_rate_var", "max_gap_s", "aid_max_correction_m_s2",
-                     "aid_max_age_s"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-                raise ValueError(f"attitude_filter: {name} must be a positive number, got {v!r}")
-            object.__setattr__(self, name, float(v))
-        for name in ("min_accel_g", "init_bias_var"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-                raise ValueError(f"attitude_filter: {name} must be >= 0, got {v!r}")
-            object.__setattr__(self, name, float(v))
-        for name in ("model_filter_lag", "extrapolate", "euler_kinematics"):
-            if not isinstance(getattr(self, name), bool):
-                raise ValueError(f"attitude_filter: {name} must be true or false, got {getattr(self, name)!r}")
-        m = self.max_delay_steps
-        if isinstance(m, bool) or not isinstance(m, int) or m < 0:
-            if isinstance(m, float) and m.is_integer() and m >= 0:
-                object.__setattr__(self, "max_delay_steps", int(m))
-            else:
-                raise ValueError(f"attitude_filter: max_delay_steps must be an integer >= 0, got {m!r}")
-
-    @classmethod
-    def names(cls) -> tuple[str, ...]:
-        return tuple(f.name for f in dataclasses.fields(cls))
-
-    @classmethod
-    def from_dict(cls, d: dict | None) -> "AttitudeFilterParams":
-        """Missing keys take defaults; unknown keys -> ValueError."""
-        if d is None:
-            return cls()
-        if not isinstance(d, dict):
-            raise ValueError(f"attitude_filter: expected a table, got {type(d).__name__}")
-        unknown = set(d) - set(cls.names())
-        if unknown:
-            raise ValueError(f"attitude_filter: unknown parameter(s) {sorted(unknown)}")
-        return cls(**d)
-
-    def to_dict(self) -> dict:
-        out = {}
-        for k in self.names():
-            v = getattr(self, k)
-            out[k] = list(v) if isinstance(v, tuple) else v
-        return out
+        super().__post_init__()
+        if math.hypot(self.mag_field_world_ut[0], self.mag_field_world_ut[1]) <= 0:
+            raise ValueError(f"AttitudeFilterParams.mag_field_world_ut: needs a horizontal component, "
+                             f"got {self.mag_field_world_ut}")
 
 
 @dataclass

@@ -6,13 +6,34 @@ import bisect
 import math
 import operator
 from collections import deque
+from dataclasses import dataclass
 
 import numpy as np
 
 from flight.estimation.attitude_filter import floats3
+from flight.param import Declared, declared
 from flight.quat import quat_to_euler
 
 _first = operator.itemgetter(0)
+
+
+@dataclass(frozen=True)
+class CameraLevelParams(Declared):
+    """CameraLevel's settings (the attitude service's `camera_level_settings` table)."""
+
+    time_constant_s: float = declared(2.0, "s", 0.0, min_exclusive=True,
+                                      doc="the offset is low-passed over this long")
+    # a millisecond of timing error is visible while turning fast
+    max_rate_rad_s: float = declared(1.0, "rad/s", 0.0, min_exclusive=True,
+                                     doc="a frame taken while turning faster than this is not used")
+    max_tilt_rad: float = declared(0.5, "rad", 0.0, min_exclusive=True,
+                                   doc="a frame taken tilted past this is not used")
+    gate_rad: float = declared(0.05, "rad", 0.0, min_exclusive=True,
+                               doc="a frame disagreeing with the current offset by more than this is not used")
+    history_s: float = declared(0.5, "s", 0.0, min_exclusive=True,
+                                doc="the estimate's history kept to meet a frame at its exposure time")
+    max_offset_rad: float = declared(0.05, "rad", 0.0, min_exclusive=True,
+                                     doc="the offset is bounded to this (roll and pitch each)")
 
 
 class CameraLevel:
@@ -29,18 +50,13 @@ class CameraLevel:
     history, or disagreeing by more than gate_rad with the current offset are not used
     (counted by reason in `rejected`). Pure: no I/O."""
 
-    def __init__(self, time_constant_s: float = 2.0, max_rate_rad_s: float = 1.0,
-                 max_tilt_rad: float = 0.5, gate_rad: float = 0.05, history_s: float = 0.5,
-                 max_offset_rad: float = 0.05):
-        if not (time_constant_s > 0 and max_rate_rad_s > 0 and max_tilt_rad > 0 and gate_rad > 0
-                and history_s > 0 and max_offset_rad > 0):
-            raise ValueError("camera level: every setting must be positive")
-        self.time_constant_s = time_constant_s
-        self.max_rate_rad_s = max_rate_rad_s
-        self.max_tilt_rad = max_tilt_rad
-        self.gate_rad = gate_rad
-        self.history_s = history_s
-        self.max_offset_rad = max_offset_rad
+    def __init__(self, params: CameraLevelParams = CameraLevelParams()):
+        self.time_constant_s = params.time_constant_s
+        self.max_rate_rad_s = params.max_rate_rad_s
+        self.max_tilt_rad = params.max_tilt_rad
+        self.gate_rad = params.gate_rad
+        self.history_s = params.history_s
+        self.max_offset_rad = params.max_offset_rad
         self.offset_rad = np.zeros(2)   # (roll, pitch): estimate minus camera
         self.fused = 0
         self.rejected: dict[str, int] = {}

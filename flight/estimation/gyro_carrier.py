@@ -3,11 +3,35 @@ turns) the per-axis filter of 000 (attitude_filter.py) cannot hold. Pure: no I/O
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from flight.estimation.attitude_filter import floats3
+from flight.param import Declared, declared
 from flight.quat import quat_integrate, quat_tilt
+
+
+@dataclass(frozen=True)
+class GyroCarrierParams(Declared):
+    """When the carrier takes over and hands back (the attitude service's `carrier` table); the
+    gap between the enter and exit thresholds is the hysteresis that avoids chattering."""
+
+    enter_tilt_deg: float = declared(45.0, "deg", 0.0, 180.0, min_exclusive=True,
+                                     doc="tilted past this, the gyro-integrated quaternion carries the estimate")
+    exit_tilt_deg: float = declared(30.0, "deg", 0.0, 180.0, min_exclusive=True,
+                                    doc="back within this tilt (and below exit_rate_rad_s) the filter restarts from "
+                                        "it; at most enter_tilt_deg")
+    enter_rate_rad_s: float = declared(6.0, "rad/s", 0.0, min_exclusive=True,
+                                       doc="... or turning faster than this, the quaternion carries")
+    exit_rate_rad_s: float = declared(2.0, "rad/s", 0.0, min_exclusive=True,
+                                      doc="the body rate below which it hands back; at most enter_rate_rad_s")
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.exit_tilt_deg > self.enter_tilt_deg or self.exit_rate_rad_s > self.enter_rate_rad_s:
+            raise ValueError("GyroCarrierParams: need exit_tilt_deg <= enter_tilt_deg and "
+                             "exit_rate_rad_s <= enter_rate_rad_s")
 
 
 class GyroCarrier:
@@ -26,14 +50,11 @@ class GyroCarrier:
     from it (hysteresis between the two thresholds avoids chattering).
     """
 
-    def __init__(self, enter_tilt_deg: float = 45.0, exit_tilt_deg: float = 30.0,
-                 enter_rate_rad_s: float = 6.0, exit_rate_rad_s: float = 2.0):
-        if not (0.0 < exit_tilt_deg <= enter_tilt_deg < 180.0 and 0.0 < exit_rate_rad_s <= enter_rate_rad_s):
-            raise ValueError("GyroCarrier: need 0 < exit_tilt <= enter_tilt < 180 and 0 < exit_rate <= enter_rate")
-        self.enter_tilt = math.radians(enter_tilt_deg)
-        self.exit_tilt = math.radians(exit_tilt_deg)
-        self.enter_rate = float(enter_rate_rad_s)
-        self.exit_rate = float(exit_rate_rad_s)
+    def __init__(self, params: GyroCarrierParams = GyroCarrierParams()):
+        self.enter_tilt = math.radians(params.enter_tilt_deg)
+        self.exit_tilt = math.radians(params.exit_tilt_deg)
+        self.enter_rate = params.enter_rate_rad_s
+        self.exit_rate = params.exit_rate_rad_s
         self.q = np.array([1.0, 0.0, 0.0, 0.0])
         self.t: float | None = None
         self.gyro = np.zeros(3)

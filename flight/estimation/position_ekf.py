@@ -105,11 +105,12 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 
 from flight import motor_model
+from flight.param import Declared, declared
 from flight.quat import wrap_angle_float
 from flight.vehicle import Vehicle
 
@@ -140,80 +141,52 @@ class PositionEKFError(ValueError):
 # Parameters
 # --------------------------------------------------------------------------- #
 @dataclass(frozen=True)
-class PositionEKFParams:
-    """Noise, gate and history settings.
+class PositionEKFParams(Declared):
+    """Noise, gate and history settings (the position service's `ekf` table).
 
     Process noise is given as continuous white-noise spectral densities per
-    state group (``Q_d = Q_c dt``), so it does not change meaning with dt:
-
-    * ``q_position_m2_s``: the kinematics p' = v are exact; a small floor for
-      time-stamp jitter and integration error.
-    * ``q_velocity_m2_s3``: unmodelled accelerations: thrust error (motor lag
-      20 ms, battery sag, the PWM map), drag error, draughts; indoor flight
-      (000 flies indoors under a camera).  0.005 m^2/s^3 is e.g. a 0.1 m/s^2
-      (1 % of g) disturbance with a 0.25 s correlation time (2 sigma^2 tau);
-      it lets the velocity drift by 0.1 m/s and the position by 0.08 m over
-      a 2 s camera outage (1 sigma).  A slow thrust bias is followed through
-      the camera (a few mm of lag at 20 Hz); it is not a state of (1)-(2).
-    * ``q_angles_rad2_s``: the ZYX kinematics are exact; small floor.
-    * ``q_rates_rad2_s3``: unmodelled torques: the 20 ms motor lag at the
-      attitude loop's 16 rad/s bandwidth, prop imbalance, inertia error.
-      0.5 rad^2/s^3 gives 0.07 rad/s of rate uncertainty per 10 ms step, above
-      the attitude level's 0.02 rad/s, so the rate states follow that level.
-    * ``gate_probability``: chi-square gate on the innovation's NIS
-      (Mahalanobis distance squared); 0.999 refuses a fix more than ~4 sigma
-      away for 3 dof (threshold 16.3).  1.0 disables the gate.
-    * ``max_delay_s``: history kept for delayed measurements; 0.3 s covers
-      twice the camera's worst delay (150 ms).
-    * ``q_thrust_scale_1_s``: random walk of the thrust scale (real collective force
-      per commanded newton): battery sag and a payload change it over seconds to
-      minutes; 1e-4 /s lets it move 0.03 in 10 s (1 sigma).
-    * ``init_std_*``: 1-sigma of the initial covariance: position from a
-      first camera fix, at rest, level within a few degrees; the thrust scale
-      within 10 % of the airframe file's (mass, payload, rotor wear).
+    state group (``Q_d = Q_c dt``), so it does not change meaning with dt.
     """
 
-    q_position_m2_s: float = 1e-6
-    q_velocity_m2_s3: float = 0.02
-    q_angles_rad2_s: float = 1e-6
-    q_rates_rad2_s3: float = 0.5
-    gate_probability: float = 0.999
-    max_delay_s: float = 0.3
-    init_std_position_m: float = 0.05
-    init_std_velocity_m_s: float = 0.1
-    init_std_angles_rad: float = 0.05
-    init_std_rates_rad_s: float = 0.05
-    q_thrust_scale_1_s: float = 1e-4
-    init_std_thrust_scale: float = 0.1
+    error = PositionEKFError
 
-    def __post_init__(self):
-        for fld in fields(self):
-            v = getattr(self, fld.name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise PositionEKFError(f"PositionEKFParams.{fld.name}: must be a finite number (got {v!r})")
-            object.__setattr__(self, fld.name, float(v))
-            if fld.name.startswith("q_") and v < 0:
-                raise PositionEKFError(f"PositionEKFParams.{fld.name}: must be >= 0 (got {v!r})")
-            if fld.name.startswith("init_std_") and v <= 0:
-                raise PositionEKFError(f"PositionEKFParams.{fld.name}: must be > 0 (got {v!r})")
-        if not 0.0 < self.gate_probability <= 1.0:
-            raise PositionEKFError(f"PositionEKFParams.gate_probability: must be in (0, 1] "
-                                   f"(got {self.gate_probability!r})")
-        if self.max_delay_s < 0:
-            raise PositionEKFError(f"PositionEKFParams.max_delay_s: must be >= 0 (got {self.max_delay_s!r})")
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "PositionEKFParams":
-        if not isinstance(d, dict):
-            raise PositionEKFError(f"PositionEKFParams: expected a table, got {type(d).__name__}")
-        known = {fld.name for fld in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise PositionEKFError(f"PositionEKFParams: unknown key(s) {unknown}; known: {sorted(known)}")
-        return cls(**d)
-
-    def to_dict(self) -> dict:
-        return {fld.name: getattr(self, fld.name) for fld in fields(self)}
+    # the kinematics p' = v are exact; a small floor for time-stamp jitter and integration error
+    q_position_m2_s: float = declared(1e-6, "m^2/s", 0.0, doc="process noise density of the position")
+    # unmodelled accelerations: thrust error (motor lag 20 ms, battery sag, the PWM map), drag
+    # error, draughts; indoor flight (000 flies indoors under a camera). 0.005 m^2/s^3 is e.g. a
+    # 0.1 m/s^2 (1 % of g) disturbance with a 0.25 s correlation time (2 sigma^2 tau); it lets
+    # the velocity drift by 0.1 m/s and the position by 0.08 m over a 2 s camera outage (1
+    # sigma). A slow thrust bias is followed through the camera (a few mm of lag at 20 Hz).
+    q_velocity_m2_s3: float = declared(0.02, "m^2/s^3", 0.0,
+                                       doc="process noise density of the velocity (unmodelled accelerations)")
+    # the ZYX kinematics are exact; small floor
+    q_angles_rad2_s: float = declared(1e-6, "rad^2/s", 0.0, doc="process noise density of the angles")
+    # unmodelled torques: the 20 ms motor lag at the attitude loop's 16 rad/s bandwidth, prop
+    # imbalance, inertia error. 0.5 rad^2/s^3 gives 0.07 rad/s of rate uncertainty per 10 ms step,
+    # above the attitude level's 0.02 rad/s, so the rate states follow that level.
+    q_rates_rad2_s3: float = declared(0.5, "rad^2/s^3", 0.0,
+                                      doc="process noise density of the body rates (unmodelled torques)")
+    # chi-square gate on the innovation's NIS (Mahalanobis distance squared); 0.999 refuses a fix
+    # more than ~4 sigma away for 3 dof (threshold 16.3)
+    gate_probability: float = declared(0.999, "", 0.0, 1.0, min_exclusive=True,
+                                       doc="chi-square gate on a fix's innovation (NIS); 1: no gate")
+    # 0.3 s covers twice the camera's worst delay (150 ms)
+    max_delay_s: float = declared(0.3, "s", 0.0, doc="history kept for delayed measurements (a camera fix older "
+                                                     "than this is dropped)")
+    # init_std_*: the position from a first camera fix, at rest, level within a few degrees
+    init_std_position_m: float = declared(0.05, "m", 0.0, min_exclusive=True,
+                                          doc="initial position std (1 sigma)")
+    init_std_velocity_m_s: float = declared(0.1, "m/s", 0.0, min_exclusive=True,
+                                            doc="initial velocity std (1 sigma)")
+    init_std_angles_rad: float = declared(0.05, "rad", 0.0, min_exclusive=True, doc="initial angles std (1 sigma)")
+    init_std_rates_rad_s: float = declared(0.05, "rad/s", 0.0, min_exclusive=True,
+                                           doc="initial body rates std (1 sigma)")
+    # real collective force per commanded newton: battery sag and a payload change it over
+    # seconds to minutes; 1e-4 /s lets it move 0.03 in 10 s (1 sigma)
+    q_thrust_scale_1_s: float = declared(1e-4, "1/s", 0.0, doc="random walk density of the thrust scale")
+    # within 10 % of the airframe file's (mass, payload, rotor wear)
+    init_std_thrust_scale: float = declared(0.1, "", 0.0, min_exclusive=True,
+                                            doc="initial thrust scale std (1 sigma)")
 
     @property
     def process_noise_density(self) -> np.ndarray:

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+from flight.control.failsafe import DescentParams
 from flight.control.laws import STOPPING_ACCEL_FRACTION
+from flight.estimation.attitude_filter import AttitudeFilterParams
+from flight.estimation.camera_level import CameraLevelParams
+from flight.estimation.gyro_carrier import GyroCarrierParams
 from services.params import Param
 
 STATE_SOURCES = ("truth", "estimate")
@@ -28,9 +32,10 @@ PARAMS = {
                                     "a controlled descent (failsafe); on the ground, idle"),
     "state_timeout_s": Param(0.05, "s", 0.0, min_exclusive=True,
                              doc="newest IMU sample (or truth) older than this: no command"),
-    "failsafe_descent": Param({}, doc="the failsafe descent's settings (flight/control/failsafe.py DescentParams)"),
-    "filter": Param({}, doc="the attitude filter's settings (flight/estimation/attitude_filter.py "
-                            "AttitudeFilterParams)"),
+    "failsafe_descent": Param({}, table=DescentParams,
+                              doc="the failsafe descent's settings (flight/control/failsafe.py DescentParams)"),
+    "filter": Param({}, table=AttitudeFilterParams,
+                    doc="the attitude filter's settings (flight/estimation/attitude_filter.py AttitudeFilterParams)"),
     # a multirotor's accelerometer reads "level" whenever it tilts to accelerate, so 000's plain
     # accelerometer angles pull the estimate toward level in every manoeuvre
     "compensate_acceleration": Param(True, doc="subtract the position level's acceleration from the accelerometer "
@@ -56,8 +61,10 @@ PARAMS = {
     "camera_level": Param(True, doc="remove the accelerometer bias's tilt with the camera's attitude (vision/pose, "
                                     "low-passed: camera_level.py CameraLevel); false: no camera at this "
                                     "level (000)"),
-    "camera_level_settings": Param({}, doc="CameraLevel's settings (flight/estimation/camera_level.py)"),
+    "camera_level_settings": Param({}, table=CameraLevelParams,
+                                   doc="CameraLevel's settings (flight/estimation/camera_level.py CameraLevelParams)"),
     # the 000 filter (Euler axes, body rate as Euler rate) cannot follow a flip (001)
-    "carrier": Param({}, doc="past these tilts and rates a gyro-integrated quaternion carries the estimate, the "
-                             "filter restarts from it near level (gyro_carrier.py GyroCarrier's settings)"),
+    "carrier": Param({}, table=GyroCarrierParams,
+                     doc="past these tilts and rates a gyro-integrated quaternion carries the estimate, the filter "
+                         "restarts from it near level (flight/estimation/gyro_carrier.py GyroCarrierParams)"),
 }

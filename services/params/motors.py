@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from flight.control.failsafe import DescentParams
 from services.params import Param
 
 OUTPUTS = ("sim", "mavlink")
@@ -17,7 +18,8 @@ PARAMS = {
                                                          "(roll, pitch, yaw)"),
     "failsafe_alpha": Param([8.0, 8.0, 2.0], "1/s", 0.0, doc="the failsafe's law (8) rate gain per axis "
                                                              "(roll, pitch, yaw)"),
-    "failsafe_descent": Param({}, doc="the failsafe descent's settings (flight/control/failsafe.py DescentParams)"),
+    "failsafe_descent": Param({}, table=DescentParams,
+                              doc="the failsafe descent's settings (flight/control/failsafe.py DescentParams)"),
     "output": Param("sim", choices=OUTPUTS,
                     doc="sim: motors/pwm only; mavlink: also the mixer's result to an external autopilot "
                         "(SET_ACTUATOR_CONTROL_TARGET) on mavlink_endpoint"),

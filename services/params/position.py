@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from flight.estimation.position_ekf import PositionEKFParams
 from services.params import Param
 
 STATE_SOURCES = ("truth", "estimate")
@@ -53,5 +54,6 @@ PARAMS = {
     "attitude_pin_tilt_deg": Param(60.0, "deg", 0.0, 180.0,
                                    doc="past this tilt (a flip) the attitude level's angles are pinned into the "
                                        "EKF, not fused (PositionEKF.pin_attitude)"),
-    "ekf": Param({}, doc="the EKF's settings (flight/estimation/position_ekf.py PositionEKFParams)"),
+    "ekf": Param({}, table=PositionEKFParams,
+                 doc="the EKF's settings (flight/estimation/position_ekf.py PositionEKFParams)"),
 }

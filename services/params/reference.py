@@ -6,6 +6,7 @@ from __future__ import annotations
 import sys
 
 from flight.estimation.position_ekf import PositionEKFParams
+from flight.param import declarations
 from services.params import Param, attitude, mavlink, motors, planner, position, sim, vision
 
 # service -> its declarations, in the order of the data flow (the recorder has no parameters)
@@ -33,8 +34,15 @@ def _row(service: str, key: str, p: Param) -> str:
     bounds = " / ".join(f"`{c}`" if c else '`""`' for c in p.choices) if p.choices else p.bounds_text()
     names = p.mavlink_names()
     mav = ", ".join(f"`{n}`" for n in names)
+    doc = p.doc + ("; one number: every element" if p.per_axis else "")
     return (f"| {service} | `{key}` | `{_value(p.default)}` | {p.unit} | {bounds} | "
-            f"{p.doc.replace('|', '/')} | {mav} |")
+            f"{doc.replace('|', '/')} | {mav} |")
+
+
+def _rows(service: str, key: str, p: Param) -> list[str]:
+    """A parameter's row, and a nested table's keys after it as TABLE.KEY."""
+    nested = declarations(p.table).items() if p.table is not None else ()
+    return [_row(service, key, p), *[_row(service, f"{key}.{k}", q) for k, q in nested]]
 
 
 def render() -> str:
@@ -52,7 +60,10 @@ def render() -> str:
         "grid before any flight, and a running service refuses them on `param/set` (counted as "
         "`param_rejected`, the old value kept), by the same check. Bounds are inclusive unless the "
         "interval says otherwise (`(0, 0.5]`: above 0, at most 0.5); a list's bounds hold for each "
-        "element. A `{}` default is a nested table its owner (named in the description) checks.",
+        "element. A `{}` default is a nested table; a declared one's keys follow it as `TABLE.KEY`, "
+        "each at its default unless the table gives it (`ekf = {max_delay_s = 0.5}`; "
+        "`--set 'position.ekf={max_delay_s=0.5}'`), declared beside the code that owns them (named in "
+        "the description) and checked at start like the rest.",
         "",
         "Settings that cannot fly together are refused as well: the simulator's `camera_latency_s` "
         "must stay below the position EKF's history (`position.ekf` `max_delay_s`, "
@@ -65,7 +76,7 @@ def render() -> str:
             "",
             "| service | key | default | unit | bounds | description | MAVLink |",
             "|---|---|---|---|---|---|---|",
-            *[_row(service, key, p) for key, p in declared.items()],
+            *[row for key, p in declared.items() for row in _rows(service, key, p)],
             "",
         ]
     return "\n".join(out)

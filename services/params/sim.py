@@ -4,24 +4,24 @@ service's own."""
 
 from __future__ import annotations
 
-from dataclasses import fields
+import dataclasses
 
+from flight.param import declarations
 from services.params import Param
 from simulator.config import SimConfig
 
 
 def _from_config() -> dict[str, Param]:
     out = {}
-    for f in fields(SimConfig):
-        if f.name == "tick_rate_hz":   # the stack's tick rate is the one source of truth
+    for name, p in declarations(SimConfig).items():
+        if name == "tick_rate_hz":   # the stack's tick rate is the one source of truth
             continue
-        m = f.metadata
-        default = list(f.default) if isinstance(f.default, tuple) else f.default
-        out[f.name] = Param(default, m["unit"], m["min"], m["max"], m["doc"], min_exclusive=m["min_exclusive"])
+        # a stack file's arrays are lists, as the services' other parameters
+        out[name] = dataclasses.replace(p, default=list(p.default)) if isinstance(p.default, tuple) else p
     return out
 
 
-SIM_CONFIG_KEYS = frozenset(f.name for f in fields(SimConfig)) - {"tick_rate_hz"}
+SIM_CONFIG_KEYS = frozenset(declarations(SimConfig)) - {"tick_rate_hz"}
 PARAMS = {
     **_from_config(),
     "stop_after_mission": Param(True, doc="`zenpilot fly`: end the run when the mission ends"),

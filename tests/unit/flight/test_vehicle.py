@@ -149,3 +149,64 @@ def test_motor_time_constant_comes_from_the_vehicle_file_everywhere(tmp_path):
         np.testing.assert_allclose(ekf_input(v), expected(tau), rtol=1e-12)
         np.testing.assert_allclose(planner(v), expected(tau), rtol=1e-5)   # float32
     assert expected(0.05) < expected(0.02) - 0.1   # the slow motors are well behind
+
+
+BATTERY_FIELDS = ("battery_capacity_mah", "battery_cells", "battery_internal_resistance_ohm",
+                  "battery_current_a_per_n", "battery_idle_current_a")
+
+
+def test_battery_pack_comes_from_the_vehicle_file(tmp_path):
+    """A copy of x250.toml with a 2S 650 mAh pack of twice the resistance and a hungrier motor
+    set: the simulator's battery counts, sags and reports by the file's numbers, and the
+    simulator's settings hold none of the pack's (no second value to disagree with the file)."""
+    from flight.motor_model import thrust_to_pwm
+    from simulator import SimConfig, Simulator
+    from simulator.battery import Battery
+
+    src = (VEHICLES_DIR / "x250.toml").read_text()
+    stock_pack = {"battery_capacity_mah": "1300.0", "battery_cells": "3", "battery_internal_resistance_ohm": "0.05",
+                  "battery_current_a_per_n": "2.0", "battery_idle_current_a": "0.3"}
+    small_pack = {"battery_capacity_mah": "650.0", "battery_cells": "2", "battery_internal_resistance_ohm": "0.1",
+                  "battery_current_a_per_n": "3.0", "battery_idle_current_a": "0.5"}
+    for key, value in stock_pack.items():
+        assert f"\n{key} = {value}\n" in src, key
+        src = src.replace(f"\n{key} = {value}\n", f"\n{key} = {small_pack[key]}\n")
+    p = tmp_path / "small_pack.toml"
+    p.write_text(src)
+    stock, small = load_vehicle("x250"), load_vehicle(str(p))
+    assert (small.battery_capacity_mah, small.battery_cells, small.battery_internal_resistance_ohm,
+            small.battery_current_a_per_n, small.battery_idle_current_a) == (650.0, 2, 0.1, 3.0, 0.5)
+    assert dataclasses.replace(small, **{k: getattr(stock, k) for k in BATTERY_FIELDS}) == stock
+
+    def hover_one_second(v):
+        sim = Simulator(v, SimConfig(initial_position_m=(0.0, 0.0, 1.0)), seed=0)
+        assert vars(sim.battery) == vars(Battery.of(v))   # a full pack of this airframe
+        rest = sim.battery.voltage_v
+        pwm = thrust_to_pwm(v, np.full(4, v.hover_thrust_per_motor_n))
+        for _ in range(400):
+            sim.step(pwm, True)
+        return rest, sim.battery.fields()
+
+    for v, (cells, r, a_per_n, idle, capacity) in ((stock, (3, 0.05, 2.0, 0.3, 1300.0)),
+                                                    (small, (2, 0.1, 3.0, 0.5, 650.0))):
+        rest, b = hover_one_second(v)
+        assert rest == pytest.approx(cells * 4.2 - idle * r)   # full: 4.2 V a cell at rest
+        current = idle + a_per_n * v.mass_kg * v.gravity_m_s2   # hovering: the rotors carry the weight
+        assert b["cells"] == cells and b["current_a"] == pytest.approx(current, rel=0.02)
+        assert b["consumed_mah"] == pytest.approx(current / 3.6, rel=0.02)   # 1 s of that current
+        assert b["remaining"] == pytest.approx(1.0 - b["consumed_mah"] / capacity)
+
+
+def test_every_airframe_number_of_the_pack_is_in_its_vehicle_file_only():
+    """Each vehicle file gives its pack once; the simulator's settings (and so the sim service's
+    parameters and docs/parameters.md) give none of it."""
+    from simulator.config import SimConfig
+
+    for path in sorted(VEHICLES_DIR.glob("*.toml")):
+        lines = path.read_text().splitlines()
+        for key in BATTERY_FIELDS:
+            assert sum(line.startswith(f"{key} =") for line in lines) == 1, f"{path.name}: {key}"
+    sim_settings = {f.name for f in dataclasses.fields(SimConfig)}
+    assert not sim_settings & set(BATTERY_FIELDS) and "battery_rate_hz" in sim_settings   # the message rate stays
+    with pytest.raises(ValueError, match="simulator.battery_capacity_mah: unknown key"):
+        SimConfig.from_dict({"battery_capacity_mah": 1300.0})

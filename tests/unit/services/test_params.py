@@ -4,6 +4,7 @@ default stack file holding only overrides."""
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import subprocess
 import sys
@@ -12,10 +13,17 @@ from pathlib import Path
 
 import pytest
 
+from flight.control.failsafe import DescentParams
+from flight.estimation.attitude_filter import AttitudeFilterParams
+from flight.estimation.camera_level import CameraLevelParams
+from flight.estimation.gyro_carrier import GyroCarrierParams
+from flight.estimation.position_ekf import PositionEKFError, PositionEKFParams
+from flight.param import declarations
 from services.mavlink_logic import BRIDGE_PARAM_DEFAULTS, TUNABLE, TUNABLE_DEFAULTS, ParamTable
 from services.params import Param, values
 from services.params.reference import DECLARED, render
 from services.stack import DEFAULT_STACK, SERVICE_MODULES, StackError, check_compatible, load_stack, resolve_params
+from simulator.config import SimConfig
 
 ROOT = Path(__file__).resolve().parents[3]
 WHERE = "s.toml: [services.attitude.params]"
@@ -41,6 +49,77 @@ def test_every_service_declares_every_parameter_with_a_doc():
             assert resolve_params(params, {key: p.value()}, service)[key] == p.default   # within its own bounds
 
 
+# every nested table a service parameter holds, and the dataclass that owns its keys
+NESTED = {("attitude", "filter"): AttitudeFilterParams, ("attitude", "failsafe_descent"): DescentParams,
+          ("attitude", "camera_level_settings"): CameraLevelParams, ("attitude", "carrier"): GyroCarrierParams,
+          ("motors", "failsafe_descent"): DescentParams, ("position", "ekf"): PositionEKFParams}
+
+
+def test_every_nested_table_declares_every_key_with_unit_bounds_and_doc():
+    """A nested table's keys are its owner's fields, each declared (default, unit, bounds, one-line
+    doc), the defaults the owner's and within their bounds; only the MAVLink bridge's per-stream
+    rates (free stream names) stay an open table."""
+    tables = {(s, k): p.table for s, ps in DECLARED.items() for k, p in ps.items() if isinstance(p.default, dict)}
+    assert {k: t for k, t in tables.items() if t is not None} == NESTED
+    assert [k for k, t in tables.items() if t is None] == [("mavlink", "rates_hz")]
+    for (service, key), owner in NESTED.items():
+        assert DECLARED[service][key].default == {}   # every key at its owner's default
+        fields = dataclasses.fields(owner)
+        assert list(declarations(owner)) == [f.name for f in fields]
+        for f in fields:
+            p = f.metadata["param"]
+            assert p.doc and "\n" not in p.doc, f"{service}.{key}.{f.name}: a one-line doc"
+            assert p.default == f.default and p.check(p.value(), f.name) == f.default, f"{service}.{key}.{f.name}"
+            if isinstance(p.default, float):
+                assert p.unit or p.min is not None, f"{service}.{key}.{f.name}: a number with no unit nor bounds"
+        assert owner.from_dict({}) == owner()
+        assert resolve_params(DECLARED[service], {key: {}}, service)[key] == {}
+
+
+@pytest.mark.parametrize("service, given, needle", [
+    ("attitude", {"filter": {"lpf_tau_s": -1.0}},
+     "[services.attitude.params].filter.lpf_tau_s: -1.0 outside (0, inf) s"),
+    ("attitude", {"filter": {"rate_meas_var": [1e-5, 1e-5]}},
+     "[services.attitude.params].filter.rate_meas_var: expected 3 values"),
+    ("attitude", {"filter": {"max_delay_steps": 2.5}}, "[services.attitude.params].filter.max_delay_steps: expected int"),
+    ("attitude", {"filter": {"lpf": 0.02}}, "[services.attitude.params].filter.lpf: unknown key (known: lpf_tau_s, "),
+    ("attitude", {"filter": {"mag_field_world_ut": [0.0, 0.0, -45.0]}},
+     "[services.attitude.params].filter: AttitudeFilterParams.mag_field_world_ut: needs a horizontal component"),
+    ("attitude", {"carrier": {"exit_tilt_deg": 50.0}},
+     "[services.attitude.params].carrier: GyroCarrierParams: need exit_tilt_deg <= enter_tilt_deg"),
+    ("attitude", {"camera_level_settings": {"gate_rad": 0}},
+     "[services.attitude.params].camera_level_settings.gate_rad: 0.0 outside (0, inf) rad"),
+    ("attitude", {"failsafe_descent": {"sink_rate_m_s": "fast"}},
+     "[services.attitude.params].failsafe_descent.sink_rate_m_s: expected float, got 'fast'"),
+    ("motors", {"failsafe_descent": {"max_thrust_fraction": 1.5}},
+     "[services.motors.params].failsafe_descent.max_thrust_fraction: 1.5 outside (0, 1]"),
+    ("position", {"ekf": {"gate_probability": 0.0}}, "[services.position.params].ekf.gate_probability: 0.0 outside (0, 1]"),
+    ("position", {"ekf": {"max_delay_s": float("inf")}}, "[services.position.params].ekf.max_delay_s: inf outside [0, inf) s"),
+    ("position", {"ekf": 0.3}, "[services.position.params].ekf: expected dict, got 0.3"),
+])
+def test_bad_nested_values_are_refused_with_the_table_and_key(service, given, needle):
+    with pytest.raises(StackError) as err:
+        resolve_params(DECLARED[service], given, f"s.toml: [services.{service}.params]")
+    assert str(err.value).startswith("s.toml: ") and needle in str(err.value), str(err.value)
+
+
+def test_nested_values_are_checked_as_their_owner_takes_them():
+    """One check for a key however it comes: a stack file's table, or the owner built in code
+    (the same words, the owner's name for where); a per-axis number is every axis."""
+    given = {"filter": {"rate_meas_var": 2e-5, "max_delay_steps": 4}, "carrier": {"enter_tilt_deg": 50}}
+    params = resolve_params(DECLARED["attitude"], given, WHERE)
+    assert params["filter"] == given["filter"] and params["carrier"] == given["carrier"]   # plain values, as given
+    f = AttitudeFilterParams.from_dict(params["filter"])
+    assert f.rate_meas_var == (2e-5, 2e-5, 2e-5) and f.max_delay_steps == 4
+    assert GyroCarrierParams.from_dict(params["carrier"]).enter_tilt_deg == 50.0
+    with pytest.raises(PositionEKFError, match=r"^PositionEKFParams.max_delay_s: -0.1 outside \[0, inf\) s$"):
+        PositionEKFParams(max_delay_s=-0.1)
+    with pytest.raises(ValueError, match=r"^DescentParams.ramp_s: 0.0 outside \(0, inf\) s$"):
+        DescentParams(ramp_s=0.0)
+    with pytest.raises(ValueError, match=r"^simulator.camera_drop_rate: 2.0 outside \[0, 1\]$"):
+        SimConfig(camera_drop_rate=2.0)
+
+
 def test_runtime_values_are_plain_copies():
     v = values(DECLARED["attitude"])
     assert v["k"] == [16.0, 16.0, 16.0] and isinstance(v["k"], list)
@@ -64,14 +143,22 @@ def test_bad_values_are_refused_with_the_key(given, needle):
     assert needle in str(err.value) and str(err.value).startswith("s.toml: "), str(err.value)
 
 
-def test_a_service_refuses_a_bad_bound_at_start(tmp_path):
-    """End to end: the attitude service started on a stack file with a value out of bounds stops
-    at once with exit status 2, naming the file, the section and the key (no router needed)."""
-    stack = stack_file(tmp_path / "s.toml", "[services.attitude.params]\nstopping_accel_fraction = 2.0\n")
-    proc = subprocess.run([sys.executable, "-m", "services.attitude", "--stack", str(stack), "-e", "tcp/127.0.0.1:9"],
-                          cwd=ROOT, capture_output=True, text=True, timeout=60)
+@pytest.mark.parametrize("in_file, param, needle", [
+    ("stopping_accel_fraction = 2.0\n", None, "[services.attitude.params].stopping_accel_fraction: 2.0 outside [0, 1]"),
+    ("filter = {lpf_tau_s = 0.0}\n", None, "[services.attitude.params].filter.lpf_tau_s: 0.0 outside (0, inf) s"),
+    ("", "carrier={enter_rate_rad_s=-6.0}",
+     "[services.attitude.params].carrier.enter_rate_rad_s: -6.0 outside (0, inf) rad/s"),
+])
+def test_a_service_refuses_a_bad_bound_at_start(tmp_path, in_file, param, needle):
+    """End to end: the attitude service started on a stack file (or with a --param) with a value
+    out of bounds, a nested table's too, stops at once with exit status 2, naming the file, the
+    section and the key (no router needed)."""
+    stack = stack_file(tmp_path / "s.toml", f"[services.attitude.params]\n{in_file}")
+    extra = ["--param", param] if param else []
+    proc = subprocess.run([sys.executable, "-m", "services.attitude", "--stack", str(stack), "-e", "tcp/127.0.0.1:9",
+                           *extra], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2, proc.stdout + proc.stderr
-    assert f"{stack}: [services.attitude.params].stopping_accel_fraction: 2.0 outside [0, 1]" in proc.stderr
+    assert f"{stack}: {needle}" in proc.stderr, proc.stderr
 
 
 # the table as it was written by hand before the declarations: MAVSDK and QGC see the same

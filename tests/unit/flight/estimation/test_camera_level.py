@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from flight.estimation.camera_level import CameraLevel
+from flight.estimation.camera_level import CameraLevel, CameraLevelParams
 from flight.quat import quat_from_euler
 
 
@@ -24,7 +24,7 @@ def fly_level(level, bias, seconds=10.0, rate=0.0, noise_rad=0.0025, seed=0):
 
 
 def test_offset_converges_to_the_estimates_bias():
-    level = CameraLevel(time_constant_s=2.0)
+    level = CameraLevel(CameraLevelParams(time_constant_s=2.0))
     fly_level(level, bias=(0.003, -0.002))
     np.testing.assert_allclose(level.offset_rad, [0.003, -0.002], atol=7e-4)
     assert level.fused > 150 and not level.rejected
@@ -43,7 +43,7 @@ def test_frames_while_turning_or_out_of_history_are_rejected_not_fused():
 
 
 def test_inconsistent_frame_is_gated():
-    level = CameraLevel(gate_rad=0.05)
+    level = CameraLevel(CameraLevelParams(gate_rad=0.05))
     level.record(0.0, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
     level.record(0.01, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
     assert not level.fuse(0.005, quat_from_euler(0.2, 0.0, 0.0))  # 11 deg off: a bad solve
@@ -53,5 +53,7 @@ def test_inconsistent_frame_is_gated():
 
 
 def test_bad_settings_are_refused():
-    with pytest.raises(ValueError, match="positive"):
-        CameraLevel(time_constant_s=0.0)
+    with pytest.raises(ValueError, match=r"CameraLevelParams.time_constant_s: 0.0 outside \(0, inf\) s"):
+        CameraLevelParams(time_constant_s=0.0)
+    with pytest.raises(ValueError, match=r"here.gate_rad: -0.1 outside \(0, inf\) rad"):
+        CameraLevelParams.from_dict({"gate_rad": -0.1}, "here")

@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from flight.estimation.gyro_carrier import GyroCarrier
+from flight.estimation.gyro_carrier import GyroCarrier, GyroCarrierParams
 from flight.quat import quat_from_euler, quat_tilt, quat_to_euler
 
 
@@ -41,5 +41,9 @@ def test_gyro_carrier_carries_a_full_roll_flip_and_hands_back():
 
 
 def test_gyro_carrier_rejects_bad_thresholds():
-    with pytest.raises(ValueError):
-        GyroCarrier(enter_tilt_deg=20.0, exit_tilt_deg=30.0)
+    with pytest.raises(ValueError, match="exit_tilt_deg <= enter_tilt_deg"):
+        GyroCarrierParams(enter_tilt_deg=20.0, exit_tilt_deg=30.0)
+    with pytest.raises(ValueError, match=r"here: GyroCarrierParams: need exit_tilt_deg"):
+        GyroCarrierParams.from_dict({"exit_rate_rad_s": 7.0}, "here")
+    with pytest.raises(ValueError, match=r"GyroCarrierParams.enter_tilt_deg: 200.0 outside \(0, 180\] deg"):
+        GyroCarrierParams(enter_tilt_deg=200.0)
