@@ -74,6 +74,15 @@ is orthogonal to both H columns, so it produces no correction; where the
 prior is side-on the large |n*| of a flip makes R large.  Roll is therefore
 carried through by the gyros (model 1) as it should be.
 
+One step, two arithmetics.  The per-sample step is :func:`step` (model 1 by
+:func:`propagate`, then (8) with :func:`observe` and :func:`apply_tilt`), a pure
+function of (state, gyro, accel, constants) written once over a math namespace
+``ops``, as :mod:`flight.quat`'s functions take ``xp``.  :class:`GyroVertical`
+runs it with :data:`FLOAT_OPS` (Python floats, numpy for the 3x3, branches
+taken lazily): the attitude service's 200-400 Hz path, where the per-call cost
+counts.  :mod:`flight.estimation.gyrovertical_jax` runs it with ``JAX_OPS``
+(jax.numpy, branch-free) under ``lax.scan`` and ``vmap`` for training.
+
 Baselines: :class:`GyroIntegrator` (model 1 alone) and
 ``GyroVertical(..., adaptive=False)`` (every variance fixed at its n* = 0 value).
 Helpers: :func:`run_sequence`, :func:`rms_error_deg` (wrapped), :func:`evaluate`
@@ -92,7 +101,8 @@ import math
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from types import SimpleNamespace
+from typing import NamedTuple, Sequence
 
 import numpy as np
 
@@ -105,6 +115,7 @@ PAPER_PARAMS_FILE = Path(__file__).resolve().parent.parent / "params" / "gyrover
 DEFAULT_PARAMS_FILE = Path(__file__).resolve().parent.parent / "params" / "gyrovertical_x250_mems.toml"
 G = 9.80665                 # m/s^2, normalises specific force to the load factor
 DT_REF = 1.0 / 400.0        # s, rate at which the parameters are per-sample variances
+P0_DIAG = (0.04, 0.04, 1.0)  # default initial variances of [d_theta, d_gamma, V]
 
 # v_doc = FLU_TO_DOC @ v_flu; a proper rotation (det +1) so cross products map too.
 FLU_TO_DOC = np.array([[1.0, 0.0, 0.0],
@@ -140,12 +151,47 @@ def doc_jacobian(theta: float, gamma: float, omega_doc=(0.0, 0.0, 0.0), g: float
                      [st * sg, -ct * cg, -wy / g]])
 
 
-def piecewise_variance(n_star: float, var0: float, n2: float, var2: float) -> float:
+# ---------------------------------------------------------------- the math the step is written in
+# The filter's per-sample step is written once, below, over a math namespace ``ops`` (as
+# flight.quat's functions take ``xp``):
+#   scalars: sqrt sin cos atan2 asin hypot abs isfinite, clip(v, lo, hi), both(a, b) (logical and),
+#            where(c, a, b) (both evaluated);
+#   cond(c, if_true, if_false, *args): a branch.  The float one calls only the branch taken, so the
+#            flight path keeps its early skips (and divides by no zero it would not use); the JAX one
+#            evaluates both and selects, branch-free for scan and vmap;
+#   3-vectors and 3x3 matrices (used with @, .T, + - *): array, solve, add_diag(M, a, b, c)
+#            (M + diag(a, b, c), a new matrix), eye_minus(M) (I - M), unstack (a 3-vector -> 3 scalars).
+# FLOAT_OPS is the flight path (Python floats, numpy for the 3x3: the per-call cost at 200-400 Hz);
+# flight.estimation.gyrovertical_jax.JAX_OPS the training one (jax.numpy, traceable).
+
+
+def _float_cond(pred, if_true, if_false, *args):
+    return if_true(*args) if pred else if_false(*args)
+
+
+def _float_add_diag(M, a, b, c):
+    M = M.copy()
+    M[0, 0] += a
+    M[1, 1] += b
+    M[2, 2] += c
+    return M
+
+
+_I3 = np.eye(3)
+_I3.flags.writeable = False
+
+FLOAT_OPS = SimpleNamespace(
+    sqrt=math.sqrt, sin=math.sin, cos=math.cos, atan2=math.atan2, asin=math.asin, hypot=math.hypot,
+    abs=abs, isfinite=math.isfinite, clip=lambda v, lo, hi: max(lo, min(hi, v)),
+    both=lambda a, b: a and b, where=lambda c, a, b: a if c else b, cond=_float_cond,
+    array=np.array, solve=np.linalg.solve, add_diag=_float_add_diag, eye_minus=lambda M: _I3 - M,
+    unstack=np.ndarray.tolist)
+
+
+def piecewise_variance(n_star, var0, n2, var2, ops=FLOAT_OPS):
     """(7): linear through (0, var0) and (n2, var2) in |n*|, held at var2 beyond n2."""
-    a = abs(n_star)
-    if a >= n2:
-        return var2
-    return var0 + (var2 - var0) * (a / n2)
+    a = ops.abs(n_star)
+    return ops.where(a >= n2, var2, var0 + (var2 - var0) * (a / n2))
 
 
 _FUNCS = ("pitch", "roll", "speed", "n")
@@ -237,10 +283,173 @@ class GyroVerticalParams:
         return cls(**kw)
 
 
-def _euler_rp(w, x, y, z) -> tuple[float, float]:
-    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+# ---------------------------------------------------------------- the per-sample step (written once)
+class StepConstants(NamedTuple):
+    """What :func:`step` needs besides the state and the sample; made by :func:`step_constants`."""
+
+    half_dt: float          # s, model 1's dt / 2
+    q_scale: float          # Q per sample = (7) * dt / DT_REF
+    r_scale: float          # R per sample = (7) * DT_REF / dt
+    n_alpha: float          # gain of the n* low-pass per sample
+    min_load_factor: float  # below this |n| the accelerometer is not used
+    g: float
+    adaptive: bool          # False: every variance at its n* = 0 value
+    nodes: tuple            # (var0, n2, var2) of (7)'s pitch, roll, speed and n functions
+
+
+def step_constants(nodes, dt: float, adaptive: bool = True, min_load_factor: float = 0.2,
+                   n_star_tau_s: float = 0.05, g: float = G) -> StepConstants:
+    """The constants of :func:`step`; ``nodes`` as :meth:`GyroVerticalParams.function` for
+    pitch, roll, speed, n (floats, or JAX scalars when traced)."""
+    if not dt > 0:
+        raise ValueError(f"gyrovertical: dt must be > 0, got {dt!r}")
+    if not n_star_tau_s >= 0:
+        raise ValueError(f"gyrovertical: n_star_tau_s must be >= 0, got {n_star_tau_s!r}")
+    dt = float(dt)
+    n_alpha = 1.0 if n_star_tau_s == 0 else 1.0 - math.exp(-dt / n_star_tau_s)
+    return StepConstants(0.5 * dt, dt / DT_REF, DT_REF / dt, n_alpha, float(min_load_factor), float(g),
+                         bool(adaptive), tuple(tuple(node) for node in nodes))
+
+
+def euler_rp(q, ops=FLOAT_OPS):
+    """(roll, pitch) of the project's ZYX convention from q = (w, x, y, z)."""
+    w, x, y, z = q
+    roll = ops.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = ops.asin(ops.clip(2 * (w * y - z * x), -1.0, 1.0))
     return roll, pitch
+
+
+def propagate(q, gyro, half_dt, ops=FLOAT_OPS):
+    """Model 1: q + 1/2 q o (0, w) dt, normalised; q = (w, x, y, z), gyro = (gx, gy, gz) body FLU, rad/s."""
+    gx, gy, gz = gyro
+    w, x, y, z = q
+    h = half_dt
+    w, x, y, z = (w + h * (-x * gx - y * gy - z * gz),
+                  x + h * (w * gx + y * gz - z * gy),
+                  y + h * (w * gy - x * gz + z * gx),
+                  z + h * (w * gz + x * gy - y * gx))
+    s = 1.0 / ops.sqrt(w * w + x * x + y * y + z * z)
+    return (w * s, x * s, y * s, z * s)
+
+
+def scaled_variances(n_star, c: StepConstants, ops=FLOAT_OPS):
+    """(sigma_theta^2, sigma_gamma^2, sigma_V^2) of Q and sigma_n^2 of R at n*, per sample at the step's dt."""
+    n = n_star if c.adaptive else 0.0
+    pitch, roll, speed, load = c.nodes
+    return (piecewise_variance(n, *pitch, ops) * c.q_scale, piecewise_variance(n, *roll, ops) * c.q_scale,
+            piecewise_variance(n, *speed, ops) * c.q_scale, piecewise_variance(n, *load, ops) * c.r_scale)
+
+
+def observe(q, V, gyro, g, ops=FLOAT_OPS):
+    """(Z-bar, H, heading) at q and V, doc axes; H columns = [d_theta, d_gamma, V];
+    heading = (psi, cos psi, sin psi) of q's yaw, the frame of the tilt error (:func:`apply_tilt`)."""
+    w, x, y, z = q
+    # rotation matrix body->world
+    r00 = 1 - 2 * (y * y + z * z); r01 = 2 * (x * y - w * z); r02 = 2 * (x * z + w * y)
+    r10 = 2 * (x * y + w * z); r11 = 1 - 2 * (x * x + z * z); r12 = 2 * (y * z - w * x)
+    r20 = 2 * (x * z - w * y); r21 = 2 * (y * z + w * x); r22 = 1 - 2 * (x * x + y * y)
+    # heading frame of the propagated yaw; near pitch +-90 any yaw gives a valid frame
+    psi = ops.atan2(r10, r00)
+    c, s = ops.cos(psi), ops.sin(psi)
+    # R^T h_x and R^T h_y in body FLU (h_x = [c, s, 0], h_y = [-s, c, 0])
+    ax, ay, az = r00 * c + r10 * s, r01 * c + r11 * s, r02 * c + r12 * s
+    bx, by, bz = -r00 * s + r10 * c, -r01 * s + r11 * c, -r02 * s + r12 * c
+    gx, gy, gz = gyro
+    # doc axes: (x, y, z)_doc = (x, z, -y)_flu;  w_y,doc = gz,  w_z,doc = -gy
+    wy_d, wz_d = gz, -gy
+    zbar = ops.array([r20 + 0.0, r22 + V * wz_d / g, -r21 - V * wy_d / g])
+    # d n_body / d(world tilt phi) = R^T (e_z x phi); phi = d_gamma h_x - d_theta h_y
+    # e_z x h_x = h_y, e_z x h_y = -h_x  ->  d/d d_theta = R^T h_x, d/d d_gamma = R^T h_y
+    H = ops.array([[ax, bx, 0.0],
+                   [az, bz, wz_d / g],
+                   [-ay, -by, -wy_d / g]])
+    return zbar, H, (psi, c, s)
+
+
+def _turn_about_horizontal(q, px, py, ang, ops):
+    k = ops.sin(0.5 * ang) / ang
+    cw, ex, ey = ops.cos(0.5 * ang), px * k, py * k
+    w, x, y, z = q
+    # q <- q_phi (x) q   (q_phi = [cw, ex, ey, 0]): a rotation in the world frame
+    return (cw * w - ex * x - ey * y,
+            cw * x + ex * w + ey * z,
+            cw * y - ex * z + ey * w,
+            cw * z + ex * y - ey * x)
+
+
+def _restore_yaw(q, psi, ops):
+    w, x, y, z = q
+    psi_new = ops.atan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z))
+    d = 0.5 * (psi - psi_new)
+    cz, sz = ops.cos(d), ops.sin(d)
+    return (cz * w - sz * z, cz * x - sz * y, cz * y + sz * x, cz * z + sz * w)
+
+
+def _same(q, *_):
+    return q
+
+
+def apply_tilt(q, d_theta, d_gamma, heading, ops=FLOAT_OPS):
+    """q turned by the tilt error [d_theta, d_gamma] of the heading frame (from :func:`observe`),
+    then given back the heading's yaw; normalised."""
+    psi, c, s = heading
+    # world rotation vector phi = d_gamma h_x - d_theta h_y (horizontal)
+    px, py = d_gamma * c + d_theta * s, d_gamma * s - d_theta * c
+    ang = ops.hypot(px, py)
+    q = ops.cond(ang > 0.0, _turn_about_horizontal, _same, q, px, py, ang, ops)
+    # restore the propagated yaw by a world-z rotation (does not touch roll/pitch)
+    w, x, y, z = q
+    sin_pitch = -2 * (x * z - w * y)
+    w, x, y, z = ops.cond(ops.abs(sin_pitch) < 0.98, _restore_yaw, _same, q, psi, ops)
+    s_ = 1.0 / ops.sqrt(w * w + x * x + y * y + z * z)
+    return (w * s_, x * s_, y * s_, z * s_)
+
+
+def _correct(q, V, P, gyro, Z, sn, g, ops):
+    """(8), Joseph form, at the propagated attitude: the corrected (q, V, P)."""
+    zbar, H, heading = observe(q, V, gyro, g, ops)
+    PHt = P @ H.T
+    S = ops.add_diag(H @ PHt, sn, sn, sn)
+    K = ops.solve(S, PHt.T).T          # K = P H^T S^-1 (S symmetric)
+    A = ops.eye_minus(K @ H)
+    P = A @ P @ A.T + sn * (K @ K.T)
+    P = 0.5 * (P + P.T)
+    d_theta, d_gamma, dV = ops.unstack(K @ (Z - zbar))
+    return apply_tilt(q, d_theta, d_gamma, heading, ops), V + dV, P
+
+
+def step(state, gyro, accel, c: StepConstants, ops=FLOAT_OPS):
+    """One sample: model 1 with the gyro (body FLU, rad/s), then (8) with the accel (m/s^2).
+
+    state = (q, V, P, n*): q = (w, x, y, z) body->world, V, the 3x3 covariance of
+    [d_theta, d_gamma, V], the low-passed n*.  Returns (state, variances, corrected):
+    the new state, the Q diagonal and sigma_n^2 used (:func:`scaled_variances`), and
+    whether the accelerometer was used (not with |n| < min_load_factor or non-finite).
+    """
+    q, V, P, n_star = state
+    q = propagate(q, gyro, c.half_dt, ops)
+    a0, a1, a2 = accel
+    Z = ops.array([a0, a2, -a1]) / c.g       # load factor, doc axes
+    n = ops.sqrt(Z @ Z)
+    finite = ops.isfinite(n)
+    n_star = ops.where(finite, n_star + c.n_alpha * ((n - 1.0) - n_star), n_star)
+    variances = scaled_variances(n_star, c, ops)
+    sq, sg, sv, sn = variances
+    P = ops.add_diag(P, sq, sg, sv)
+    use = ops.both(finite, n >= c.min_load_factor)
+    q, V, P = ops.cond(use, _correct, _same3, q, V, P, gyro, Z, sn, c.g, ops)
+    return (q, V, P, n_star), variances, use
+
+
+def _same3(q, V, P, *_):
+    return q, V, P
+
+
+def _floats3(v, what: str) -> list:
+    out = [float(e) for e in v]
+    if len(out) != 3:
+        raise ValueError(f"gyrovertical: {what} must have 3 elements, got {len(out)}")
+    return out
 
 
 class GyroIntegrator:
@@ -250,23 +459,13 @@ class GyroIntegrator:
         if not dt > 0:
             raise ValueError("gyrovertical: dt must be > 0")
         self.dt = float(dt)
-        self._q = [1.0, 0.0, 0.0, 0.0] if q0 is None else [float(e) for e in quat_normalize(q0)]
-
-    def _propagate(self, gyro) -> None:
-        gx, gy, gz = (float(e) for e in gyro)
-        w, x, y, z = self._q
-        h = 0.5 * self.dt
-        w, x, y, z = (w + h * (-x * gx - y * gy - z * gz),
-                      x + h * (w * gx + y * gz - z * gy),
-                      y + h * (w * gy - x * gz + z * gx),
-                      z + h * (w * gz + x * gy - y * gx))
-        s = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
-        self._q = [w * s, x * s, y * s, z * s]
+        self._half_dt = 0.5 * self.dt
+        self._q = (1.0, 0.0, 0.0, 0.0) if q0 is None else tuple(float(e) for e in quat_normalize(q0))
 
     def update(self, gyro_rad_s, accel_m_s2=None) -> tuple[float, float]:
         """Propagate with one gyro sample (body FLU, rad/s); accel ignored. Returns (roll, pitch)."""
-        self._propagate(gyro_rad_s)
-        return _euler_rp(*self._q)
+        self._q = propagate(self._q, _floats3(gyro_rad_s, "gyro"), self._half_dt)
+        return euler_rp(self._q)
 
     @property
     def quaternion(self) -> np.ndarray:
@@ -274,11 +473,11 @@ class GyroIntegrator:
 
     @property
     def roll(self) -> float:
-        return _euler_rp(*self._q)[0]
+        return euler_rp(self._q)[0]
 
     @property
     def pitch(self) -> float:
-        return _euler_rp(*self._q)[1]
+        return euler_rp(self._q)[1]
 
 
 class GyroVertical(GyroIntegrator):
@@ -295,11 +494,13 @@ class GyroVertical(GyroIntegrator):
     per sample) would otherwise inflate R at rest several-fold.  0.05 s keeps
     the adaptation fast enough for manoeuvres.
 
-    ``update(gyro, accel)`` = model 1 with the gyro sample, then the step (8)
-    with the accelerometer sample of the same instant; returns (roll, pitch) of
-    the project's ZYX convention.  ``.x`` gives 004's state [theta, gamma, V]
-    (theta = -pitch, gamma = roll), ``.P`` the covariance of [d_theta, d_gamma, V],
-    ``.n_star`` and ``.variances`` the last adaptive values (Q diag, sigma_n^2, scaled to dt).
+    ``update(gyro, accel)`` = :func:`step` on Python floats: model 1 with the gyro
+    sample, then the step (8) with the accelerometer sample of the same instant;
+    returns (roll, pitch) of the project's ZYX convention.  ``.x`` gives 004's
+    state [theta, gamma, V] (theta = -pitch, gamma = roll), ``.P`` the covariance
+    of [d_theta, d_gamma, V], ``.n_star`` and ``.variances`` the last adaptive
+    values (Q diag, sigma_n^2, scaled to dt), ``.corrected`` whether the last
+    sample's accelerometer was used.
     """
 
     def __init__(self, params: GyroVerticalParams | None = None, dt: float = DT_REF, q0=None, P0=None,
@@ -311,21 +512,14 @@ class GyroVertical(GyroIntegrator):
         self.min_load_factor = float(min_load_factor)
         self.g = float(g)
         self.V = 0.0
-        self._P = np.diag([0.04, 0.04, 1.0]) if P0 is None else np.array(P0, dtype=np.float64)
+        self._P = np.diag(P0_DIAG) if P0 is None else np.array(P0, dtype=np.float64)
         if self._P.shape != (3, 3):
             raise ValueError("gyrovertical: P0 must be 3x3")
-        self._q_scale = self.dt / DT_REF
-        self._r_scale = DT_REF / self.dt
-        self._fixed = self.params.variances(0.0)
-        if not n_star_tau_s >= 0:
-            raise ValueError("gyrovertical: n_star_tau_s must be >= 0")
-        self._n_alpha = 1.0 if n_star_tau_s == 0 else 1.0 - math.exp(-self.dt / n_star_tau_s)
+        self._c = step_constants([self.params.function(fn) for fn in _FUNCS], self.dt, self.adaptive,
+                                 self.min_load_factor, n_star_tau_s, self.g)
         self.n_star = 0.0
-        self.variances = self._scaled(self._fixed)
+        self.variances = scaled_variances(0.0, self._c)
         self.corrected = False
-
-    def _scaled(self, v):
-        return (v[0] * self._q_scale, v[1] * self._q_scale, v[2] * self._q_scale, v[3] * self._r_scale)
 
     @property
     def P(self) -> np.ndarray:
@@ -333,92 +527,21 @@ class GyroVertical(GyroIntegrator):
 
     @property
     def x(self) -> np.ndarray:
-        roll, pitch = _euler_rp(*self._q)
+        roll, pitch = euler_rp(self._q)
         return np.array([-pitch, roll, self.V])
 
     def observation_model(self, gyro_rad_s) -> tuple[np.ndarray, np.ndarray]:
         """(Z-bar, H) at the current quaternion and V, doc axes; H columns = [d_theta, d_gamma, V]."""
-        w, x, y, z = self._q
-        # rotation matrix body->world
-        r00 = 1 - 2 * (y * y + z * z); r01 = 2 * (x * y - w * z); r02 = 2 * (x * z + w * y)
-        r10 = 2 * (x * y + w * z); r11 = 1 - 2 * (x * x + z * z); r12 = 2 * (y * z - w * x)
-        r20 = 2 * (x * z - w * y); r21 = 2 * (y * z + w * x); r22 = 1 - 2 * (x * x + y * y)
-        # heading frame of the propagated yaw; near pitch +-90 any yaw gives a valid frame
-        psi = math.atan2(r10, r00)
-        c, s = math.cos(psi), math.sin(psi)
-        # R^T h_x and R^T h_y in body FLU (h_x = [c, s, 0], h_y = [-s, c, 0])
-        ax, ay, az = r00 * c + r10 * s, r01 * c + r11 * s, r02 * c + r12 * s
-        bx, by, bz = -r00 * s + r10 * c, -r01 * s + r11 * c, -r02 * s + r12 * c
-        gx, gy, gz = (float(e) for e in gyro_rad_s)
-        # doc axes: (x, y, z)_doc = (x, z, -y)_flu;  w_y,doc = gz,  w_z,doc = -gy
-        wy_d, wz_d = gz, -gy
-        zbar = np.array([r20 + 0.0, r22 + self.V * wz_d / self.g, -r21 - self.V * wy_d / self.g])
-        # d n_body / d(world tilt phi) = R^T (e_z x phi); phi = d_gamma h_x - d_theta h_y
-        # e_z x h_x = h_y, e_z x h_y = -h_x  ->  d/d d_theta = R^T h_x, d/d d_gamma = R^T h_y
-        H = np.array([[ax, bx, 0.0],
-                      [az, bz, wz_d / self.g],
-                      [-ay, -by, -wy_d / self.g]])
+        zbar, H, _ = observe(self._q, self.V, _floats3(gyro_rad_s, "gyro"), self.g)
         return zbar, H
 
     def update(self, gyro_rad_s, accel_m_s2) -> tuple[float, float]:
         """One sample: model 1 with the gyro (body FLU, rad/s), then (8) with the accel (m/s^2)."""
-        self._propagate(gyro_rad_s)
-        f = np.asarray(accel_m_s2, dtype=np.float64)
-        Z = np.array([f[0], f[2], -f[1]]) / self.g
-        n = math.sqrt(float(Z @ Z))
-        if math.isfinite(n):
-            self.n_star += self._n_alpha * ((n - 1.0) - self.n_star)
-        n_star = self.n_star
-        var = self.params.variances(n_star) if self.adaptive else self._fixed
-        sq, sg, sv, sn = self.variances = self._scaled(var)
-        P = self._P
-        P[0, 0] += sq
-        P[1, 1] += sg
-        P[2, 2] += sv
-        self.corrected = False
-        if not (n >= self.min_load_factor) or not math.isfinite(n):
-            return _euler_rp(*self._q)
-        zbar, H = self.observation_model(gyro_rad_s)
-        PHt = P @ H.T
-        S = H @ PHt
-        S[0, 0] += sn; S[1, 1] += sn; S[2, 2] += sn
-        K = np.linalg.solve(S, PHt.T).T          # K = P H^T S^-1 (S symmetric)
-        A = np.eye(3) - K @ H
-        P = A @ P @ A.T + sn * (K @ K.T)         # Joseph form
-        self._P = 0.5 * (P + P.T)
-        dx = K @ (Z - zbar)
-        d_theta, d_gamma = float(dx[0]), float(dx[1])
-        self.V += float(dx[2])
-        self._apply_tilt(d_theta, d_gamma)
-        self.corrected = True
-        return _euler_rp(*self._q)
-
-    def _apply_tilt(self, d_theta: float, d_gamma: float) -> None:
-        w, x, y, z = self._q
-        r00 = 1 - 2 * (y * y + z * z)
-        r10 = 2 * (x * y + w * z)
-        psi = math.atan2(r10, r00)
-        c, s = math.cos(psi), math.sin(psi)
-        # world rotation vector phi = d_gamma h_x - d_theta h_y (horizontal)
-        px, py = d_gamma * c + d_theta * s, d_gamma * s - d_theta * c
-        ang = math.hypot(px, py)
-        if ang > 0.0:
-            k = math.sin(0.5 * ang) / ang
-            cw, ex, ey = math.cos(0.5 * ang), px * k, py * k
-            # q <- q_phi (x) q   (q_phi = [cw, ex, ey, 0]): a rotation in the world frame
-            w, x, y, z = (cw * w - ex * x - ey * y,
-                          cw * x + ex * w + ey * z,
-                          cw * y - ex * z + ey * w,
-                          cw * z + ex * y - ey * x)
-        # restore the propagated yaw by a world-z rotation (does not touch roll/pitch)
-        sin_pitch = -2 * (x * z - w * y)
-        if abs(sin_pitch) < 0.98:
-            psi_new = math.atan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z))
-            d = 0.5 * (psi - psi_new)
-            cz, sz = math.cos(d), math.sin(d)
-            w, x, y, z = (cz * w - sz * z, cz * x - sz * y, cz * y + sz * x, cz * z + sz * w)
-        s_ = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
-        self._q = [w * s_, x * s_, y * s_, z * s_]
+        state, self.variances, self.corrected = step(
+            (self._q, self.V, self._P, self.n_star), _floats3(gyro_rad_s, "gyro"),
+            _floats3(accel_m_s2, "accel"), self._c)
+        self._q, self.V, self._P, self.n_star = state
+        return euler_rp(self._q)
 
 
 def run_sequence(filt, gyro, accel) -> tuple[np.ndarray, np.ndarray]:

@@ -35,8 +35,8 @@ def train(sequences: Sequence[TrainingSequence], initial: GyroVerticalParams | N
     adaptive=True: the 12 parameters of (7).  adaptive=False: the fixed-variance
     baseline, trained the same way over its 4 free parameters (the ``*_var0``;
     the result has ``var2 = var0``).  Sequences of one length are evaluated by
-    the batched JAX filter (:mod:`flight.estimation.gyrovertical_jax`, tested equal to
-    :class:`GyroVertical`), others by the reference one sample at a time.
+    the filter's step batched in JAX (:mod:`flight.estimation.gyrovertical_jax`, tested equal to
+    :class:`GyroVertical`), others by :class:`GyroVertical` one sample at a time.
     The Nelder-Mead initial simplex is the initial point plus one vertex per
     free coordinate displaced by +-``step`` (natural log) with signs drawn from
     ``seed``, so the result is deterministic for a seed.  ``progress(k,

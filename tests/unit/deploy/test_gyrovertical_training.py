@@ -1,6 +1,6 @@
 """Training and evaluation of the gyro-vertical (004) on simulator flights.
 
-The batched JAX filter must equal the reference; training must be
+The filter's step batched in JAX must equal GyroVertical's; training must be
 reproducible; the command must write a file the attitude service reads; and on
 a control flight (not used in training) the shipped parameters must keep the
 error bounded over 10 minutes with 0.05 deg/s gyro biases and beat the
