@@ -552,8 +552,8 @@ class Runtime(ParamAccess):
         if box._channel is None:
             return
         with box._lock:
-            box._subscriber.undeclare()
             box._poll()
+            box._subscriber.undeclare()   # (its ring goes with it)
             box._channel = None
         box._subscriber = self.subscribe(box.key, box._on_sample)
 
