@@ -87,7 +87,12 @@ def fly(args, out: Path) -> tuple[dict[str, float], float, int]:
     if args.stack:
         argv += ["--stack", args.stack]
     proc = subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    time.sleep(args.settle_s)   # start-up (imports, compiles) is not what the loops cost
+    deadline = time.monotonic() + 120   # every service spawned (a loaded machine starts slowly) ...
+    while proc.poll() is None and time.monotonic() < deadline:
+        if {"sim", *VEHICLE} <= set(descendants(proc.pid).values()):
+            break
+        time.sleep(0.2)
+    time.sleep(args.settle_s)   # ... then start-up (imports, compiles) is not what the loops cost
     pids = descendants(proc.pid)
     first = {p: cpu_ticks(p) for p in pids}
     t0 = time.monotonic()

@@ -1,7 +1,7 @@
 """zenpilot-recorder: writes every message of the vehicle to one MCAP flight log.
 
-Subscribes to zp/<vehicle>/** and writes as the flight goes: the Zenoh callback only
-queues (key, payload); the recorder's loop (10 Hz) decodes each message strictly
+Subscribes to zp/<vehicle>/** and writes as the flight goes: Zenoh queues each message;
+the recorder's loop (10 Hz) decodes each message strictly
 (malformed ones are counted, not logged) and adds it to the log, and at least every
 FLUSH_S of wall time hands the chunk in progress to the OS, so a recorder killed at any
 time leaves the chunks written before readable (`zenpilot log recover`). On a stop
@@ -45,6 +45,7 @@ PARAMS: dict = {}
 FLUSH_S = 1.0  # at most this much wall time of messages is lost if the recorder is killed
 SKIP = object()  # a key the recorder does not log (its own health, liveliness)
 _UNSEEN = object()
+RECEIVE_QUEUE = 1 << 16  # messages waiting for the loop: ~40 s of a flight's traffic
 MAX_KEYS = 4096  # keys remembered by the per-key lookup; others are looked up per message
 # Asked to stop, the recorder keeps receiving until nothing has come for QUIET_STEPS loop periods
 # (the other services stop first: what they sent last may still be on its way, a busy machine
@@ -165,23 +166,34 @@ def run(args) -> None:
                                                             poses=False)
     rec = FlightRecorder(rt, out_dir / LOG_NAME, rt.vehicle_id, live_foxglove)
 
-    def on_sample(sample: zenoh.Sample) -> None:
-        rec.receive(str(sample.key_expr), sample.payload.to_bytes())
+    # Zenoh queues every message; the loop takes them. Its receiving thread then never waits for
+    # the GIL (a callback per message did, ~1,500 a second); a full queue holds Zenoh back, it
+    # does not drop.
+    subscriber = rt.session.declare_subscriber(rt.key("**"), zenoh.handlers.FifoChannel(RECEIVE_QUEUE))
+    channel = subscriber.handler
+
+    def take_arrived() -> None:
+        try:
+            while (sample := channel.try_recv()) is not None:
+                rec.receive(str(sample.key_expr), sample.payload.to_bytes())
+        except zenoh.ZError:   # the session closed and the queue is empty
+            pass
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: rec.ask_stop())
 
     def step(_t: float) -> None:
+        take_arrived()
         if rec.step():
             rt.stop_event.set()
 
-    rt.subscribe(rt.key("**"), on_sample)
     rt.announce_alive()
     rt.lockstep = False  # the recorder only listens: it keeps wall time for its own health
     rt.rate_hz = 10.0
     try:
         rt.run(step)   # returns on SIGTERM/SIGINT, its session closed
     finally:
+        take_arrived()   # what came before the session closed
         print(f"zenpilot-recorder: {rec.close()}", flush=True)
     if args.lockstep:
         t0 = time.monotonic()

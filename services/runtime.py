@@ -183,6 +183,27 @@ class Inbox:
         self.valid = 0          # messages accepted so far
         self._valid_seen = 0    # ... when fresh() last looked
         self._window_start, self._window_rejects, self._window_bytes = -math.inf, 0, 0   # this second's
+        self._channel = None    # polled (real time, not the loop's wake): Zenoh queues, the reader pulls
+
+    def _poll(self) -> None:
+        """Pull what Zenoh queued for a polled inbox: the same first look as `_on_sample`, on
+        the reader's thread. Zenoh's receiving thread then never takes the GIL for this key."""
+        channel, raw, rt = self._channel, self._raw, self.runtime
+        pulled = 0
+        while (sample := channel.try_recv()) is not None:
+            pulled += 1
+            data, reason = screen(self.message, sample.payload)
+            if data is None:
+                rt.count_rejects(self.key, reason)
+            else:
+                raw.append((0, data))
+        if pulled >= RAW_QUEUE_MAX:   # the ring may have let the oldest go: as a full raw queue does
+            if self._takes:
+                rt.count_dropped(self.key)
+            else:
+                self._superseded = True
+        while len(raw) > RAW_QUEUE_MAX:
+            raw.popleft()
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         rt = self.runtime
@@ -269,6 +290,8 @@ class Inbox:
         """Whether a valid message came since the last call (decodes what is queued): a loop
         woken by this input runs only for a real message, never for garbage."""
         with self._lock:
+            if self._channel is not None:
+                self._poll()
             if self._raw:
                 self._drain()
             new = self.valid != self._valid_seen
@@ -278,6 +301,8 @@ class Inbox:
     def latest(self) -> dict | None:
         """The newest visible message, or None."""
         with self._lock:
+            if self._channel is not None:
+                self._poll()
             if self._raw:
                 self._drain()
             limit = self.limit
@@ -290,6 +315,9 @@ class Inbox:
         """The reader stops reading for now (e.g. a failsafe's input between uses): what is
         queued is let go, and messages that do not fit while nobody reads are not counted lost."""
         with self._lock:
+            if self._channel is not None:
+                while self._channel.try_recv() is not None:
+                    pass
             self._raw.clear()
             self._superseded = True
             self._takes = False
@@ -298,6 +326,8 @@ class Inbox:
         """Visible messages not taken before, oldest first."""
         self._takes = True
         with self._lock:
+            if self._channel is not None:
+                self._poll()
             if self._raw:
                 self._drain()
             limit, taken = self.limit, self._taken
@@ -507,9 +537,25 @@ class Runtime(ParamAccess):
                     raise RuntimeError(f"{self.name}: inbox for {key} declared after its lockstep subscription")
                 box.marks_done = True
                 self._done_boxes.add(upstream)
-        self.subscribe(key, box._on_sample)
+        if self.lockstep or self.rate_hz <= 0:   # lockstep tags on arrival; an event-driven loop wakes on it
+            box._subscriber = self.subscribe(key, box._on_sample)
+        else:
+            box._subscriber = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(RAW_QUEUE_MAX))
+            box._channel = box._subscriber.handler
         self.inboxes.append(box)
         return box
+
+    def _wake_on(self, box: Inbox) -> None:
+        """The loop runs on `box`'s arrival: from polled to a callback that wakes it (before the
+        loop starts; what was queued meanwhile is kept)."""
+        box.wakes = True
+        if box._channel is None:
+            return
+        with box._lock:
+            box._poll()
+            box._subscriber.undeclare()   # (its ring goes with it)
+            box._channel = None
+        box._subscriber = self.subscribe(box.key, box._on_sample)
 
     def follow(self, upstream: str) -> None:
         """Track another service's lockstep progress (its syncs and its RUN_DONE messages)."""
@@ -681,7 +727,7 @@ class Runtime(ParamAccess):
             if self.lockstep:
                 lockstep.follow_clock(self, step, triggers)
             elif wake_on is not None and self.rate_hz > 0:
-                wake_on.wakes = True
+                self._wake_on(wake_on)
                 self._run_woken(step, min_gap, wake_on)
             else:
                 self._run_realtime(step, triggers)

@@ -4,6 +4,7 @@ and losses counted), scheduling requests, param/set checked against the declarat
 import os
 import re
 import signal
+from collections import deque
 import threading
 from types import SimpleNamespace
 
@@ -274,3 +275,42 @@ def test_param_set_checks_an_integer_parameter_as_start_up_does():
     with pytest.raises(StackError, match=r"mavlink\.system_id: expected int, got 2\.5"):
         io.set_param("system_id", [2.5])
     assert io.params["system_id"] == 3
+class FakeChannel:
+    """Zenoh's ring channel as a polled inbox reads it."""
+
+    def __init__(self, payloads):
+        self.samples = deque(SimpleNamespace(payload=zenoh.ZBytes(p)) for p in payloads)
+
+    def try_recv(self):
+        return self.samples.popleft() if self.samples else None
+
+
+def test_polled_inbox_reads_what_zenoh_queued_screens_it_and_counts_rejects():
+    rt = FakeRuntime()
+    rt.lockstep = False
+    box = Inbox(rt, schemas.IMU, "zp/0/sim/imu", "sim", keep=8)
+    box._channel = FakeChannel([imu_payload(0), b"not a map", imu_payload(2),
+                                b"\x82\xc1not msgpack", b"\x80" + bytes(schemas.IMU.size_limit)])
+    assert [m["header"]["seq"] for m in box.take()] == [0, 2]
+    assert rt.rejected == {"malformed": 2, "too_large": 1}
+    assert rt.dropped == {"zp/0/sim/imu": 1}        # seq 1 never came
+    box._channel = FakeChannel([imu_payload(3), imu_payload(4)])
+    assert box.latest()["header"]["seq"] == 4 and box.fresh()
+    box._channel = FakeChannel([imu_payload(5)])
+    box.idle()                                       # a reader that stops lets the queue go
+    assert 5 not in [m["header"]["seq"] for m in box.take()] and not box._channel.samples
+
+
+def test_a_full_ring_counts_a_loss_for_a_reader_of_every_message_only():
+    rt = FakeRuntime()
+    rt.lockstep = False
+    newest = Inbox(rt, schemas.IMU, "zp/0/sim/imu", "sim", keep=4)
+    newest.latest()
+    newest._channel = FakeChannel([imu_payload(s) for s in range(1000, 1000 + RAW_QUEUE_MAX)])
+    assert newest.latest()["header"]["seq"] == 1000 + RAW_QUEUE_MAX - 1 and rt.dropped == {}
+    every = Inbox(rt, schemas.IMU, "zp/0/sim/imu2", "sim", keep=4)
+    every._channel = FakeChannel([])
+    every.take()
+    every._channel = FakeChannel([imu_payload(s) for s in range(RAW_QUEUE_MAX)])
+    every.take()
+    assert rt.dropped.get("zp/0/sim/imu2", 0) >= 1
