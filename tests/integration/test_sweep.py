@@ -1,9 +1,9 @@
 """`zenpilot sweep` on a 2-worker Dask LocalCluster: two lockstep flights at a time, each with
 its own router and folder, gathered into one table; a task that cannot fly is retried once and
-reported, not lost; a second run skips what is done. The failing flights give the attitude
-filter's table a key it does not have: a table, as the parameter's declared type, so the grid
-accepts it, and the filter's owner refuses it at start (a missing mission, or a value out of its
-declared bounds, is refused before any flight)."""
+reported, not lost; a second run skips what is done. The failing flights give the camera a
+latency within its own bounds but beyond the position EKF's history: each value passes the grid's
+check, and `fly` refuses the pair at its start (a missing mission, or a value out of its declared
+bounds, is refused before any flight)."""
 
 import csv
 import json
@@ -17,11 +17,13 @@ from tests.integration.conftest import ROOT
 pytestmark = pytest.mark.integration
 
 SHORT = "tests/integration/missions/hover-short.toml"
-FILTERS = "attitude.filter={},{bogus=1}"   # {}: the default
+# 0.05 s: the default; 0.4 s passes its own bounds (each value is checked before anything flies)
+# but not beside the EKF's 0.3 s history: `fly` refuses the pair at its start, a failed flight
+LATENCIES = "sim.camera_latency_s=0.05,0.4"
 
 
 def sweep(out, *extra, mission=SHORT, timeout=240):
-    argv = [sys.executable, "-m", "deploy.cli", "sweep", "--mission", mission, "--param", FILTERS, "--seeds", "0-1",
+    argv = [sys.executable, "-m", "deploy.cli", "sweep", "--mission", mission, "--param", LATENCIES, "--seeds", "0-1",
             "--workers", "2", "--out", str(out), *extra]
     return subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=timeout)
 
@@ -44,9 +46,9 @@ def test_two_worker_sweep_table_failures_and_resume(tmp_path):
     assert first.returncode == 1, said            # a failed flight: exit status 1, after the table
     assert "2 worker(s)" in said
     rows = read_csv(out / "sweep.csv")
-    flown = {k: r for k, r in rows.items() if r["attitude.filter"] == "{}"}
-    failed = {k: r for k, r in rows.items() if r["attitude.filter"] == "{bogus=1}"}
-    assert sorted(flown) == [f"hover-short-nominal-attitude.filter=x-seed{s}" for s in (0, 1)], said
+    flown = {k: r for k, r in rows.items() if r["sim.camera_latency_s"] == "0.05"}
+    failed = {k: r for k, r in rows.items() if r["sim.camera_latency_s"] == "0.4"}
+    assert sorted(flown) == [f"hover-short-nominal-sim.camera_latency_s=0.05-seed{s}" for s in (0, 1)], said
     assert len(failed) == 2
     for r in flown.values():
         assert r["status"] == "ok", r
@@ -54,7 +56,7 @@ def test_two_worker_sweep_table_failures_and_resume(tmp_path):
         assert float(r["position_rms_m"]) < 0.05
     for r in failed.values():   # reported in the table with why, after the retry
         assert r["status"] == "failed" and r["attempts"] == "2", r
-        assert "exit status 2" in r["error"] and "unknown parameter(s) ['bogus']" in r["error"], r   # the owner's word
+        assert "exit status 2" in r["error"] and "is not below" in r["error"], r   # the refusal's word
     # isolated: a folder each, its own router port (the command each flight ran)
     commands = [(out / k / "command.txt").read_text() for k in flown]
     ports = {c.split("--port ")[1].split()[0] for c in commands}
@@ -64,7 +66,7 @@ def test_two_worker_sweep_table_failures_and_resume(tmp_path):
     import pyarrow.parquet as pq
     table = pq.read_table(out / "sweep.parquet")
     assert table.num_rows == 4 and sorted(table.column("status").to_pylist()) == ["failed", "failed", "ok", "ok"]
-    assert (out / "sweep-attitude.filter.png").stat().st_size > 1000   # the swept dimension's plot
+    assert (out / "sweep-sim.camera_latency_s.png").stat().st_size > 1000   # the swept dimension's plot
 
     # resume: the flown ones are skipped; the failed ones are tried again (and fail again)
     second = sweep(out)
