@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from flight.quat import wrap_angle
+from flight.quat import quats_to_euler, wrap_angle
 
 ATTITUDE_STEP_MIN_DEG = 1.0
 ATTITUDE_REF_TOL_DEG = 1e-3  # the attitude level's reference equals the setpoint's
@@ -51,17 +51,6 @@ def _sorted(msgs: list[dict]) -> list[dict]:
 
 def _times(msgs: list[dict]) -> np.ndarray:
     return np.array([m["header"]["t_s"] for m in msgs], dtype=np.float64)
-
-
-def euler_from_quaternions(q: np.ndarray) -> np.ndarray:
-    """(N, 4) [w, x, y, z] -> (N, 3) [roll, pitch, yaw] rad, ZYX (as flight.quat.quat_to_euler)."""
-    q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    w, x, y, z = q.T
-    roll = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0))
-    yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-    return np.stack([roll, pitch, yaw], axis=1)
 
 
 def _crossing(t: np.ndarray, s: np.ndarray, level: float) -> float | None:
@@ -241,7 +230,7 @@ def compute_metrics(log: dict[str, list[dict]], info: dict, vehicle_id: int = 0)
     m["duration_s"] = _f(truth_t[-1] - truth_t[0]) if truth else None
     if truth:
         pos = np.array([x["position_m"] for x in truth], dtype=np.float64)
-        euler = euler_from_quaternions(np.array([x["quaternion_wxyz"] for x in truth]))
+        euler = quats_to_euler(np.array([x["quaternion_wxyz"] for x in truth]))
         landed = np.array([bool(x["landed"]) for x in truth])
     else:
         pos, euler, landed = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, dtype=bool)

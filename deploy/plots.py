@@ -10,8 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from deploy.metrics import euler_from_quaternions  # noqa: E402
-from flight.quat import wrap_angle  # noqa: E402
+from flight.quat import quats_to_euler, wrap_angle  # noqa: E402
 
 _DPI = 110
 
@@ -87,7 +86,7 @@ def _attitude_plot(log, p, t0, out: Path) -> Path | None:
     fig, axes = plt.subplots(3, 1, sharex=True, figsize=(10, 8))
     if truth:
         tt, q = _series(truth, "quaternion_wxyz")
-        eul = np.degrees(euler_from_quaternions(q))
+        eul = np.degrees(quats_to_euler(q))
         eul[:, 2] = np.degrees(np.unwrap(np.radians(eul[:, 2])))
     if att:
         ta, ref = _series(att, "euler_ref_rad")
@@ -140,7 +139,7 @@ def _estimation_plot(log, p, t0, out: Path) -> Path | None:
         return None
     tt, tpos = _series(truth, "position_m")
     _, tq = _series(truth, "quaternion_wxyz")
-    teul = euler_from_quaternions(tq)
+    teul = quats_to_euler(tq)
     fig, axes = plt.subplots(2, 1, sharex=True, figsize=(10, 7))
     if pos:
         tp, epos = _series(pos, "position_m")
@@ -184,7 +183,7 @@ def _flip_plot(log, p, t0, out: Path, kf: float) -> Path | None:
     truth = [m for m in truth if lo <= m["header"]["t_s"] <= hi]
     tt, pos = _series(truth, "position_m")
     _, q = _series(truth, "quaternion_wxyz")
-    roll = np.unwrap(euler_from_quaternions(q)[:, 0])
+    roll = np.unwrap(quats_to_euler(q)[:, 0])
     tp = np.array([m["header"]["t_s"] for m in plans])
     plan_roll = np.array([m["roll_rad"] for m in plans])
     # the truth's roll accumulated from the same origin as the phase machine's

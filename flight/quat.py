@@ -137,6 +137,17 @@ def quat_to_euler(q) -> tuple[float, float, float]:
     return roll, pitch, yaw
 
 
+def quats_to_euler(q) -> np.ndarray:
+    """quat_to_euler of many at once: (N, 4) [w, x, y, z] -> (N, 3) [roll, pitch, yaw] rad."""
+    q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    roll = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0))
+    yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return np.stack([roll, pitch, yaw], axis=1)
+
+
 def rotate_vector(q, v) -> np.ndarray:
     """Rotate body vector(s) v, shape (3,) or (N, 3), into the world frame."""
     v = np.asarray(v, dtype=np.float64)

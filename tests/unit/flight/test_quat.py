@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from flight.quat import (quat_conjugate, quat_from_euler, quat_from_rotation, quat_integrate, quat_multiply,
+from flight.quat import (quats_to_euler, quat_conjugate, quat_from_euler, quat_from_rotation, quat_integrate, quat_multiply,
                          quat_normalize, quat_to_euler, quat_to_rotation, rotate_vector, wrap_angle,
                          wrap_angle_float)
 
@@ -99,3 +99,10 @@ def test_quat_from_rotation_inverts_quat_to_rotation():
         q = quat_normalize(rng.normal(size=4))
         q = -q if q[0] < 0 else q
         np.testing.assert_allclose(quat_from_rotation(quat_to_rotation(q)), q, atol=1e-12)
+
+
+def test_the_batch_euler_is_the_scalar_one_through_gimbal_lock():
+    rng = np.random.default_rng(3)
+    qs = rng.normal(size=(200, 4))
+    qs[:3] = [quat_from_euler(0.3, math.pi / 2, -1.0), quat_from_euler(-2.0, -math.pi / 2, 0.5), [2.0, 0, 0, 0]]
+    np.testing.assert_allclose(quats_to_euler(qs), [quat_to_euler(q) for q in qs], atol=1e-12)
