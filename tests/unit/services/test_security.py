@@ -44,7 +44,7 @@ def test_publishes_matches_the_services_code():
                 for m in re.findall(r"(?:rt|io)\.publisher\(schemas\.(\w+)", code)}
         if name == "sim":   # its sensors, and the lockstep clocks it drives (services/lockstep.py)
             used |= {m.topic for m in schemas.SIM_TOPICS.values()}
-            assert "rt.publisher(msg)" in code
+            assert "io.publisher(msg)" in code
             assert "rt.publisher(schemas.CLOCK" in (ROOT / "services" / "lockstep.py").read_text()
             used.add(schemas.CLOCK.topic.replace("{service}", "*"))
         assert used == set(topics), name
