@@ -27,7 +27,6 @@ from pathlib import Path
 from deploy.manoeuvres import FlightData, record
 from flight.estimation.gyrovertical import (DT_REF, GyroVerticalParams, TrainedParams, TrainingSequence,
                                             make_training_sequences)
-from flight.estimation.gyrovertical_training import train
 from flight.vehicle import load_vehicle
 
 def training_flights(vehicle_name: str, seed: int, flights: int, duration_s: float) -> list[FlightData]:
@@ -68,6 +67,9 @@ def save(path: Path, trained: TrainedParams) -> None:
 
 def run_training(vehicle: str, seed: int, flights: int, duration_s: float, bias_deg_s: float,
                  maxiter: int, log=print) -> TrainedParams:
+    # imported here: it brings scipy.optimize and JAX (seconds), which every `zenpilot`
+    # command would pay for at start-up (deploy/cli.py imports this module for its parser)
+    from flight.estimation.gyrovertical_training import train
     t0 = time.monotonic()
     log(f"recording {flights} training flight(s) of {duration_s:g} s ({vehicle}, seed {seed}) ...")
     data = training_flights(vehicle, seed, flights, duration_s)

@@ -113,6 +113,14 @@ def test_cli_refuses_unknown_mission():
     assert out.returncode == 2 and "no file" in out.stderr and "Traceback" not in out.stderr
 
 
+def test_the_cli_starts_without_jax_or_scipy():
+    """Every `zenpilot` command imports deploy.cli: what only training and prediction use is
+    imported when they run, so that a refused argument or `zenpilot fly` starts at once."""
+    code = "import sys, deploy.cli; print(sorted(m for m in ('jax', 'scipy.optimize') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert out.stdout.strip().splitlines()[-1] == "[]", out.stdout + out.stderr
+
+
 def test_pure_packages_do_no_io():
     """flight/ and simulator/ hold algorithms only: no Zenoh, msgpack or MAVLink."""
     banned = ("zenoh", "msgpack", "pymavlink", "socket", "subprocess")
