@@ -48,6 +48,10 @@ def add_parser(sub) -> None:
     p.add_argument("--delay-ms", type=float, default=d.delay_max_s * 1e3,
                    help=f"control delay up to, ms (default {d.delay_max_s * 1e3:g})")
     p.add_argument("--json", metavar="FILE", help="also write the summary per flip item as JSON")
+    p.add_argument("--compile-cache-dir", metavar="DIR", default="",
+                   help="keep the compiled solver and rollouts in DIR (JAX's persistent cache, as the planner's "
+                        "compile_cache_dir, e.g. ~/.cache/zenpilot/jax): a later run loads them instead of "
+                        "compiling (default: compile every run)")
     p.set_defaults(func=cmd_predict)
 
 
@@ -71,6 +75,12 @@ def cmd_predict(args) -> int:
     flips = [(i, item) for i, item in enumerate(mission.items) if item["type"] == "flip"]
     if not flips:
         raise ValueError(f"predict: mission {mission.name!r} has no flip item")
+    if args.compile_cache_dir:
+        from flight.control.ilqr import use_compile_cache
+        try:
+            use_compile_cache(args.compile_cache_dir)
+        except OSError as exc:
+            raise ValueError(f"predict: --compile-cache-dir: {exc}") from None
     import jax
     device = jax.devices()[0]
     print(f"$ zenpilot predict {' '.join(sys.argv[2:])}".rstrip())
