@@ -36,6 +36,19 @@ def planner():
     return ILQRSolver(VEHICLE, THESIS)
 
 
+@pytest.fixture(scope="module")
+def solver_for():
+    """One ILQRSolver per distinct config in this module (compiled at its first solve): tests
+    that ask for the same config share it instead of tracing and compiling it again."""
+    built = {}
+
+    def get(config):
+        if config not in built:
+            built[config] = ILQRSolver(VEHICLE, config, warm_up=False)
+        return built[config]
+    return get
+
+
 def test_hover_is_an_equilibrium_of_both_integrators():
     x = jnp.asarray(hover_state([1.0, 2.0, 5.0]))
     u = jnp.full(4, hover_rotor_speed_rad_s(VEHICLE))
@@ -66,20 +79,19 @@ def test_attitude_error_is_the_rotation_angle():
         assert np.sqrt(float(e2)) == pytest.approx(angle, rel=5e-3)  # float32 near 0
 
 
-def test_solver_cost_decreases_monotonically_with_iterations(planner):
+def test_solver_cost_decreases_monotonically_with_iterations(planner, solver_for):
     x0 = hover_state([0.3, -0.2, 4.5])
     targets = np.repeat(hover_state([0, 0, 5])[None], THESIS.horizon + 1, axis=0)
     costs = []
     for iterations in range(1, 6):
-        p = ILQRSolver(VEHICLE, dataclasses.replace(THESIS, max_iterations=iterations, relative_tolerance=0.0),
-                    warm_up=False)
+        p = solver_for(dataclasses.replace(THESIS, max_iterations=iterations, relative_tolerance=0.0))
         costs.append(p.solve(x0, targets).cost)
     initial = planner.solve(x0, targets).initial_cost
     assert costs[0] < initial
     assert all(b <= a + 1e-6 * a for a, b in itertools.pairwise(costs))
 
 
-def test_gains_of_the_last_pass_or_of_the_returned_plan():
+def test_gains_of_the_last_pass_or_of_the_returned_plan(solver_for):
     """gains_at_returned_plan=False returns the last backward pass's gains: those of the plan
     the last line search started from, i.e. what one iteration fewer with the refresh gives
     (the refresh pass linearises at the plan it returns, with the same regularisation)."""
@@ -90,7 +102,7 @@ def test_gains_of_the_last_pass_or_of_the_returned_plan():
     def solve(iterations, refresh):
         config = dataclasses.replace(THESIS, max_iterations=iterations, relative_tolerance=0.0,
                                      gains_at_returned_plan=refresh)
-        return ILQRSolver(VEHICLE, config, warm_up=False).solve(x0, targets)
+        return solver_for(config).solve(x0, targets)
     last_pass, refreshed_before, refreshed = solve(3, False), solve(2, True), solve(3, True)
     scale = np.abs(refreshed.gains).max()
     assert np.abs(last_pass.gains - refreshed_before.gains).max() <= 1e-6 * scale
@@ -168,19 +180,26 @@ def test_structured_cost_derivatives_equal_autodiff(config, n):
     """make_cost_derivatives (what the solver uses) against jax.grad / jax.hessian of the costs,
     at random states far from and near the target attitude."""
     stage, terminal = make_cost(config)
-    stage_d, terminal_d = make_cost_derivatives(config)
+    # both sides jitted, as the solver runs them: a compile each, where eager autodiff
+    # dispatches (and compiles) every operation on its own
+    stage_d, terminal_d = (jax.jit(f) for f in make_cost_derivatives(config))
+
+    @jax.jit
+    def autodiff(x, u, xt, ut):
+        return ((jax.grad(stage, 0)(x, u, xt, ut), jax.grad(stage, 1)(x, u, xt, ut),
+                 jax.hessian(stage, 0)(x, u, xt, ut), jax.hessian(stage, 1)(x, u, xt, ut),
+                 jax.jacfwd(jax.grad(stage, 1), 0)(x, u, xt, ut)),
+                (jax.grad(terminal)(x, xt), jax.hessian(terminal)(x, xt)))
     rng = np.random.default_rng(3)
     for near in (False, True):
         x, xt = (jnp.asarray(rng.normal(size=n)) for _ in range(2))
         if near:
             x = x.at[6:10].set(xt[6:10] * 1.3 + 1e-4 * rng.normal(size=4))
         u, ut = (jnp.asarray(rng.normal(size=4) * 100 + 700) for _ in range(2))
-        expected = (jax.grad(stage, 0)(x, u, xt, ut), jax.grad(stage, 1)(x, u, xt, ut),
-                    jax.hessian(stage, 0)(x, u, xt, ut), jax.hessian(stage, 1)(x, u, xt, ut),
-                    jax.jacfwd(jax.grad(stage, 1), 0)(x, u, xt, ut))
-        for got, want in zip(stage_d(x, u, xt, ut), expected):
+        expected_stage, expected_terminal = autodiff(x, u, xt, ut)
+        for got, want in zip(stage_d(x, u, xt, ut), expected_stage):
             np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)  # float32
-        for got, want in zip(terminal_d(x, xt), (jax.grad(terminal)(x, xt), jax.hessian(terminal)(x, xt))):
+        for got, want in zip(terminal_d(x, xt), expected_terminal):
             np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)  # float32
 
 
@@ -229,14 +248,15 @@ def test_backward_pass_is_the_riccati_recursion():
         want_gains.insert(0, gain)
         want_ffs.insert(0, ff)
     derivs = tuple(jnp.asarray(v, jnp.float32) for v in (A, B, lx, lu, lxx, luu, lux, vx_final, vxx_final))
-    gains, ffs, ok = _backward_pass(derivs, mu)
+    backward_pass = jax.jit(_backward_pass)  # as the solver runs it; one compile for both calls
+    gains, ffs, ok = backward_pass(derivs, mu)
     assert bool(ok)
     np.testing.assert_allclose(gains, np.stack(want_gains), rtol=1e-3, atol=1e-4)
     np.testing.assert_allclose(ffs, np.stack(want_ffs), rtol=1e-3, atol=1e-4)
     luu_indefinite = luu.copy()
     luu_indefinite[2] = -np.eye(n_u)  # a step whose Quu is not PD: reported, no NaN out
     derivs = (*derivs[:5], jnp.asarray(luu_indefinite, jnp.float32), *derivs[6:])
-    gains, ffs, ok = _backward_pass(derivs, mu)
+    gains, ffs, ok = backward_pass(derivs, mu)
     assert not bool(ok)
     assert np.all(np.asarray(gains) == 0.0) and np.all(np.asarray(ffs) == 0.0)
 
@@ -260,7 +280,9 @@ def test_motor_lag_model_forces_follow_the_command_exactly():
 
 
 def test_planner_with_motor_model_pads_13_state_inputs():
-    config = dataclasses.replace(THESIS, models_motors=True, max_iterations=2)
+    config = PROJECT  # the motor-model config that flies: the flip and prediction tests compile it
+    # too, so the run's compilation cache (tests/unit/conftest.py) holds it
+    assert config.models_motors
     p = ILQRSolver(VEHICLE, config, warm_up=False)
     targets = np.repeat(hover_state([0, 0, 5])[None], config.horizon + 1, axis=0)
     plan = p.solve(hover_state([0, 0, 4.9]), targets)
@@ -289,9 +311,10 @@ def test_solver_compiler_options_leave_the_plan_unchanged(planner, monkeypatch):
 
 
 PLAN_IN_A_FRESH_PROCESS = """
-import json, numpy as np
-from flight.control.ilqr import THESIS, ILQRSolver, hover_state
+import json, sys, numpy as np
+from flight.control.ilqr import THESIS, ILQRSolver, hover_state, use_compile_cache
 from flight.vehicle import load_vehicle
+use_compile_cache(sys.argv[1])
 planner = ILQRSolver(load_vehicle("q820"), THESIS)
 x0 = hover_state([0.3, -0.2, 4.6])
 plan = planner.solve(x0, np.repeat(hover_state([0.0, 0.0, 5.0])[None], THESIS.horizon + 1, axis=0))
@@ -301,18 +324,19 @@ print(json.dumps({"whole": planner.loops_compiled_whole(), "controls": plan.cont
 
 
 @pytest.mark.skipif(jax.default_backend() != "cpu", reason="XLA's CPU runtime option")
-def test_small_loop_hoisting_compiles_the_thesis_solve_whole_and_plans_the_same():
+def test_small_loop_hoisting_compiles_the_thesis_solve_whole_and_plans_the_same(jax_compile_cache):
     """An ILQRSolver asks XLA (XLA_FLAGS, before its first compile) to compile small while loops as
     one function each: a fresh process that builds one gets the THESIS solve's loops so, and
-    plans as a process left at XLA's defaults (ZENPILOT_XLA_DEFAULTS=1) does."""
+    plans as a process left at XLA's defaults (ZENPILOT_XLA_DEFAULTS=1) does. Both use the run's
+    compilation cache: its key holds XLA_FLAGS, so each loads only what was compiled as it asks."""
     import json
     import os
     import subprocess
     import sys
     root = str(Path(__file__).resolve().parents[4])
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "ZENPILOT_XLA_DEFAULTS")}
-    runs = [subprocess.Popen([sys.executable, "-c", PLAN_IN_A_FRESH_PROCESS], cwd=root, text=True,
-                             stdout=subprocess.PIPE, env=dict(env, **extra))
+    runs = [subprocess.Popen([sys.executable, "-c", PLAN_IN_A_FRESH_PROCESS, jax_compile_cache], cwd=root,
+                             text=True, stdout=subprocess.PIPE, env=dict(env, **extra))
             for extra in ({}, {"ZENPILOT_XLA_DEFAULTS": "1"})]
     hoisted, default = (json.loads(run.communicate(timeout=300)[0].splitlines()[-1]) for run in runs)
     assert hoisted["whole"] >= 3 and default["whole"] <= 1
