@@ -28,20 +28,30 @@ def predictor():
     return build_predictor(load_vehicle("q820"), "ilqr-project", 5.0)
 
 
-def test_rollouts_without_uncertainty_replay_the_nominal_flight(predictor):
+CALM_N = 64  # the rollouts with nothing drawn: one batch size, so one compile for every test
+
+
+@pytest.fixture(scope="module")
+def calm_predictor(predictor):
+    """The nominal flight's rollouts with nothing drawn: every case flies the nominal flight."""
+    return Predictor(predictor.nominal, Uncertainty.none())
+
+
+def test_rollouts_without_uncertainty_replay_the_nominal_flight(predictor, calm_predictor):
     """The batched rollout is the nominal flight's loop: with nothing drawn it flies the same
     states (float32 against float64: within a millimetre over the whole flip)."""
     nominal = predictor.nominal
-    series, _, _ = Predictor(nominal, Uncertainty.none()).series(3, seed=0)
-    assert series.shape == (3, nominal.ticks, 6)
-    np.testing.assert_allclose(series[:, :, 0], np.broadcast_to(nominal.states[:, 2], (3, nominal.ticks)), atol=2e-3)
-    np.testing.assert_allclose(series[:, :, 1], np.broadcast_to(nominal.states[:, 0], (3, nominal.ticks)), atol=2e-3)
+    series, _, _ = calm_predictor.series(CALM_N, seed=0)
+    shape = (CALM_N, nominal.ticks)
+    assert series.shape == shape + (6,)
+    np.testing.assert_allclose(series[:, :, 0], np.broadcast_to(nominal.states[:, 2], shape), atol=2e-3)
+    np.testing.assert_allclose(series[:, :, 1], np.broadcast_to(nominal.states[:, 0], shape), atol=2e-3)
 
 
-def test_vectorised_metrics_are_flip_metrics(predictor):
+def test_vectorised_metrics_are_flip_metrics(predictor, calm_predictor):
     """metrics_from_series gives flight.control.flip.flip_metrics' figures for the nominal flight."""
     nominal = predictor.nominal
-    series, _, _ = Predictor(nominal, Uncertainty.none()).series(1, seed=0)
+    series, _, _ = calm_predictor.series(CALM_N, seed=0)
     m = metrics_from_series(series, nominal.flip_tick, nominal.tick_s, nominal.altitude_m)
     t = np.arange(nominal.ticks) * nominal.tick_s
     ref = flip_metrics(t, nominal.states[:, 0:3], nominal.states[:, 6:10], nominal.states[:, 10:13], nominal.phases)
@@ -58,8 +68,8 @@ def test_vectorised_metrics_are_flip_metrics(predictor):
     assert ref.altitude_loss_m < 0.05 and 0.1 < ref.xy_drift_m < 0.4 and 5 < ref.overshoot_deg < 20
 
 
-def test_prediction_spreads_with_the_uncertainty_and_is_deterministic(predictor):
-    calm = Predictor(predictor.nominal, Uncertainty.none()).predict(64, seed=0)
+def test_prediction_spreads_with_the_uncertainty_and_is_deterministic(predictor, calm_predictor):
+    calm = calm_predictor.predict(CALM_N, seed=0)
     default = predictor.predict(256, seed=3)
     again = predictor.predict(256, seed=3)
     harsh = Predictor(predictor.nominal, Uncertainty(mass_frac=0.3, thrust_coefficient_frac=0.2,
@@ -91,17 +101,19 @@ def test_bad_uncertainty_and_the_baseline_are_refused():
         build_predictor(load_vehicle("q820"), "baseline", 5.0)
 
 
-def test_cli_prints_the_envelope_and_refuses_bad_arguments(tmp_path):
-    """One run (it flies the nominal and 200 rollouts): the table, the JSON, and the item refused
-    when the clearance asked for leaves no room for its loss (exit 1, the reason printed)."""
+def test_cli_prints_the_envelope_and_refuses_bad_arguments(tmp_path, jax_compile_cache):
+    """One run (it flies the nominal and 256 rollouts): the table, the JSON, and the item refused
+    when the clearance asked for leaves no room for its loss (exit 1, the reason printed). With the
+    run's compilation cache: the solver and the 256 default rollouts are those the tests above
+    compiled (the same shapes), so it loads them."""
     out = tmp_path / "p.json"
-    run = subprocess.run([sys.executable, "-m", "deploy.cli", "predict", "--mission", "flip", "-n", "200",
-                          "--clearance-m", "4.99", "--json", str(out)], cwd=ROOT, capture_output=True, text=True,
-                         timeout=300)
+    run = subprocess.run([sys.executable, "-m", "deploy.cli", "predict", "--mission", "flip", "-n", "256",
+                          "--clearance-m", "4.99", "--json", str(out), "--compile-cache-dir", jax_compile_cache],
+                         cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert run.returncode == 1, run.stdout + run.stderr
     assert "altitude loss from the hover height" in run.stdout and "REFUSED: predicted" in run.stdout, run.stdout
     item = json.loads(out.read_text())["items"][0]
-    assert item["method"] == "ilqr-project" and item["rollouts"] == 200 and "95th-percentile" in item["refused"]
+    assert item["method"] == "ilqr-project" and item["rollouts"] == 256 and "95th-percentile" in item["refused"]
     assert item["loss_from_hover_m"]["p95"] > 0.01
     bad = subprocess.run([sys.executable, "-m", "deploy.cli", "predict", "-n", "0"],
                          cwd=ROOT, capture_output=True, text=True, timeout=60)
