@@ -23,7 +23,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 README = ROOT / "README.md"
-MAX_BYTES = 8192            # issue 23: the README <= 8 kB
+MAX_BYTES = 8000            # issue 23: the README <= 8 kB (the strict reading)
 FIRST_SCREEN_LINES = 40     # ... with the folder map in its first screen
 
 # not files of the repository: what the install or a flight makes, and Zenoh key expressions
