@@ -205,6 +205,13 @@ class Inbox:
         while len(raw) > RAW_QUEUE_MAX:
             raw.popleft()
 
+    def _read_queued(self) -> None:
+        """What arrived since the last read, decoded (called with the lock held)."""
+        if self._channel is not None:
+            self._poll()
+        if self._raw:
+            self._drain()
+
     def _on_sample(self, sample: zenoh.Sample) -> None:
         rt = self.runtime
         # Garbage is refused here, before it is copied, queued or wakes the reader: over the
@@ -290,10 +297,7 @@ class Inbox:
         """Whether a valid message came since the last call (decodes what is queued): a loop
         woken by this input runs only for a real message, never for garbage."""
         with self._lock:
-            if self._channel is not None:
-                self._poll()
-            if self._raw:
-                self._drain()
+            self._read_queued()
             new = self.valid != self._valid_seen
             self._valid_seen = self.valid
         return new
@@ -301,10 +305,7 @@ class Inbox:
     def latest(self) -> dict | None:
         """The newest visible message, or None."""
         with self._lock:
-            if self._channel is not None:
-                self._poll()
-            if self._raw:
-                self._drain()
+            self._read_queued()
             limit = self.limit
             for tag, _, msg in reversed(self._items):
                 if tag < limit:
@@ -326,10 +327,7 @@ class Inbox:
         """Visible messages not taken before, oldest first."""
         self._takes = True
         with self._lock:
-            if self._channel is not None:
-                self._poll()
-            if self._raw:
-                self._drain()
+            self._read_queued()
             limit, taken = self.limit, self._taken
             out = [m for tag, n, m in self._items if tag < limit and n > taken]
             if out:
