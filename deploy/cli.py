@@ -35,8 +35,8 @@ import zenoh
 
 import schemas
 from deploy import gyrovertical_training, predict_cli, sweep
-from deploy.launcher import (DELIVERY_S, STOP_GRACE_S, Launcher, alive_services, client_session, free_port,
-                             recorder_grace_s, stop_groups, wait_port)
+from deploy.launcher import (DELIVERY_S, ONE_PROCESS, ONE_PROCESS_FAILED, STOP_GRACE_S, Launcher, alive_services,
+                             client_session, free_port, recorder_grace_s, stop_groups, wait_port)
 from deploy.progress import FlightProgress
 from deploy.report import REPORT_NAME, RUN_FILES, write_report
 from deploy.supervisor import POLL_S, Supervisor
@@ -80,16 +80,42 @@ def cmd_fly(args) -> int:
     launcher = Launcher(stack, out, router, lockstep=args.lockstep, seed=args.seed,
                         vehicle=mission.vehicle, mission=mission.path, params=_param_overrides(args.set, stack))
     names = lockstep_services(stack.services) if args.lockstep else list(stack.services)
+    # lockstep in one process unless asked otherwise, or a live view needs the Zenoh bus
+    one_process = args.lockstep and not args.processes and args.foxglove is None
     print(f"zenpilot: flying {mission.name} ({mission.vehicle}, "
-          f"{'lockstep' if args.lockstep else 'real time'}, seed {args.seed}) -> {out}", flush=True)
+          f"{'lockstep' if args.lockstep else 'real time'}{', one process' if one_process else ''}, "
+          f"seed {args.seed}) -> {out}", flush=True)
     wall0 = time.monotonic()
     started = time.time()
     completed_run = False
+    try:
+        if one_process:
+            completed_run = _fly_one_process(launcher, names, mission.timeout_s * 20.0 + 30.0)
+        else:
+            completed_run = _fly_processes(launcher, names, args, mission, out)
+    finally:
+        launcher.stop_all()
+    wall = time.monotonic() - wall0
+    report_startup(out, started)
+    if not completed_run:
+        print(f"zenpilot: the simulator stopped with an error (see {out / 'logs' / 'sim.log'})", file=sys.stderr)
+    metrics = analyse(out, {"mission": mission.name, "mode": "lockstep" if args.lockstep else "realtime",
+                            "seed": args.seed, "vehicle": mission.vehicle}, plots=not args.no_plots)
+    print(f"zenpilot: {metrics['duration_s']:.1f} s flown in {wall:.1f} s of wall time; "
+          f"log{'' if args.no_plots else ', plots, report.html'} and metrics.json in {out}")
+    if metrics.get("crashed"):
+        print("zenpilot: the vehicle crashed (truth on the ground mid-mission, or tilted past 60 deg)", file=sys.stderr)
+    return 0 if metrics.get("completed") and not metrics.get("crashed") else 1
+
+
+def _fly_processes(launcher: Launcher, names: list[str], args, mission, out: Path) -> bool:
+    """A flight with a process per service over the router; True if the simulator ended it."""
+    stack = launcher.stack
     progress = session = None
     try:
         launcher.start_router()
         if args.foxglove is not None:   # the live view, ground side: it only listens
-            start_view(launcher, router, args.foxglove, mission.vehicle, out)
+            start_view(launcher, launcher.router, args.foxglove, mission.vehicle, out)
         launcher.start_services(names)
         missing = launcher.wait_alive(names)
         if missing:
@@ -97,7 +123,7 @@ def cmd_fly(args) -> int:
                              f"(logs in {out / 'logs'})")
         limit = mission.timeout_s * (20.0 if args.lockstep else 1.5) + 30.0
         deadline = time.monotonic() + limit
-        session = client_session(router)
+        session = client_session(launcher.router)
         progress = FlightProgress(session, stack.vehicle_id, mission.items, real_time=not args.lockstep)
         supervisor = watch_services(launcher, [n for n in names if n != "sim"], session, not args.lockstep)
         while launcher.procs["sim"].poll() is None:
@@ -112,24 +138,26 @@ def cmd_fly(args) -> int:
             if time.monotonic() > deadline:
                 raise StackError(f"the flight did not finish within {limit:.0f} s of wall time")
             time.sleep(POLL_S)
-        completed_run = launcher.procs["sim"].returncode == 0
+        return launcher.procs["sim"].returncode == 0
     finally:
         if progress is not None:
             progress.close()
         if session is not None:
             session.close()
-        launcher.stop_all()
-    wall = time.monotonic() - wall0
-    report_startup(out, started)
-    if not completed_run:
-        print(f"zenpilot: the simulator stopped with an error (see {out / 'logs' / 'sim.log'})", file=sys.stderr)
-    metrics = analyse(out, {"mission": mission.name, "mode": "lockstep" if args.lockstep else "realtime",
-                            "seed": args.seed, "vehicle": mission.vehicle}, plots=not args.no_plots)
-    print(f"zenpilot: {metrics['duration_s']:.1f} s flown in {wall:.1f} s of wall time; "
-          f"log{'' if args.no_plots else ', plots, report.html'} and metrics.json in {out}")
-    if metrics.get("crashed"):
-        print("zenpilot: the vehicle crashed (truth on the ground mid-mission, or tilted past 60 deg)", file=sys.stderr)
-    return 0 if metrics.get("completed") and not metrics.get("crashed") else 1
+
+
+def _fly_one_process(launcher: Launcher, names: list[str], limit_s: float) -> bool:
+    """A lockstep flight in one process (deploy/one_process.py); True if the simulator ended it."""
+    proc = launcher.start_one_process(names)
+    deadline = time.monotonic() + limit_s
+    while proc.poll() is None:
+        if time.monotonic() > deadline:
+            raise StackError(f"the flight did not finish within {limit_s:.0f} s of wall time")
+        time.sleep(POLL_S)
+    if proc.returncode == ONE_PROCESS_FAILED:
+        said = _read(launcher.run_dir / "logs" / f"{ONE_PROCESS}.log").strip().splitlines()
+        raise StackError(said[-1] if said else "a service failed during the flight")
+    return proc.returncode == 0
 
 
 VIEW_NICE = 10   # the live view yields the CPU to the flight's loops (as the MAVLink bridge does)
@@ -628,6 +656,9 @@ def build_parser() -> argparse.ArgumentParser:
     fly.add_argument("--port", type=int, help="router port (default: a free one)")
     fly.add_argument("--no-plots", action="store_true",
                      help="metrics only (sweeps, tests); `zenpilot report DIR` draws the plots later")
+    fly.add_argument("--processes", action="store_true",
+                     help="lockstep: a process per service over a Zenoh router, as real time runs "
+                          "(default: the services as threads of one process; the same flight log)")
     fly.add_argument("--foxglove", type=int, nargs="?", const=8765, metavar="PORT",
                      help="serve a live Foxglove view of the flight on ws://127.0.0.1:PORT (default 8765)")
     fly.set_defaults(func=cmd_fly)

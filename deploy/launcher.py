@@ -32,6 +32,8 @@ STOP_GRACE_S = 5.0        # a service's time to finish after SIGTERM before SIGK
 # never the log.
 RECORDER_GRACE_S = 30.0
 RECORDER_GRACE_S_PER_MB = 3.0
+ONE_PROCESS = "stack"   # a one-process lockstep's process (deploy/one_process.py): its log is logs/stack.log
+ONE_PROCESS_FAILED = 3  # ... its exit status when a service other than the simulator failed
 DELIVERY_S = 0.3   # after the services stop, for their last messages to reach the recorder
 # One thread per Zenoh runtime pool: a 400 Hz service needs no more, and on a
 # small computer (2 cores here, a Raspberry Pi on the vehicle) fewer threads
@@ -97,8 +99,10 @@ def recorder_grace_s(log_paths) -> float:
 def stop_groups(names: list[str], log_paths=()) -> list[tuple[list[str], float]]:
     """The order a stack stops in, as (names, grace in s): services that produce messages
     first, then the recorder that logs them (to `log_paths`), then the router that carries them."""
-    services = [n for n in names if n not in ("recorder", "router")]
-    return [(g, grace) for g, grace in ((services, STOP_GRACE_S),
+    services = [n for n in names if n not in ("recorder", "router", ONE_PROCESS)]
+    return [(g, grace) for g, grace in (([ONE_PROCESS] if ONE_PROCESS in names else [],   # its services, then its recorder
+                                         STOP_GRACE_S + recorder_grace_s(log_paths)),
+                                        (services, STOP_GRACE_S),
                                         (["recorder"] if "recorder" in names else [], recorder_grace_s(log_paths)),
                                         (["router"] if "router" in names else [], STOP_GRACE_S)) if g]
 
@@ -170,6 +174,17 @@ class Launcher:
             self._start_service(name)
             if name == "recorder":   # its token means it listens: nothing the others send is missed
                 self.wait_alive(["recorder"])   # one still missing is reported with the others
+
+    def start_one_process(self, names: list[str]) -> subprocess.Popen:
+        """A lockstep flight's services as threads of one process (deploy/one_process.py), each
+        with the command line its own process would have; no router. Registered as ONE_PROCESS."""
+        if not self.lockstep:
+            raise StackError("one process runs lockstep only: real time runs a process per service")
+        order = sorted(names, key=lambda n: (n != "recorder", n == "sim"))
+        services = [(n, SERVICE_MODULES[n], self.service_argv(n)[3:]) for n in order]   # past python -m module
+        return self._spawn(ONE_PROCESS, [sys.executable, "-m", "deploy.one_process", "--logs",
+                                         str(self.run_dir / "logs"), "--vehicle-id", str(self.stack.vehicle_id),
+                                         json.dumps(services)])
 
     def _start_service(self, name: str, append: bool = False) -> None:
         proc = self._spawn(name, self.service_argv(name), append)

@@ -25,6 +25,7 @@ from collections import deque
 from typing import TYPE_CHECKING, Callable
 
 import schemas
+from services.local_bus import running_as as inline_owner
 
 if TYPE_CHECKING:
     from services.runtime import Runtime
@@ -137,33 +138,38 @@ class Progress:
         return False
 
 
-def follow_clock(rt: "Runtime", step: Callable[[float], None], triggers: tuple[str, ...]) -> None:
-    """A participant's loop: say ready until the first clock, then for each clock addressed to
-    this service wait for the upstream runs it names, run `step` on what they published, and
-    say done (a sync, unless the run ended with its RUN_DONE message)."""
-    progress = rt.progress
-    period = round(rt.tick_rate / rt.rate_hz) if rt.rate_hz > 0 else 0
-    sync = rt.publisher(schemas.SYNC_DONE, schemas.SYNC_DONE.key(rt.vehicle_id, rt.name))
-    sync.tracked = False
-    done_message = schemas.RUN_DONE.get(rt.name)
-    done_key = done_message.key(rt.vehicle_id) if done_message else None
-    next_tick = 0 if period else -1
-    rt.subscribe_run_done()
-    rt.subscribe_clock()
-    rt.watch_participants()
-    while not rt.stop_event.is_set() and not progress.clocks:
-        sync.put({"tick": -1, "next_tick": next_tick, "triggers": list(triggers), "period_ticks": period},
-                 t_s=0.0, repeat=True)
-        progress.clock_event.wait(READY_RESEND_S)
-    sync.seq += 1
-    rt.state = "running"
-    rt.enter_loop()
-    while not rt.stop_event.is_set():
-        progress.clock_event.clear()
-        if not progress.clocks:
-            progress.clock_event.wait(0.2)
-            continue
-        clock = progress.clocks.popleft()  # a clock for us: we are due at this tick
+class Participant:
+    """A participant's half: say ready, then run `step` for each clock addressed to it."""
+
+    def __init__(self, rt: "Runtime", step: Callable[[float], None], triggers: tuple[str, ...]):
+        self.rt, self.step, self.triggers = rt, step, list(triggers)
+        self.period = round(rt.tick_rate / rt.rate_hz) if rt.rate_hz > 0 else 0
+        self.sync = rt.publisher(schemas.SYNC_DONE, schemas.SYNC_DONE.key(rt.vehicle_id, rt.name))
+        self.sync.tracked = False
+        done_message = schemas.RUN_DONE.get(rt.name)
+        self.done_key = done_message.key(rt.vehicle_id) if done_message else None
+        self.next_tick = 0 if self.period else -1
+        self.ran = False
+        rt.subscribe_run_done()
+        rt.subscribe_clock()
+        rt.watch_participants()
+
+    def say_ready(self) -> None:
+        self.sync.put({"tick": -1, "next_tick": self.next_tick, "triggers": self.triggers,
+                       "period_ticks": self.period}, t_s=0.0, repeat=True)
+
+    def started(self) -> None:
+        """The first clock came (threaded), or is about to (inline): the runs' syncs count from 1."""
+        self.sync.seq += 1
+        self.rt.state = "running"
+        self.rt.enter_loop()
+
+    def run(self, clock: dict) -> bool:
+        """Tick clock["tick"]: wait for the upstream runs it names, run the step on what they
+        published, say done (a sync, unless the run ended with its RUN_DONE message). False:
+        stopped while waiting."""
+        rt, progress = self.rt, self.rt.progress
+        self.ran = True
         k = clock["tick"]
         rt._t = t = k / rt.tick_rate
         done_before = clock["done"]
@@ -172,19 +178,52 @@ def follow_clock(rt: "Runtime", step: Callable[[float], None], triggers: tuple[s
         ready = progress.wait_synced({n: done_before.get(n, -2) for n in progress.upstreams}, k, rt.problem)
         rt.wait_s += time.perf_counter() - start
         if not ready:
-            break
+            return False
         for box in rt.inboxes:
             box.limit = k if box.clocked else done_before.get(box.upstream, -2)
         rt.count_run(t)
         rt._last_put = None
-        rt._safe_step(step, t)
+        rt._safe_step(self.step, t)
         rt.publish_health()
-        if period:
-            next_tick = k + period
+        if self.period:
+            self.next_tick = k + self.period
         last = rt._last_put
-        if last is not None and last.key == done_key and last.last_t == t:
-            continue   # the run ended with its RUN_DONE message: that was its sync
-        sync.put({"tick": k, "next_tick": next_tick, "triggers": list(triggers), "period_ticks": period}, t_s=t)
+        if last is None or last.key != self.done_key or last.last_t != t:   # else that message was its sync
+            self.sync.put({"tick": k, "next_tick": self.next_tick, "triggers": self.triggers,
+                           "period_ticks": self.period}, t_s=t)
+        return True
+
+
+def follow_clock(rt: "Runtime", step: Callable[[float], None], triggers: tuple[str, ...]) -> None:
+    """A participant's loop: say ready until the first clock, then run each clock addressed to
+    this service as it comes (Participant.run)."""
+    me = Participant(rt, step, triggers)
+    progress = rt.progress
+    while not rt.stop_event.is_set() and not progress.clocks:
+        me.say_ready()
+        progress.clock_event.wait(READY_RESEND_S)
+    me.started()
+    while not rt.stop_event.is_set():
+        progress.clock_event.clear()
+        if not progress.clocks:
+            progress.clock_event.wait(0.2)
+            continue
+        if not me.run(progress.clocks.popleft()):   # a clock for us: we are due at this tick
+            break
+
+
+def serve_inline(rt: "Runtime", step: Callable[[float], None], triggers: tuple[str, ...]) -> None:
+    """One process (deploy/one_process.py): the simulator's thread runs this participant's clocks
+    itself, in tick order, with no wake-up of this thread in between (rt.local_bus.participants);
+    this thread only waits to be stopped. Every message is published as the threaded loop
+    publishes it, so each service sees what it sees there."""
+    me = Participant(rt, step, triggers)
+    me.started()
+    rt.local_bus.participants[rt.name] = me
+    while not me.ran and not rt.stop_event.is_set():   # until the simulator, started last, has heard it
+        me.say_ready()
+        rt.stop_event.wait(READY_RESEND_S)
+    rt.stop_event.wait()
 
 
 class Clock:
@@ -207,6 +246,8 @@ class Clock:
         self.next_due: dict[str, int] = {}
         self.triggers: dict[str, set[str]] = {}
         self.last_due = {p: -1 for p in participants}   # the last tick each was due at (-1: none yet)
+        # one process: the participants whose runs this thread makes itself (serve_inline)
+        self.inline: dict[str, Participant] = rt.local_bus.participants if rt.local_bus is not None else {}
 
     def start(self) -> bool:
         """Wait for every participant's "ready" and read the schedule it announced with it (the
@@ -229,9 +270,14 @@ class Clock:
         due = [p for p in self.participants if p not in progress.gone
                and (next_due[p] == k or (next_due[p] < 0 and triggers[p].intersection(published)))]
         done = dict(self.last_due)
+        inline = self.inline
         for p in due:
-            self.clocks[p].put({"tick": k, "tick_rate_hz": self.rt.tick_rate, "published": published,
-                                "done": done}, t_s=t)
+            clock = {"tick": k, "tick_rate_hz": self.rt.tick_rate, "published": published, "done": done}
+            if p in inline:   # one process: run it here, now (each run sees only runs before k)
+                with inline_owner(p):
+                    inline[p].run(clock)
+            else:
+                self.clocks[p].put(clock, t_s=t)
             self.last_due[p] = k
             if self.period[p]:
                 next_due[p] = k + self.period[p]

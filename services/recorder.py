@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import time
 from collections import deque
 from pathlib import Path
@@ -38,7 +37,7 @@ import schemas
 from flight.vehicle import load_vehicle
 from schemas.flightlog import LOG_NAME, Derive, FlightLogWriter, sort_log
 from services.foxglove_map import FoxgloveMap, MarkerGrid
-from services.runtime import Runtime, main_guard, service_parser
+from services.runtime import Runtime, main_guard, on_stop_request, service_parser
 
 NAME = "recorder"
 PARAMS: dict = {}
@@ -179,8 +178,7 @@ def run(args) -> None:
         except zenoh.ZError:   # the session closed and the queue is empty
             pass
 
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: rec.ask_stop())
+    on_stop_request(rec.ask_stop)
 
     def step(_t: float) -> None:
         take_arrived()

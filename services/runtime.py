@@ -80,6 +80,21 @@ def screen(message: schemas.Message, payload: zenoh.ZBytes) -> tuple[bytes | Non
 WAKE_TIMER_MARGIN = 0.25
 
 
+# A one-process lockstep (deploy/one_process.py) puts every service of the process on this
+# in-process bus (services/local_bus.py) instead of Zenoh; None: each service opens Zenoh.
+LOCAL_BUS = None
+
+
+def on_stop_request(handler: Callable[[], None]) -> None:
+    """Call `handler()` when this service is asked to stop: its SIGINT/SIGTERM, or the host's
+    request in a one-process run (signals belong to the process, not to a thread)."""
+    if LOCAL_BUS is not None:
+        LOCAL_BUS.on_stop(handler)
+    else:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: handler())
+
+
 # ---------------------------------------------------------------- CLI and Zenoh
 def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
     """The standard Zenoh flags of the zenoh-python examples."""
@@ -469,8 +484,9 @@ class Runtime(ParamAccess):
         self.event_driven = False   # real time, no rate: the loop runs on any input's arrival
         self.inboxes: list[Inbox] = []
         self._param_callbacks: dict[str, list[Callable[[Any], None]]] = {}
+        self.local_bus = LOCAL_BUS
         try:
-            self.session = zenoh.open(self.conf)
+            self.session = zenoh.open(self.conf) if LOCAL_BUS is None else LOCAL_BUS.open(self.conf)
         except zenoh.ZError as exc:
             fail(name, f"cannot open the Zenoh session: {exc}")
         # the liveliness token says "up"; a service whose inputs must be in place first (the
@@ -483,8 +499,7 @@ class Runtime(ParamAccess):
         self._health.tracked = False   # nobody on the clock reads health: it may follow a run's last message
         self._next_health = 0.0
         self.subscribe(schemas.PARAM_SET.key(self.vehicle_id), self._on_param_set)
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: self.stop_event.set())
+        on_stop_request(self.stop_event.set)
 
     # -- helpers ---------------------------------------------------------
     def where(self) -> str:
@@ -722,7 +737,9 @@ class Runtime(ParamAccess):
         arrives, the motor driver as its command does) instead of adding up to a period of
         waiting per hop. Lockstep runs on the ticks as always."""
         try:
-            if self.lockstep:
+            if self.lockstep and self.local_bus is not None:
+                lockstep.serve_inline(self, step, triggers)
+            elif self.lockstep:
                 lockstep.follow_clock(self, step, triggers)
             elif wake_on is not None and self.rate_hz > 0:
                 self._wake_on(wake_on)
@@ -769,7 +786,7 @@ class Runtime(ParamAccess):
         of the process (Zenoh's, XLA's); set-up itself ran at normal scheduling, so a long one (the
         flip's JAX compile) never takes the CPU from normal processes. Then everything allocated
         so far goes out of the garbage collector's way."""
-        if not self.lockstep and self.spec is not None:
+        if not self.lockstep and self.spec is not None and LOCAL_BUS is None:   # (per process, not per thread)
             self.scheduling = apply_scheduling(self.spec.priority, self.spec.cpu)
             if "refused" in self.scheduling:
                 self.problem(f"scheduling: {self.scheduling}")
@@ -825,8 +842,9 @@ class Runtime(ParamAccess):
 
     def close(self) -> None:
         if self.state != "stopping":
-            cpu = os.times()
-            print(f"zenpilot-{self.name}: stopping; cpu {cpu.user + cpu.system:.2f} s; {self.cycles} runs, "
+            cpu = os.times()   # one process of several threads: this service's thread alone
+            used = cpu.user + cpu.system if LOCAL_BUS is None else time.thread_time()
+            print(f"zenpilot-{self.name}: stopping; cpu {used:.2f} s; {self.cycles} runs, "
                   f"step {self.step_s:.3f} s, waited {self.wait_s:.3f} s", flush=True)
         self.state = "stopping"
         try:

@@ -1,0 +1,164 @@
+"""A lockstep flight's services as threads of one process, on an in-process bus.
+
+`zenpilot fly --lockstep` runs here by default: the same service modules, each `main(argv)`
+with the command line the launcher would give its process, its Runtime on a
+services.local_bus.LocalBus instead of Zenoh, its output in <run>/logs/<service>.log. The
+lockstep protocol and every message are unchanged, so the flight log is the one the
+multi-process lockstep writes, byte for byte (`zenpilot fly --lockstep --processes` flies
+that one; tests/integration/test_flights.py compares them); what goes is the cost of carrying
+each message between processes. Real time always runs a process per service.
+
+Started by deploy.launcher.Launcher.start_one_process; on SIGTERM/SIGINT, or when the
+simulator ends the flight, it stops the services, then the recorder (it closes and sorts
+the log), as the launcher stops processes. Exit status: the simulator's; 3 when another
+service failed during the flight.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import signal
+import sys
+import threading
+import time
+import traceback
+from pathlib import Path
+from typing import TextIO
+
+from deploy.launcher import ONE_PROCESS_FAILED, STOP_GRACE_S, recorder_grace_s
+from schemas.flightlog import LOG_NAME
+from services import local_bus, runtime
+
+START_TIMEOUT_S = 30.0
+
+
+class ThreadOutput:
+    """sys.stdout/sys.stderr for a process of services: each line goes to the log of the
+    service whose thread (or whose subscriber callback, on another's thread) writes it."""
+
+    def __init__(self, files: dict[str, TextIO], default: TextIO):
+        self.files, self.default = files, default
+
+    def _file(self) -> TextIO:
+        owner = local_bus.delivering_to() or threading.current_thread().name
+        return self.files.get(owner, self.default)
+
+    def write(self, text: str) -> int:
+        f = self._file()
+        try:
+            n = f.write(text)
+            f.flush()
+        except ValueError:   # a service still talking after its log was closed (the process ending)
+            n = self.default.write(text)
+        return n
+
+    def flush(self) -> None:
+        self._file().flush()
+
+    def isatty(self) -> bool:
+        return False
+
+
+class Host:
+    def __init__(self, services: list[tuple[str, str, list[str]]], logs: Path, vehicle_id: int):
+        self.services, self.logs, self.vehicle_id = services, logs, vehicle_id
+        self.bus = local_bus.LocalBus()
+        self.threads: dict[str, threading.Thread] = {}
+        self.status: dict[str, int] = {}
+        self.stop = threading.Event()
+
+    def _run(self, name: str, module: str, argv: list[str]) -> None:
+        try:
+            importlib.import_module(module).main(argv)
+            code = 0
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+        except BaseException:   # a service's bug: its traceback in its own log, the flight stopped
+            traceback.print_exc()
+            code = 1
+        self.status[name] = code
+
+    def start(self, name: str, module: str, argv: list[str]) -> None:
+        t = threading.Thread(target=self._run, args=(name, module, argv), name=name, daemon=True)
+        self.threads[name] = t
+        t.start()
+
+    def wait_alive(self, name: str) -> bool:
+        key = f"zp/{self.vehicle_id}/alive/{name}"
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while key not in self.bus.tokens():
+            if not self.threads[name].is_alive() or time.monotonic() > deadline or self.stop.is_set():
+                return False
+            self.bus.token_event.wait(0.1)
+            self.bus.token_event.clear()
+        return True
+
+    def failed(self) -> dict[str, int]:
+        return {n: c for n, c in self.status.items() if c != 0 and n != "sim"}
+
+    def fly(self) -> int:
+        for name, module, argv in self.services:   # the recorder first, listening before anything is said
+            self.start(name, module, argv)
+            if name == "recorder" and not self.wait_alive("recorder"):
+                print("zenpilot: the recorder did not start (see logs/recorder.log)", file=sys.__stderr__, flush=True)
+                self.shut_down()
+                return ONE_PROCESS_FAILED
+        sim = self.threads.get("sim")
+        while not self.stop.is_set() and sim is not None and sim.is_alive() and not self.failed():
+            self.stop.wait(0.1)
+        failed = self.failed()
+        self.shut_down()
+        if failed:
+            print("zenpilot: service(s) failed during the flight: " + ", ".join(
+                f"{n} (status {c}, see logs/{n}.log)" for n, c in failed.items()), file=sys.__stderr__, flush=True)
+            return ONE_PROCESS_FAILED
+        return self.status.get("sim", 1)
+
+    def shut_down(self) -> None:
+        """The services, then the recorder, as the launcher stops processes (the log complete)."""
+        names = list(self.threads)
+        for group, grace_s in ([n for n in names if n != "recorder"], STOP_GRACE_S), \
+                              (["recorder"] if "recorder" in names else [], recorder_grace_s([self.logs.parent / LOG_NAME])):
+            deadline = time.monotonic() + grace_s
+            asked = set()
+            while time.monotonic() < deadline:
+                alive = [n for n in group if self.threads[n].is_alive()]
+                if not alive:
+                    break
+                for n in alive:
+                    if n not in asked and self.bus.request_stop(n):
+                        asked.add(n)
+                self.threads[alive[0]].join(0.05)
+            for n in group:
+                if self.threads[n].is_alive():
+                    print(f"zenpilot: {n} did not stop within {grace_s:.0f} s", file=sys.__stderr__, flush=True)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m deploy.one_process", description=__doc__.splitlines()[0])
+    p.add_argument("--logs", required=True, type=Path, help="folder for <service>.log")
+    p.add_argument("--vehicle-id", required=True, type=int)
+    p.add_argument("services", help='JSON: [[name, module, [argument, ...]], ...] in start order')
+    args = p.parse_args(argv)
+    services = [(n, m, list(a)) for n, m, a in json.loads(args.services)]
+    args.logs.mkdir(parents=True, exist_ok=True)
+    files = {name: open(args.logs / f"{name}.log", "w") for name, _, _ in services}
+    host = Host(services, args.logs, args.vehicle_id)
+    runtime.LOCAL_BUS = host.bus
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: host.stop.set())
+    sys.stdout = ThreadOutput(files, sys.__stdout__)
+    sys.stderr = ThreadOutput(files, sys.__stderr__)
+    try:
+        return host.fly()
+    finally:
+        sys.stdout.flush()
+        for f in files.values():
+            f.close()
+        sys.stdout, sys.stderr = sys.__stdout__, sys.__stderr__
+
+
+if __name__ == "__main__":
+    sys.exit(main())
