@@ -80,8 +80,8 @@ def cmd_fly(args) -> int:
     launcher = Launcher(stack, out, router, lockstep=args.lockstep, seed=args.seed,
                         vehicle=mission.vehicle, mission=mission.path, params=_param_overrides(args.set, stack))
     names = lockstep_services(stack.services) if args.lockstep else list(stack.services)
-    # lockstep in one process unless asked otherwise, or a live view needs the Zenoh bus
-    one_process = args.lockstep and not args.processes and args.foxglove is None
+    # lockstep in one process unless asked otherwise, or the bus is wanted (a live view, a router's port)
+    one_process = args.lockstep and not args.processes and args.foxglove is None and args.port is None
     print(f"zenpilot: flying {mission.name} ({mission.vehicle}, "
           f"{'lockstep' if args.lockstep else 'real time'}{', one process' if one_process else ''}, "
           f"seed {args.seed}) -> {out}", flush=True)
@@ -101,7 +101,8 @@ def cmd_fly(args) -> int:
         print(f"zenpilot: the simulator stopped with an error (see {out / 'logs' / 'sim.log'})", file=sys.stderr)
     metrics = analyse(out, {"mission": mission.name, "mode": "lockstep" if args.lockstep else "realtime",
                             "seed": args.seed, "vehicle": mission.vehicle}, plots=not args.no_plots)
-    print(f"zenpilot: {metrics['duration_s']:.1f} s flown in {wall:.1f} s of wall time; "
+    flown = f"{metrics['duration_s']:.1f} s" if metrics.get("duration_s") is not None else "nothing"
+    print(f"zenpilot: {flown} flown in {wall:.1f} s of wall time; "
           f"log{'' if args.no_plots else ', plots, report.html'} and metrics.json in {out}")
     if metrics.get("crashed"):
         print("zenpilot: the vehicle crashed (truth on the ground mid-mission, or tilted past 60 deg)", file=sys.stderr)
@@ -157,6 +158,9 @@ def _fly_one_process(launcher: Launcher, names: list[str], limit_s: float) -> bo
     if proc.returncode == ONE_PROCESS_FAILED:
         said = _read(launcher.run_dir / "logs" / f"{ONE_PROCESS}.log").strip().splitlines()
         raise StackError(said[-1] if said else "a service failed during the flight")
+    if proc.returncode < 0:   # killed: the recorder with the rest
+        raise StackError(f"the stack's process was killed (signal {-proc.returncode}); the flight log holds the "
+                         f"chunks the recorder wrote before: `zenpilot log recover {launcher.run_dir}`")
     return proc.returncode == 0
 
 
@@ -653,12 +657,12 @@ def build_parser() -> argparse.ArgumentParser:
     common(fly)
     fly.add_argument("--mission", help=f"mission name or file (default: {DEFAULT_MISSION}; see `zenpilot missions`)")
     fly.add_argument("--out", help="output directory (default: runs/<mission>-<mode>-seed<N>)")
-    fly.add_argument("--port", type=int, help="router port (default: a free one)")
+    fly.add_argument("--port", type=int, help="router port (default: a free one); in lockstep it implies --processes")
     fly.add_argument("--no-plots", action="store_true",
                      help="metrics only (sweeps, tests); `zenpilot report DIR` draws the plots later")
     fly.add_argument("--processes", action="store_true",
                      help="lockstep: a process per service over a Zenoh router, as real time runs "
-                          "(default: the services as threads of one process; the same flight log)")
+                          "(default: the services as threads of one process, no router; the same flight log)")
     fly.add_argument("--foxglove", type=int, nargs="?", const=8765, metavar="PORT",
                      help="serve a live Foxglove view of the flight on ws://127.0.0.1:PORT (default 8765)")
     fly.set_defaults(func=cmd_fly)

@@ -10,8 +10,9 @@ each message between processes. Real time always runs a process per service.
 
 Started by deploy.launcher.Launcher.start_one_process; on SIGTERM/SIGINT, or when the
 simulator ends the flight, it stops the services, then the recorder (it closes and sorts
-the log), as the launcher stops processes. Exit status: the simulator's; 3 when another
-service failed during the flight.
+the log), as the launcher stops processes. Exit status 0 when the simulator ended the flight,
+ONE_PROCESS_FAILED (its last line says which service, and where its log is) when a service
+failed, at start-up or in flight.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from typing import TextIO
 from deploy.launcher import ONE_PROCESS_FAILED, STOP_GRACE_S, recorder_grace_s
 from schemas.flightlog import LOG_NAME
 from services import local_bus, runtime
+from services.stack import LOCKSTEP_PARTICIPANTS
 
 START_TIMEOUT_S = 30.0
 
@@ -96,31 +98,36 @@ class Host:
         return True
 
     def failed(self) -> dict[str, int]:
-        return {n: c for n, c in self.status.items() if c != 0 and n != "sim"}
+        return {n: c for n, c in self.status.items() if c != 0}
 
     def fly(self) -> int:
         for name, module, argv in self.services:   # the recorder first, listening before anything is said
             self.start(name, module, argv)
             if name == "recorder" and not self.wait_alive("recorder"):
-                print("zenpilot: the recorder did not start (see logs/recorder.log)", file=sys.__stderr__, flush=True)
-                self.shut_down()
-                return ONE_PROCESS_FAILED
+                self.status.setdefault("recorder", 1)
+                break
         sim = self.threads.get("sim")
         while not self.stop.is_set() and sim is not None and sim.is_alive() and not self.failed():
             self.stop.wait(0.1)
         failed = self.failed()
+        # start-up is over once every clocked service has reached its loop (services.lockstep.serve_inline)
+        flying = set(self.bus.participants) >= set(self.threads) & set(LOCKSTEP_PARTICIPANTS)
         self.shut_down()
         if failed:
-            print("zenpilot: service(s) failed during the flight: " + ", ".join(
-                f"{n} (status {c}, see logs/{n}.log)" for n, c in failed.items()), file=sys.__stderr__, flush=True)
+            print(f"service(s) {'failed during the flight' if flying else 'exited during start-up'}: "
+                  + ", ".join(f"{n} (status {c}, see {self.logs / (n + '.log')})" for n, c in failed.items()),
+                  file=sys.__stderr__, flush=True)
             return ONE_PROCESS_FAILED
-        return self.status.get("sim", 1)
+        return 0 if "sim" in self.status else 1
 
     def shut_down(self) -> None:
-        """The services, then the recorder, as the launcher stops processes (the log complete)."""
+        """The clock first, then the services, then the recorder (it logs what they sent last and
+        closes the log complete), as the launcher stops processes."""
         names = list(self.threads)
-        for group, grace_s in ([n for n in names if n != "recorder"], STOP_GRACE_S), \
-                              (["recorder"] if "recorder" in names else [], recorder_grace_s([self.logs.parent / LOG_NAME])):
+        groups = [(["sim"] if "sim" in names else [], STOP_GRACE_S),
+                  ([n for n in names if n not in ("sim", "recorder")], STOP_GRACE_S),
+                  (["recorder"] if "recorder" in names else [], recorder_grace_s([self.logs.parent / LOG_NAME]))]
+        for group, grace_s in groups:
             deadline = time.monotonic() + grace_s
             asked = set()
             while time.monotonic() < deadline:
@@ -133,7 +140,7 @@ class Host:
                 self.threads[alive[0]].join(0.05)
             for n in group:
                 if self.threads[n].is_alive():
-                    print(f"zenpilot: {n} did not stop within {grace_s:.0f} s", file=sys.__stderr__, flush=True)
+                    print(f"{n} did not stop within {grace_s:.0f} s", file=sys.__stderr__, flush=True)
 
 
 def main(argv=None) -> int:

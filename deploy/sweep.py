@@ -1,9 +1,9 @@
 """`zenpilot sweep`: grids of whole-stack lockstep flights, flown as tasks on Dask.
 
 A grid is missions x scenarios x swept parameters x seeds. Each point is one
-`zenpilot fly --lockstep --no-plots` in its own process tree, with its own router
-(a free port), its own services and its own folder, <out>/<flight id>/, so flights
-never meet: a Zenoh peer learns of others only through its router. The flights are
+`zenpilot fly --lockstep --no-plots` in its own process (its services as threads on an
+in-process bus, deploy/one_process.py) and its own folder, <out>/<flight id>/, so flights
+never meet. The flights are
 tasks of a dask.distributed cluster: a LocalCluster of --workers processes (one
 flight each at a time) by default, or the cluster whose scheduler --scheduler names
 (its workers need this package installed and --out on a filesystem they share).
@@ -157,7 +157,7 @@ class Flight:
         return [*self.settings, *(f"{name}={value}" for name, _, value in self.params)]
 
     def fly_argv(self) -> list[str]:
-        """`zenpilot fly`'s arguments, less --out and --port (the task's own)."""
+        """`zenpilot fly`'s arguments, less --out (the task's own)."""
         argv = ["fly", "--mission", self.mission, "--seed", str(self.seed), "--lockstep", "--no-plots"]
         if self.stack:
             argv += ["--stack", self.stack]
@@ -292,11 +292,9 @@ def done_row(folder: Path, argv: list[str]) -> dict | None:
 
 
 def fly_task(task: dict) -> dict:
-    """Fly one grid point: `python -m deploy.cli fly ... --out <out>/<id> --port <free>`.
+    """Fly one grid point: `python -m deploy.cli fly ... --out <out>/<id>` (lockstep: one process, no router).
     Returns {"id", "wall_s", "attempts", "metrics", "worker", "resumed"}; raises FlightFailed
     when the flight left no metrics.json (the folder keeps its logs)."""
-    from deploy.launcher import free_port
-
     folder = Path(task["folder"])
     argv = list(task["argv"])
     done = done_row(folder, argv)
@@ -311,7 +309,7 @@ def fly_task(task: dict) -> dict:
         shutil.rmtree(folder)
     folder.mkdir(parents=True)
     (folder / ATTEMPTS_FILE).write_text(str(attempts))
-    cmd = [sys.executable, "-m", "deploy.cli", *argv, "--out", str(folder), "--port", str(free_port())]
+    cmd = [sys.executable, "-m", "deploy.cli", *argv, "--out", str(folder)]
     t0 = time.monotonic()
     with open(folder / "fly.log", "w") as log:
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,

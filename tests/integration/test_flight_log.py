@@ -27,8 +27,8 @@ def zp(*args):
                           text=True, timeout=120)
 
 
-def fly_until_flying(out):
-    proc = fly(out, "hover", *TRUTH_STATE, background=True)
+def fly_until_flying(out, *extra):
+    proc = fly(out, "hover", *TRUTH_STATE, *extra, background=True)
     deadline = time.monotonic() + 120
     while "first tick" not in _read(out / "logs" / "sim.log"):
         assert proc.poll() is None and time.monotonic() < deadline, proc.stdout.read() if proc.stdout else ""
@@ -78,7 +78,7 @@ def test_ctrl_c_mid_flight_leaves_a_complete_log_of_every_message(tmp_path):
 
 def test_a_recorder_killed_leaves_its_chunks_and_recover_completes_them(tmp_path):
     out = tmp_path / "run"
-    proc = fly_until_flying(out)
+    proc = fly_until_flying(out, "--processes")   # the recorder in a process of its own, to kill
     try:
         recorder, = [p for p in processes_mentioning(str(out)) if b"services.recorder" in
                      open(f"/proc/{p}/cmdline", "rb").read()]

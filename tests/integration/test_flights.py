@@ -28,8 +28,10 @@ def test_truth_state_hover_lockstep_holds_within_a_centimetre(hover_lockstep):
 
 
 def test_lockstep_is_deterministic(hover_lockstep, tmp_path):
+    """Same seed, same bytes: and the same whether the services run as threads of one process
+    (the default, as the fixture flew) or each in its own process over the router."""
     out, (_, first) = hover_lockstep
-    _, again = fly(tmp_path / "again", "hover", *TRUTH_STATE)
+    _, again = fly(tmp_path / "again", "hover", *TRUTH_STATE, "--processes")
     assert again == first
     assert (tmp_path / "again" / "flight.mcap").read_bytes() == (out / "flight.mcap").read_bytes()
     _, other = fly(tmp_path / "other-seed", "hover", *TRUTH_STATE, seed=1)

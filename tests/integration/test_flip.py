@@ -55,7 +55,7 @@ def test_project_flip_completes_within_the_pure_loops_figures(flip_lockstep):
 
 def test_flip_lockstep_is_deterministic(flip_lockstep, tmp_path):
     out, (_, first) = flip_lockstep
-    _, again = fly(tmp_path, MISSION, *TRUTH_STATE)
+    _, again = fly(tmp_path, MISSION, *TRUTH_STATE, "--processes")   # as the one-process flight, too
     again_json = json.loads((tmp_path / "metrics.json").read_text())
     assert again == again_json
     # the solve times are wall-clock measurements: everything else must match bit for bit

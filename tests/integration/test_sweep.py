@@ -57,10 +57,11 @@ def test_two_worker_sweep_table_failures_and_resume(tmp_path):
     for r in failed.values():   # reported in the table with why, after the retry
         assert r["status"] == "failed" and r["attempts"] == "2", r
         assert "exit status 2" in r["error"] and "is not below" in r["error"], r   # the refusal's word
-    # isolated: a folder each, its own router port (the command each flight ran)
+    # isolated: a folder each, its services on its own process's bus, no router (the command each ran)
     commands = [(out / k / "command.txt").read_text() for k in flown]
-    ports = {c.split("--port ")[1].split()[0] for c in commands}
-    assert len(ports) == 2
+    assert len({c.split("--out ")[1].split()[0] for c in commands}) == 2 and not any("--port" in c for c in commands)
+    assert all((out / k / "logs" / "stack.log").exists() and not (out / k / "logs" / "router.log").exists()
+               for k in flown)
     assert [int(json.loads((out / k / "metrics.json").read_text())["seed"]) for k in sorted(flown)] == [0, 1]
     assert all(r["worker"] for r in flown.values())
     import pyarrow.parquet as pq
