@@ -116,6 +116,18 @@ def test_static_scene_once_per_second_of_message_time(fmap):
     assert "scene/markers" in by_topic(fmap.convert("zp/0/sim/truth", {**truth, "header": header(1.0)}))
 
 
+def test_static_scene_not_again_for_a_message_a_little_late(fmap):
+    """Real time: messages arrive out of sample-time order around a second's start; only a jump
+    back of more than a second (another clock) sends the scene again."""
+    truth = {"position_m": [0, 0, 0], "quaternion_wxyz": [1, 0, 0, 0]}
+
+    def sends(t):
+        return "scene/markers" in by_topic(fmap.convert("zp/0/sim/truth", {**truth, "header": header(t)}))
+
+    assert [sends(t) for t in (10.98, 11.01, 10.99, 11.02, 10.97, 12.0, 11.5, 9.9, 12.1)] == \
+        [True, True, False, False, False, True, False, True, True]
+
+
 def test_other_vehicles_and_keys_make_nothing(fmap):
     truth = {"header": header(0.0), "position_m": [0, 0, 0], "quaternion_wxyz": [1, 0, 0, 0]}
     assert fmap.convert("zp/1/sim/truth", truth) == []
