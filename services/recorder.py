@@ -35,7 +35,7 @@ import zenoh
 
 import schemas
 from flight.vehicle import load_vehicle
-from schemas.flightlog import LOG_NAME, Derive, FlightLogWriter, sort_log
+from schemas.flightlog import LIVE_ZSTD_LEVEL, LOG_NAME, Derive, FlightLogWriter, sort_log
 from services.foxglove_map import FoxgloveMap, MarkerGrid
 from services.runtime import Runtime, main_guard, on_stop_request, service_parser
 
@@ -61,15 +61,19 @@ class FlightRecorder:
     Zenoh here. `receive` only queues (safe from another thread); the rest runs on one thread.
 
     foxglove: real time only, the Foxglove messages made from the bus messages as they come
-    (lockstep makes them from the sorted stream instead: `sort`)."""
+    (lockstep makes them from the sorted stream instead: `sort`).
+    exact_json: the JSON text of Python's json module, which the lockstep log's bytes are made
+    of (`sort` copies it); real time writes it faster (FlightLogWriter's exact_json)."""
 
     def __init__(self, io, path: Path, vehicle_id: int | str, foxglove: FoxgloveMap | None = None,
-                 clock: Callable[[], float] = time.monotonic, flush_s: float = FLUSH_S):
+                 clock: Callable[[], float] = time.monotonic, flush_s: float = FLUSH_S, exact_json: bool = True):
         self.io = io
         self.path = Path(path)
         self.sorted_path = self.path.with_name(self.path.name + ".sorted")
         self.sorted_path.unlink(missing_ok=True)   # a rewrite a previous recorder did not finish
-        self.log = FlightLogWriter(self.path)
+        # the live log's chunks at a faster zstd level: lockstep's file is written again by `sort`
+        # (at mcap's level: its bytes do not change), real time's reads back the same
+        self.log = FlightLogWriter(self.path, zstd_level=LIVE_ZSTD_LEVEL, exact_json=exact_json)
         self.own_health = schemas.HEALTH.key(vehicle_id, NAME)
         self.foxglove = foxglove
         self.clock = clock
@@ -98,6 +102,7 @@ class FlightRecorder:
     def write_arrived(self) -> int:
         """Log what has arrived; returns how many messages were taken (logged or not)."""
         arrived, decoders, log, foxglove = self.arrived, self.decoders, self.log, self.foxglove
+        write = log.write
         n = len(arrived)
         for _ in range(n):
             key, payload = arrived.popleft()
@@ -114,11 +119,13 @@ class FlightRecorder:
             except schemas.SchemaError as exc:
                 self.io.reject(key, exc)
                 continue
-            log.write(key, msg)
-            if foxglove is not None and foxglove.wants(key, msg["header"]["t_s"]):
-                t_ns = int(round(msg["header"]["t_s"] * 1e9))
-                for topic, name, schema_data, data in foxglove.encoded(key, msg):
-                    log.add(log.channel(topic, name, schema_data, "protobuf", "protobuf"), t_ns, data)
+            write(key, msg)
+            if foxglove is not None:
+                t_s = msg["header"]["t_s"]
+                if foxglove.wants(key, t_s):
+                    t_ns = int(round(t_s * 1e9))
+                    for topic, name, schema_data, data in foxglove.encoded(key, msg):
+                        log.add(log.channel(topic, name, schema_data, "protobuf", "protobuf"), t_ns, data)
         return n
 
     def ask_stop(self) -> None:
@@ -163,7 +170,7 @@ def run(args) -> None:
     motors = load_vehicle(rt.vehicle_name).motor_positions_m
     live_foxglove = None if args.lockstep else FoxgloveMap(motors, rt.vehicle_id, MarkerGrid.for_stack(rt.stack),
                                                             poses=False)
-    rec = FlightRecorder(rt, out_dir / LOG_NAME, rt.vehicle_id, live_foxglove)
+    rec = FlightRecorder(rt, out_dir / LOG_NAME, rt.vehicle_id, live_foxglove, exact_json=args.lockstep)
 
     # Zenoh queues every message; the loop takes them. Its receiving thread then never waits for
     # the GIL (a callback per message did, ~1,500 a second); a full queue holds Zenoh back, it

@@ -117,3 +117,30 @@ def test_sorting_a_cut_log_is_refused(tmp_path):
     (tmp_path / "cut.mcap").write_bytes((tmp_path / "f.mcap").read_bytes()[:ends[2]])
     with pytest.raises(LogError, match="recover"):
         sort_log(tmp_path / "cut.mcap", tmp_path / "sorted.mcap")
+
+
+def test_the_fast_json_of_real_time_reads_back_the_same_values(tmp_path):
+    """exact_json=False (the real-time recorder: msgspec's JSON) spells some numbers otherwise
+    but every value reads back as written, to the bit: floats at the edges of their formats,
+    the largest integers MessagePack carries, text beyond ASCII."""
+    floats = [1e-7, 1e-05, 0.0001, 1e16, 1e22, 5e-324, 2.2250738585072014e-308, 1.7976931348623157e308,
+              -0.0, 0.1, 1796420892.1423464, 8.534282042282904e-05, 123456789012345678.0]
+    rng = random.Random(3)
+    floats += [rng.uniform(-1, 1) * 10 ** rng.randrange(-30, 30) for _ in range(500)]
+    rows = []
+    for k in range(0, len(floats), 4):
+        msg = pwm(k * 0.01, k)
+        msg["pwm_us"] = (floats[k:k + 4] + [1.0] * 4)[:4]
+        rows.append((P + "motors/pwm", msg))
+    state = health(1.0, (1 << 64) - 1, "posição")
+    state["rejected"] = {"malformed": (1 << 63) - 1, "ünknown": 0}
+    rows.append((P + "attitude/health", state))
+    log = FlightLogWriter(tmp_path / "f.mcap", exact_json=False)
+    for key, msg in rows:
+        assert log.write(key, msg)
+    log.close()
+    back = read_log(tmp_path / "f.mcap")
+    assert back[P + "motors/pwm"] == [m for k, m in rows if k == P + "motors/pwm"]
+    assert back[P + "attitude/health"] == [state]
+    bits = [x.hex() for m in back[P + "motors/pwm"] for x in m["pwm_us"]]
+    assert bits[:len(floats)] == [x.hex() for x in floats]   # -0.0 too, which == 0.0
