@@ -47,6 +47,7 @@ try:
     _fast_json = msgspec.json.Encoder().encode
 except ImportError:   # an environment installed before it was a dependency
     _fast_json = None
+FAST_JSON = _fast_json is not None   # exact_json=False writes faster than the stdlib
 
 
 def _exact_json(msg: dict) -> bytes:

@@ -35,7 +35,7 @@ import zenoh
 
 import schemas
 from flight.vehicle import load_vehicle
-from schemas.flightlog import LIVE_ZSTD_LEVEL, LOG_NAME, Derive, FlightLogWriter, sort_log
+from schemas.flightlog import FAST_JSON, LIVE_ZSTD_LEVEL, LOG_NAME, Derive, FlightLogWriter, sort_log
 from services.foxglove_map import FoxgloveMap, MarkerGrid
 from services.runtime import Runtime, main_guard, on_stop_request, service_parser
 
@@ -171,6 +171,9 @@ def run(args) -> None:
     live_foxglove = None if args.lockstep else FoxgloveMap(motors, rt.vehicle_id, MarkerGrid.for_stack(rt.stack),
                                                             poses=False)
     rec = FlightRecorder(rt, out_dir / LOG_NAME, rt.vehicle_id, live_foxglove, exact_json=args.lockstep)
+    if not args.lockstep and not FAST_JSON:
+        print("zenpilot-recorder: msgspec is not installed: the log's JSON by Python's json module, "
+              "its largest cost in real time (pip install msgspec)", flush=True)
 
     # Zenoh queues every message; the loop takes them. Its receiving thread then never waits for
     # the GIL (a callback per message did, ~1,500 a second); a full queue holds Zenoh back, it
