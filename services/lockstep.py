@@ -274,8 +274,12 @@ class Clock:
         for p in due:
             clock = {"tick": k, "tick_rate_hz": self.rt.tick_rate, "published": published, "done": done}
             if p in inline:   # one process: run it here, now (each run sees only runs before k)
+                cpu0 = time.thread_time()
                 with inline_owner(p):
                     inline[p].run(clock)
+                cpu = time.thread_time() - cpu0   # the participant's CPU, not the simulator's
+                inline[p].rt.cpu_inline_s += cpu
+                self.rt.cpu_inline_s -= cpu
             else:
                 self.clocks[p].put(clock, t_s=t)
             self.last_due[p] = k

@@ -470,6 +470,7 @@ class Runtime(ParamAccess):
         self.cycles = 0
         self.step_s = 0.0
         self.wait_s = 0.0
+        self.cpu_inline_s = 0.0   # one process: CPU of this service's runs on another thread (less, of others' on this)
         self.dropped: dict[str, int] = {}
         self._lateness: list[float] = []   # wake-up lateness (s) since the last health message
         self.scheduling = "normal"
@@ -842,8 +843,8 @@ class Runtime(ParamAccess):
 
     def close(self) -> None:
         if self.state != "stopping":
-            cpu = os.times()   # one process of several threads: this service's thread alone
-            used = cpu.user + cpu.system if LOCAL_BUS is None else time.thread_time()
+            cpu = os.times()   # one process of several threads: this service's thread and its inline runs
+            used = cpu.user + cpu.system if LOCAL_BUS is None else time.thread_time() + self.cpu_inline_s
             print(f"zenpilot-{self.name}: stopping; cpu {used:.2f} s; {self.cycles} runs, "
                   f"step {self.step_s:.3f} s, waited {self.wait_s:.3f} s", flush=True)
         self.state = "stopping"
