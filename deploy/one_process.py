@@ -6,13 +6,16 @@ services.local_bus.LocalBus instead of Zenoh, its output in <run>/logs/<service>
 lockstep protocol and every message are unchanged, so the flight log is the one the
 multi-process lockstep writes, byte for byte (`zenpilot fly --lockstep --processes` flies
 that one; tests/integration/test_flights.py compares them); what goes is the cost of carrying
-each message between processes. Real time always runs a process per service.
+each message between processes. The recorder alone has a process of its own (`--stdin`): the
+bus's messages reach it through a pipe in batches, and its decoding, JSON and compression
+run on the other core instead of taking turns with the flight under this process's lock.
+Real time always runs a process per service.
 
 Started by deploy.launcher.Launcher.start_one_process; on SIGTERM/SIGINT, or when the
-simulator ends the flight, it stops the services, then the recorder (it closes and sorts
-the log), as the launcher stops processes. Exit status 0 when the simulator ended the flight,
-ONE_PROCESS_FAILED (its last line says which service, and where its log is) when a service
-failed, at start-up or in flight.
+simulator ends the flight, it stops the clock, the services, then the recorder (it closes
+and sorts the log), as the launcher stops processes. Exit status 0 when the simulator ended
+the flight, ONE_PROCESS_FAILED (its last line says which service, and where its log is) when
+a service failed, at start-up or in flight.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import argparse
 import importlib
 import json
 import signal
+import subprocess
 import sys
 import threading
 import time
@@ -28,12 +32,14 @@ import traceback
 from pathlib import Path
 from typing import TextIO
 
+import zenoh
+
 from deploy.launcher import ONE_PROCESS_FAILED, STOP_GRACE_S, recorder_grace_s
 from schemas.flightlog import LOG_NAME
 from services import local_bus, runtime
 from services.stack import LOCKSTEP_PARTICIPANTS
 
-START_TIMEOUT_S = 30.0
+FORWARD_S = 0.02   # how often the bus's messages go to the recorder's process
 
 
 class ThreadOutput:
@@ -70,6 +76,8 @@ class Host:
         self.threads: dict[str, threading.Thread] = {}
         self.status: dict[str, int] = {}
         self.stop = threading.Event()
+        self.recorder: subprocess.Popen | None = None
+        self.to_record = None   # the bus's messages not yet forwarded to the recorder
 
     def _run(self, name: str, module: str, argv: list[str]) -> None:
         try:
@@ -87,28 +95,46 @@ class Host:
         self.threads[name] = t
         t.start()
 
-    def wait_alive(self, name: str) -> bool:
-        key = f"zp/{self.vehicle_id}/alive/{name}"
-        deadline = time.monotonic() + START_TIMEOUT_S
-        while key not in self.bus.tokens():
-            if not self.threads[name].is_alive() or time.monotonic() > deadline or self.stop.is_set():
-                return False
-            self.bus.token_event.wait(0.1)
-            self.bus.token_event.clear()
-        return True
+    def start_recorder(self, argv: list[str], log: TextIO) -> None:
+        """The recorder in a process of its own (its decoding, JSON and compression on the other
+        core, not under this process's lock), fed every message of the bus through its stdin.
+        The bus is listened to before anything is said: nothing is missed while it starts."""
+        self.to_record = self.bus.open().declare_subscriber(f"zp/{self.vehicle_id}/**",
+                                                            zenoh.handlers.FifoChannel(1)).handler
+        no_router = [a for i, a in enumerate(argv) if a != "-e" and (i == 0 or argv[i - 1] != "-e")]
+        self.recorder = subprocess.Popen([sys.executable, "-m", "services.recorder", *no_router, "--stdin"],
+                                         stdin=subprocess.PIPE, stdout=log, stderr=subprocess.STDOUT)
+
+    def forward(self) -> None:
+        """What the bus carried since the last call, to the recorder."""
+        queue = self.to_record._queue
+        if self.recorder is None or not queue or self.recorder.stdin.closed:
+            return
+        batch = []
+        while queue:
+            sample = queue.popleft()
+            batch.append((sample.key_expr, sample.payload))
+        try:
+            self.recorder.stdin.write(local_bus.frames(batch))
+            self.recorder.stdin.flush()
+        except (BrokenPipeError, ValueError):   # it died: its status says how
+            self.recorder.stdin.close()
 
     def failed(self) -> dict[str, int]:
+        if self.recorder is not None and self.recorder.poll() not in (None, 0):
+            self.status["recorder"] = self.recorder.returncode
         return {n: c for n, c in self.status.items() if c != 0}
 
-    def fly(self) -> int:
+    def fly(self, log_files: dict[str, TextIO]) -> int:
         for name, module, argv in self.services:   # the recorder first, listening before anything is said
-            self.start(name, module, argv)
-            if name == "recorder" and not self.wait_alive("recorder"):
-                self.status.setdefault("recorder", 1)
-                break
+            if name == "recorder":
+                self.start_recorder(argv, log_files[name])
+            else:
+                self.start(name, module, argv)
         sim = self.threads.get("sim")
         while not self.stop.is_set() and sim is not None and sim.is_alive() and not self.failed():
-            self.stop.wait(0.1)
+            self.forward()
+            self.stop.wait(FORWARD_S)
         failed = self.failed()
         # start-up is over once every clocked service has reached its loop (services.lockstep.serve_inline)
         flying = set(self.bus.participants) >= set(self.threads) & set(LOCKSTEP_PARTICIPANTS)
@@ -124,10 +150,8 @@ class Host:
         """The clock first, then the services, then the recorder (it logs what they sent last and
         closes the log complete), as the launcher stops processes."""
         names = list(self.threads)
-        groups = [(["sim"] if "sim" in names else [], STOP_GRACE_S),
-                  ([n for n in names if n not in ("sim", "recorder")], STOP_GRACE_S),
-                  (["recorder"] if "recorder" in names else [], recorder_grace_s([self.logs.parent / LOG_NAME]))]
-        for group, grace_s in groups:
+        for group, grace_s in ((["sim"] if "sim" in names else [], STOP_GRACE_S),
+                               ([n for n in names if n != "sim"], STOP_GRACE_S)):
             deadline = time.monotonic() + grace_s
             asked = set()
             while time.monotonic() < deadline:
@@ -141,6 +165,20 @@ class Host:
             for n in group:
                 if self.threads[n].is_alive():
                     print(f"{n} did not stop within {grace_s:.0f} s", file=sys.__stderr__, flush=True)
+        if self.recorder is not None:   # the rest of the messages, then their end: it closes the log
+            self.forward()
+            if not self.recorder.stdin.closed:
+                self.recorder.stdin.close()
+            grace_s = recorder_grace_s([self.logs.parent / LOG_NAME])
+            try:
+                self.recorder.wait(grace_s)
+            except subprocess.TimeoutExpired:
+                self.recorder.kill()
+                self.recorder.wait()
+                print(f"recorder did not stop within {grace_s:.0f} s; killed (`zenpilot log recover`)",
+                      file=sys.__stderr__, flush=True)
+            if self.recorder.returncode != 0:
+                self.status["recorder"] = self.recorder.returncode
 
 
 def main(argv=None) -> int:
@@ -159,7 +197,7 @@ def main(argv=None) -> int:
     sys.stdout = ThreadOutput(files, sys.__stdout__)
     sys.stderr = ThreadOutput(files, sys.__stderr__)
     try:
-        return host.fly()
+        return host.fly(files)
     finally:
         sys.stdout.flush()
         for f in files.values():

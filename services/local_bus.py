@@ -17,14 +17,16 @@ Fifo/Ring channel), liveliness tokens and their subscribers, close.
 from __future__ import annotations
 
 import contextlib
+import struct
 import sys
 import threading
 from collections import deque
-from typing import Any, Callable
+from typing import Any, BinaryIO, Callable, Iterable, Iterator
 
 import zenoh
 
 _PUT, _DELETE = zenoh.SampleKind.PUT, zenoh.SampleKind.DELETE
+_FRAME = struct.Struct(">HI")   # a message on a byte stream: key length, payload length, key, payload
 _delivery = threading.local()   # .owner: the session whose callback is running on this thread
 
 
@@ -237,3 +239,25 @@ class LocalBus:
         with self._lock:
             self._subs = [s for s in self._subs if s.session is not session]
             self.version += 1
+
+
+# ---------------------------------------------------------------- messages over a pipe
+def frames(messages: Iterable[tuple[str, bytes]]) -> bytes:
+    """(key, payload) pairs as one byte string for a pipe (read_frames reads them back):
+    how a one-process lockstep hands the bus's messages to its recorder's process."""
+    parts = []
+    for key, payload in messages:
+        k = key.encode()
+        parts += (_FRAME.pack(len(k), len(payload)), k, payload)
+    return b"".join(parts)
+
+
+def read_frames(stream: BinaryIO) -> Iterator[tuple[str, bytes]]:
+    """The (key, payload) pairs `frames` wrote, until the stream ends (a cut last frame is dropped)."""
+    size = _FRAME.size
+    while len(head := stream.read(size)) == size:
+        key_len, payload_len = _FRAME.unpack(head)
+        key, payload = stream.read(key_len), stream.read(payload_len)
+        if len(key) < key_len or len(payload) < payload_len:
+            return
+        yield key.decode(errors="replace"), payload

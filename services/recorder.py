@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import json
 import os
+import sys
+import threading
 import time
 from collections import deque
 from pathlib import Path
@@ -37,6 +39,7 @@ import schemas
 from flight.vehicle import load_vehicle
 from schemas.flightlog import FAST_JSON, LIVE_ZSTD_LEVEL, LOG_NAME, Derive, FlightLogWriter, sort_log
 from services.foxglove_map import FoxgloveMap, MarkerGrid
+from services.local_bus import read_frames
 from services.runtime import Runtime, main_guard, on_stop_request, service_parser
 
 NAME = "recorder"
@@ -175,18 +178,29 @@ def run(args) -> None:
         print("zenpilot-recorder: msgspec is not installed: the log's JSON by Python's json module, "
               "its largest cost in real time (pip install msgspec)", flush=True)
 
-    # Zenoh queues every message; the loop takes them. Its receiving thread then never waits for
-    # the GIL (a callback per message did, ~1,500 a second); a full queue holds Zenoh back, it
-    # does not drop.
-    subscriber = rt.session.declare_subscriber(rt.key("**"), zenoh.handlers.FifoChannel(RECEIVE_QUEUE))
-    channel = subscriber.handler
+    if args.stdin:   # a one-process lockstep's messages, on this process's own core
+        def read_input() -> None:
+            for key, payload in read_frames(sys.stdin.buffer):
+                rec.receive(key, payload)
+            rec.ask_stop()   # the stream's end: the flight is over
 
-    def take_arrived() -> None:
-        try:
-            while (sample := channel.try_recv()) is not None:
-                rec.receive(str(sample.key_expr), sample.payload.to_bytes())
-        except zenoh.ZError:   # the session closed and the queue is empty
+        threading.Thread(target=read_input, name="input", daemon=True).start()
+
+        def take_arrived() -> None:
             pass
+    else:
+        # Zenoh queues every message; the loop takes them. Its receiving thread then never waits
+        # for the GIL (a callback per message did, ~1,500 a second); a full queue holds Zenoh
+        # back, it does not drop.
+        subscriber = rt.session.declare_subscriber(rt.key("**"), zenoh.handlers.FifoChannel(RECEIVE_QUEUE))
+        channel = subscriber.handler
+
+        def take_arrived() -> None:
+            try:
+                while (sample := channel.try_recv()) is not None:
+                    rec.receive(str(sample.key_expr), sample.payload.to_bytes())
+            except zenoh.ZError:   # the session closed and the queue is empty
+                pass
 
     on_stop_request(rec.ask_stop)
 
@@ -215,6 +229,9 @@ def run(args) -> None:
 def main(argv=None) -> None:
     parser = service_parser(NAME, __doc__.splitlines()[0])
     parser.add_argument("--out", default="runs/latest", help="directory for flight.mcap")
+    parser.add_argument("--stdin", action="store_true",
+                        help="take the messages from standard input, framed as services/local_bus.py writes them "
+                             "(a one-process lockstep's recorder), not from Zenoh; their end stops it")
     args = parser.parse_args(argv)
     main_guard(NAME, lambda: run(args))
 

@@ -458,6 +458,7 @@ class Runtime(ParamAccess):
         self.vehicle_id = self.stack.vehicle_id
         self.vehicle_name = args.vehicle or self.stack.vehicle
         self.lockstep = bool(args.lockstep)
+        self.real_time_scheduling = not self.lockstep   # (the recorder keeps wall time in lockstep, not the priority)
         self.rate_hz = spec.rate_hz if spec else 0.0
         self.tick_rate = self.stack.tick_rate_hz
         self.stop_event = threading.Event()
@@ -787,7 +788,7 @@ class Runtime(ParamAccess):
         of the process (Zenoh's, XLA's); set-up itself ran at normal scheduling, so a long one (the
         flip's JAX compile) never takes the CPU from normal processes. Then everything allocated
         so far goes out of the garbage collector's way."""
-        if not self.lockstep and self.spec is not None and LOCAL_BUS is None:   # (per process, not per thread)
+        if self.real_time_scheduling and self.spec is not None and LOCAL_BUS is None:   # per process, not thread
             self.scheduling = apply_scheduling(self.spec.priority, self.spec.cpu)
             if "refused" in self.scheduling:
                 self.problem(f"scheduling: {self.scheduling}")

@@ -137,3 +137,12 @@ def test_stop_requests_reach_the_handler_the_service_set_last():
     t.join()
     assert bus.request_stop("recorder") and calls == ["recorder"]
     assert not bus.request_stop("never-started")
+
+
+def test_frames_carry_keys_and_payloads_through_a_pipe_and_a_cut_one_is_dropped():
+    import io
+    messages = [("zp/0/sim/imu", b"\x81\xa1a\x01"), ("zp/0/é", b""), ("k", bytes(range(256)) * 300)]
+    data = local_bus.frames(messages)
+    assert list(local_bus.read_frames(io.BytesIO(data))) == messages
+    assert list(local_bus.read_frames(io.BytesIO(data[:-1]))) == messages[:2]   # a writer killed mid-frame
+    assert list(local_bus.read_frames(io.BytesIO(b""))) == []
