@@ -965,3 +965,18 @@ def test_short_history_keeps_the_former_filters_numbers():
                 for e in (new, old)] == [True, True]
         _assert_identical(new, old, f"step {k}")
 
+
+def test_lagged_motor_input_equals_the_former_one_bit_for_bit():
+    from bench.support.position_ekf_reference import LaggedMotorInput as FormerLaggedMotorInput
+    rng = np.random.default_rng(32)
+    new, old = LaggedMotorInput(0.02), FormerLaggedMotorInput(0.02)
+    for step in range(300):
+        for j in range(int(rng.integers(0, 6))):
+            t_cmd = step * 0.01 + float(rng.choice([0.0, 0.0025, 0.005, 0.0075, rng.uniform(-0.004, 0.012)]))
+            c = rng.uniform(-0.5, 6.5, 4)   # some below zero: the root of a negative command is 0
+            for e in (new, old):
+                e.add(t_cmd, c.tolist())
+        t = (step + 1) * 0.01
+        assert new.mean_to(t).tolist() == old.mean_to(t).tolist(), step
+        assert new.forces.tolist() == old.forces.tolist() and new.command.tolist() == old.command.tolist()
+        assert new.t == old.t
