@@ -592,7 +592,8 @@ class PositionEKF:
 
     @property
     def position_cov(self) -> np.ndarray:
-        return self.P[POSITION, POSITION]
+        self._current()
+        return self._P[POSITION, POSITION].copy()
 
     @property
     def history_span_s(self) -> float:
