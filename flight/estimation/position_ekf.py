@@ -984,7 +984,8 @@ class LaggedMotorInput:
     through a flip the rotor forces swing by ~6 N within 60 ms, ~0.5 N (0.6 m/s^2) off
     for half a step at a time. The mean of the lagged force over each held command is
     exact for a held command (flight/motor_model.py's motors, the rotor speed lagging:
-    thrust_step_and_mean_floats, in plain floats: four of them, several times a step)."""
+    thrust_step_and_mean_floats, written out in mean_to for the four rotors, four segments
+    a step)."""
 
     def __init__(self, time_constant_s: float):
         if not (math.isfinite(time_constant_s) and time_constant_s > 0):
