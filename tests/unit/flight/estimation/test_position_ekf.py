@@ -881,3 +881,102 @@ def test_quat_tilt():
         assert quat_tilt(q.tolist()) == quat_tilt(q)
         assert quat_tilt(q) == pytest.approx(math.acos(np.clip(quat_to_rotation(q)[2, 2], -1, 1)), abs=1e-7)
     assert quat_tilt([1.0, 0.0, 0.0, 0.0]) == 0.0 and quat_tilt([0.0, 1.0, 0.0, 0.0]) == pytest.approx(math.pi)
+
+
+def _former_pair(params=None):
+    """This filter and the filter as of 6b2add1 (bench/support/position_ekf_reference.py:
+    every prediction run when asked for, every delayed measurement re-running the ones after it)."""
+    from bench.support.position_ekf_reference import PositionEKF as FormerEKF
+    from bench.support.position_ekf_reference import PositionEKFParams as FormerParams
+    params = params or PositionEKFParams()
+    return PositionEKF(VEH, params, dt=DT), FormerEKF(VEH, FormerParams(**dataclasses.asdict(params)), dt=DT)
+
+
+def _assert_identical(new, old, what):
+    assert new.x.tolist() == old.x.tolist(), what
+    assert new.P.tolist() == old.P.tolist(), what
+    assert new.position_cov.tolist() == old.position_cov.tolist(), what
+    assert new.counters == old.counters and new.last_nis == pytest.approx(old.last_nis, nan_ok=True, rel=0), what
+
+
+def test_filter_equals_the_former_filter_bit_for_bit():
+    """The predictions re-run only when the state is read (_current) and the rest of the
+    rewrite give the former filter's numbers exactly: in the flight's pattern (each attitude
+    state 5 ms old, so fused a node back; camera fixes 60 ms old), with the state read only
+    every few steps, attitude states at the newest node, a pin, fixes gated out or fused at
+    stale nodes, two fixes in one step, a 20 ms step (two substeps) and a reset."""
+    xs, us = _truth(0, duration=4.0)
+    rng = np.random.default_rng(5)
+    new, old = _former_pair()
+    for e in (new, old):
+        e.initialize(0.0, xs[0, 0:3] + [0.01, -0.02, 0.005], xs[0, 6:9])
+    cam_cov = np.eye(3) * CAM_STD ** 2 + 1e-7
+    fixes = []
+    for k in range(len(us)):
+        if k == 150:
+            continue  # a 20 ms step
+        t = (k + 1) * DT
+        xt = xs[k + 1]
+        for e in (new, old):
+            e.predict(t, us[k])
+        euler = (xt[6:9] + rng.normal(size=3) * ATT_STD).tolist()
+        rates = (xt[9:12] + rng.normal(size=3) * RATE_STD).tolist()
+        t_att = t - 0.005   # the attitude state of t - 5 ms: nearest node not after it is the one before
+        if 250 <= k < 260:
+            t_att = t   # at the newest node, not yet run
+        if 200 <= k < 205:
+            answers = [e.pin_attitude(t_att, euler, rates) for e in (new, old)]
+        else:
+            answers = [e.update_attitude(t_att, euler, rates, (ATT_STD ** 2).tolist(), (RATE_STD ** 2).tolist())
+                       for e in (new, old)]
+        assert answers[0] == answers[1], k
+        if (k + 1) % CAM_EVERY == 0:
+            z = xt[0:3] + rng.normal(scale=CAM_STD, size=3)
+            if k + 1 in (100, 260):
+                z = z + [0.5, 0.0, 0.0]   # gated out (at a stale node: the state was not read since)
+            fixes.append((k + 7 + (k == 299) * 5, t, z))   # 60 ms old; one 110 ms old, arriving with the next
+        for due, t_exp, z in [f for f in fixes if f[0] <= k + 1]:
+            fixes.remove((due, t_exp, z))
+            answers = [e.update_position(t_exp, z, cam_cov) for e in (new, old)]
+            assert answers[0][0] == answers[1][0] and answers[0][1] == pytest.approx(answers[1][1], rel=0, nan_ok=True)
+        if k == 320:
+            for e in (new, old):
+                e.reset_position(xt[0:3], cam_cov)
+        if k % 3 == 0 or k > 380:   # the state read only now and then
+            _assert_identical(new, old, f"step {k}")
+    _assert_identical(new, old, "end")
+    assert new.counters["position"]["gate"] == 2 and new.counters["pin"]["accepted"] == 5
+    assert new.counters["attitude"]["accepted"] > 300
+
+
+def test_short_history_keeps_the_former_filters_numbers():
+    """max_delay_s shorter than a step: each prediction drops the node before it at once, so
+    it is run then, not left for later (the history never holds a stale node alone)."""
+    xs, us = _truth(0, duration=0.5)
+    new, old = _former_pair(PositionEKFParams(max_delay_s=0.0))
+    for e in (new, old):
+        e.initialize(0.0, xs[0, 0:3], xs[0, 6:9])
+    for k in range(len(us)):
+        t = (k + 1) * DT
+        for e in (new, old):
+            e.predict(t, us[k])
+        assert len(new._hist) == len(old._hist) == 1
+        assert [e.update_attitude(t, xs[k + 1, 6:9], xs[k + 1, 9:12], ATT_STD ** 2, RATE_STD ** 2)
+                for e in (new, old)] == [True, True]
+        _assert_identical(new, old, f"step {k}")
+
+
+def test_lagged_motor_input_equals_the_former_one_bit_for_bit():
+    from bench.support.position_ekf_reference import LaggedMotorInput as FormerLaggedMotorInput
+    rng = np.random.default_rng(32)
+    new, old = LaggedMotorInput(0.02), FormerLaggedMotorInput(0.02)
+    for step in range(300):
+        for j in range(int(rng.integers(0, 6))):
+            t_cmd = step * 0.01 + float(rng.choice([0.0, 0.0025, 0.005, 0.0075, rng.uniform(-0.004, 0.012)]))
+            c = rng.uniform(-0.5, 6.5, 4)   # some below zero: the root of a negative command is 0
+            for e in (new, old):
+                e.add(t_cmd, c.tolist())
+        t = (step + 1) * 0.01
+        assert new.mean_to(t).tolist() == old.mean_to(t).tolist(), step
+        assert new.forces.tolist() == old.forces.tolist() and new.command.tolist() == old.command.tolist()
+        assert new.t == old.t
