@@ -13,10 +13,10 @@ the predictions after it re-run. Replayed so, the loop publishes the flight's ow
 states, number for number (checked below against the log). The loop's publishers only keep
 the values (no encoding, no bus).
 
-"old" is bench/support/position_ekf_reference.py put in the loop instead of the filter. The
-two replay the whole log in turn, round after round; each run's time is its least over the
-rounds (a run that the machine's other work delayed in one round counts with another round's
-time) and a figure is their mean. The filter's share comes from rounds of their own, with
+"old" is bench/support/position_ekf_reference.py's filter and motor lag (the filter's input)
+put in the loop instead of this module's. The two replay the whole log in turn, round after
+round; each run's time is its least over the rounds (a run that the machine's other work
+delayed in one round counts with another round's time) and a figure is their mean. The filter's share comes from rounds of their own, with
 every use the loop makes of the filter timed (the timers' own cost lands in "the rest").
 """
 from __future__ import annotations
@@ -33,6 +33,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import schemas  # noqa: E402
+from bench.support.position_ekf_reference import LaggedMotorInput as OldLaggedMotorInput  # noqa: E402
 from bench.support.position_ekf_reference import PositionEKF as OldPositionEKF  # noqa: E402
 from bench.support.position_ekf_reference import PositionEKFParams as OldParams  # noqa: E402
 from schemas.flightlog import LogError, read_log  # noqa: E402
@@ -171,6 +172,7 @@ def replay(vehicle: str, old: bool, times, per_run, ekf_share: bool = False) -> 
     loop = PositionLoop(io)
     if old:
         loop.ekf = OldPositionEKF(loop.vehicle, io.table("ekf", OldParams.from_dict), dt=loop.dt)
+        loop.rotor_forces = OldLaggedMotorInput(loop.vehicle.motor_time_constant_s)
     ekf_s = [0.0]
     if ekf_share:
         loop.ekf = _Timed(loop.ekf, ekf_s)
