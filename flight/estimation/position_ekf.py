@@ -541,6 +541,8 @@ class PositionEKF:
 
     @vehicle.setter
     def vehicle(self, vehicle: Vehicle) -> None:
+        if getattr(self, "_stale", None) is not None:
+            self._current()   # the predictions made before run with the vehicle they were made with
         self._vehicle = vehicle
         self._C = _constants(vehicle)
         self._weight = vehicle.mass_kg * vehicle.gravity_m_s2

@@ -980,3 +980,20 @@ def test_lagged_motor_input_equals_the_former_one_bit_for_bit():
         assert new.mean_to(t).tolist() == old.mean_to(t).tolist(), step
         assert new.forces.tolist() == old.forces.tolist() and new.command.tolist() == old.command.tolist()
         assert new.t == old.t
+
+
+def test_a_new_vehicle_applies_from_the_next_prediction():
+    """Predictions left to run later (stale nodes) run with the vehicle they were made with:
+    the same numbers as the former filter, which ran them at once."""
+    heavy = dataclasses.replace(VEH, mass_kg=VEH.mass_kg * 1.2)
+    xs, us = _truth(0, duration=0.3)
+    new, old = _former_pair()
+    for e in (new, old):
+        e.initialize(0.0, xs[0, 0:3], xs[0, 6:9])
+    for k in range(len(us)):
+        t = (k + 1) * DT
+        for e in (new, old):
+            e.predict(t, us[k])
+            if k == 20:
+                e.vehicle = heavy
+        _assert_identical(new, old, f"step {k}")
