@@ -9,6 +9,11 @@ Per call: the mixer and the helpers services/motors.py calls every step. Each fi
 best of --rounds rounds (mean per tick or call within a round); "old" is
 bench/support/sim_reference.py (the numpy code before the float rewrite), run in the same
 process on the same inputs, the two alternating round by round.
+
+A second table times the sensor outputs against zenpilot 6b2add1's tick
+(bench/support/sim_6b2add1.py: the IMU's noise drawn per sample, every marker of the grid
+projected): Simulator.outputs() alone per tick (step() run between, untimed), and one
+camera frame (MarkerCamera.sample) at a few poses; the messages of the two are compared.
 """
 from __future__ import annotations
 
@@ -22,15 +27,18 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.support.sim_reference import (RefPlant, RefSimulator, ref_mix, ref_motor_forces_update,  # noqa: E402
-                                         ref_scale_collective, ref_thrust_to_pwm)
+from bench.support.sim_6b2add1 import Simulator6b2add1  # noqa: E402
+from bench.support.sim_reference import (RefMarkerCamera, RefPlant, RefSimulator, ref_mix,  # noqa: E402
+                                         ref_motor_forces_update, ref_scale_collective, ref_thrust_to_pwm)
 from flight.control.mixer import mix  # noqa: E402
 from flight.control.plan import scale_collective  # noqa: E402
 from flight.motor_model import thrust_to_pwm  # noqa: E402
+from flight.quat import quat_from_euler  # noqa: E402
 from flight.motor_model import thrust_step as motor_forces_update  # noqa: E402
 from flight.vehicle import load_vehicle  # noqa: E402
 from simulator import SimConfig, Simulator  # noqa: E402
 from simulator.plant import Plant  # noqa: E402
+from simulator.sensors import MarkerCamera  # noqa: E402
 
 PERIOD_US = 1e6 / 400.0
 
@@ -65,6 +73,35 @@ def sim_loop(sim_cls, vehicle, cfg, pwm, armed):
             sim.outputs()
             sim.step(pwm, armed)
     return run
+
+
+def outputs_loop(sim_cls, vehicle, cfg, pwm, armed, sent):
+    """Simulator.outputs() timed alone (step() between, untimed); the messages kept in `sent`."""
+    sim = sim_cls(vehicle, cfg, seed=0)
+    for _ in range(40):
+        sim.outputs()
+        sim.step(pwm, armed)
+
+    def run(n):
+        pc, total = time.perf_counter, 0.0
+        outputs, step = sim.outputs, sim.step
+        for _ in range(n):
+            t0 = pc()
+            msgs = outputs()
+            total += pc() - t0
+            sent.append(msgs)
+            step(pwm, armed)
+        return total
+    return run
+
+
+def pair_timed_us(new, old, n: int, rounds: int) -> tuple[float, float]:
+    """As pair_us for runs that return the seconds they timed themselves."""
+    best_new = best_old = float("inf")
+    for _ in range(rounds):
+        best_new = min(best_new, new(n) / n * 1e6)
+        best_old = min(best_old, old(n) / n * 1e6)
+    return best_new, best_old
 
 
 def calls(fn, *args):
@@ -139,6 +176,32 @@ def main() -> None:
     for name, t_new, t_old in rows:
         print(f"{name:{w}}  {t_new:8.2f}  {t_old:8.2f}  {t_old / t_new:6.1f}x  {100 * t_new / PERIOD_US:5.2f}%  "
               f"{100 * t_old / PERIOD_US:5.2f}%")
+
+    # against 6b2add1: the sensor outputs
+    rows, same = [], True
+    for name, cfg, pwm, armed in (("outputs per tick, hover at 1 m", air, hover_pwm, True),
+                                  ("outputs per tick, gusts + drops", gusty, hover_pwm, True),
+                                  ("outputs per tick, resting disarmed", SimConfig(), [1000.0] * 4, False)):
+        sent_new, sent_old = [], []
+        t_new, t_old = pair_timed_us(outputs_loop(Simulator, v, cfg, pwm, armed, sent_new),
+                                     outputs_loop(Simulator6b2add1, v, cfg, pwm, armed, sent_old),
+                                     args.ticks, args.rounds)
+        same = same and sent_new == sent_old
+        rows.append((name, t_new, t_old))
+    for name, height, euler in (("camera frame, 1 m, level", 1.0, (0.02, -0.01, 0.3)),
+                                ("camera frame, 1 m, 15 deg roll", 1.0, (0.26, 0.0, 0.3)),
+                                ("camera frame, 3 m, level", 3.0, (0.02, -0.01, 0.3))):
+        pos, q = np.array([0.2, -0.1, height]), quat_from_euler(*euler)
+        cam_new, cam_old = MarkerCamera(air, np.random.default_rng(1)), RefMarkerCamera(air, np.random.default_rng(1))
+        same = same and cam_new.sample(pos, q) == cam_old.sample(pos, q)
+        rows.append((name, *pair_us(calls(cam_new.sample, pos, q), calls(cam_old.sample, pos, q),
+                                    max(args.ticks // 10, 1), args.rounds)))
+    print(f"\nthe sensor outputs against zenpilot 6b2add1 (bench/support/sim_6b2add1.py), best of {args.rounds} rounds")
+    w = max(len(r[0]) for r in rows)
+    print(f"{'':{w}}  {'new us':>8}  {'6b2add1':>8}  {'ratio':>7}")
+    for name, t_new, t_old in rows:
+        print(f"{name:{w}}  {t_new:8.2f}  {t_old:8.2f}  {t_old / t_new:6.2f}x")
+    print("messages and frames: " + ("identical" if same else "DIFFER from 6b2add1's"))
 
 
 if __name__ == "__main__":

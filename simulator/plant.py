@@ -162,10 +162,14 @@ class Plant:
         It does not depend on the command: the motors' thrust is a state."""
         if self.landed:
             return (0.0, 0.0, 0.0)
-        _, _, _, vx, vy, vz, qw, qx, qy, qz, _, _, _, o0, o1, o2, o3 = self.x.tolist()
+        return self._acceleration(self.x.tolist(), _floats(wind_m_s, 3))
+
+    def _acceleration(self, x: list, wind: list) -> tuple:
+        """acceleration_floats (in the air) from the state x (17 floats) and the wind (3 floats)."""
+        _, _, _, vx, vy, vz, qw, qx, qy, qz, _, _, _, o0, o1, o2, o3 = x
         a00, a01, a02, a03 = self._alloc_rows[0]
         u0 = self._kf * (a00 * o0 * o0 + a01 * o1 * o1 + a02 * o2 * o2 + a03 * o3 * o3)
-        windx, windy, windz = _floats(wind_m_s, 3)
+        windx, windy, windz = wind
         m, c = self._m, self._drag
         return ((2.0 * (qx * qz + qw * qy) * u0 - c * (vx - windx)) / m,
                 (2.0 * (qy * qz - qw * qx) * u0 - c * (vy - windy)) / m,

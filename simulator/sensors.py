@@ -1,15 +1,20 @@
 """Sensor models. Each sensor owns its numpy Generator so they do not perturb each other."""
 from __future__ import annotations
 
+import bisect
 import math
 
 import numpy as np
 
-from flight.camera import Camera, marker_grid
+from flight.camera import _MIN_DEPTH_M, R_CAM_FROM_BODY, Camera, marker_grid
 from simulator.config import SimConfig
 
 SEA_LEVEL_PA = 101325.0
 TEMPERATURE_K = 288.15
+# IMU samples whose noise is drawn in one call: numpy's per-call cost (and, in the one-process
+# lockstep, its release of the GIL) once per 64 samples, not per sample
+IMU_DRAW_BLOCK = 64
+_CAM_T = R_CAM_FROM_BODY.T   # as Camera.project multiplies by it
 
 
 class Imu:
@@ -27,6 +32,13 @@ class Imu:
         self.accel_walk = cfg.accel_bias_walk * math.sqrt(self.dt_s)
         self.gyro_bias = rng.normal(0.0, math.sqrt(cfg.gyro_bias_var), 3)
         self.accel_bias = rng.normal(0.0, math.sqrt(cfg.accel_bias_var), 3)
+        self._z: list = []      # standard normals drawn ahead (IMU_DRAW_BLOCK samples' worth), used in order
+        self._z_next = 0
+
+    @property
+    def draws_ahead(self) -> int:
+        """Standard normals drawn from rng that no sample has used yet (the block's rest)."""
+        return len(self._z) - self._z_next
 
     # the biases are kept as floats (sampled at 400 Hz); read and set as arrays
     @property
@@ -55,21 +67,31 @@ class Imu:
         """sample() on floats: r = R body->world row-major (9), rate and acceleration (3 each).
 
         The draws are those of four normal(0, std, 3) calls in turn (gyro noise, accel noise,
-        gyro walk, accel walk), taken as one standard_normal(12): numpy's normal(0, s) is
-        s * its standard normal, so the noise and the generator's state are unchanged."""
-        z = self.rng.standard_normal(12).tolist()
+        gyro walk, accel walk), taken as 12 standard normals: numpy's normal(0, s) is s * its
+        standard normal. They come from a block of IMU_DRAW_BLOCK samples' worth drawn at once:
+        standard_normal(12 k) is k standard_normal(12) in a row, so each sample's noise is the
+        one drawn per sample (same seed, same noise); the generator itself is ahead by the
+        block's unused rest (it is the IMU's own: nothing else draws from it)."""
+        i = self._z_next
+        if i == len(self._z):
+            self._z = self.rng.standard_normal(12 * IMU_DRAW_BLOCK).tolist()
+            i = 0
+        self._z_next = i + 12
+        z0, z1, z2, z3, z4, z5, z6, z7, z8, z9, z10, z11 = self._z[i:i + 12]
         gs, as_, gw, aw = self.gyro_std, self.accel_std, self.gyro_walk, self.accel_walk
-        gb, ab = self._gyro_bias, self._accel_bias
+        gb0, gb1, gb2 = self._gyro_bias
+        ab0, ab1, ab2 = self._accel_bias
         sx, sy, sz = accel_world_m_s2
         sz = sz + gravity_m_s2  # specific force: a - g
         wx, wy, wz = rate_rad_s
-        gyro = [wx + gb[0] + gs * z[0], wy + gb[1] + gs * z[1], wz + gb[2] + gs * z[2]]
-        accel = [r[0] * sx + r[3] * sy + r[6] * sz + ab[0] + as_ * z[3],
-                 r[1] * sx + r[4] * sy + r[7] * sz + ab[1] + as_ * z[4],
-                 r[2] * sx + r[5] * sy + r[8] * sz + ab[2] + as_ * z[5]]
+        r0, r1, r2, r3, r4, r5, r6, r7, r8 = r
+        gyro = [wx + gb0 + gs * z0, wy + gb1 + gs * z1, wz + gb2 + gs * z2]
+        accel = [r0 * sx + r3 * sy + r6 * sz + ab0 + as_ * z3,
+                 r1 * sx + r4 * sy + r7 * sz + ab1 + as_ * z4,
+                 r2 * sx + r5 * sy + r8 * sz + ab2 + as_ * z5]
         # bias walk after the sample: the bias of this sample is the one drawn before
-        self._gyro_bias = [gb[0] + gw * z[6], gb[1] + gw * z[7], gb[2] + gw * z[8]]
-        self._accel_bias = [ab[0] + aw * z[9], ab[1] + aw * z[10], ab[2] + aw * z[11]]
+        self._gyro_bias = [gb0 + gw * z6, gb1 + gw * z7, gb2 + gw * z8]
+        self._accel_bias = [ab0 + aw * z9, ab1 + aw * z10, ab2 + aw * z11]
         return {"gyro_rad_s": gyro, "accel_m_s2": accel}
 
 
@@ -110,25 +132,122 @@ class Magnetometer:
                              r[2] * fx + r[5] * fy + r[8] * fz + n2]}
 
 
+def _rotation(quaternion) -> np.ndarray:
+    """flight.quat.quat_to_rotation of a finite, non-zero quaternion, the same bits for a
+    third of its cost: its norm is numpy's (np.linalg.norm of a vector is sqrt(q.dot(q))), the
+    rest the same operations on floats in place of numpy scalars."""
+    q = np.asarray(quaternion, dtype=np.float64)
+    n = math.sqrt(q.dot(q))
+    w, x, y, z = (q / n).tolist()
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
 class MarkerCamera:
-    """Downward camera seeing the floor marker grid (see flight.camera for conventions)."""
+    """Downward camera seeing the floor marker grid (see flight.camera for conventions).
+
+    Only the markers whose bounding box lies in that of the image's footprint on the floor (the
+    four corner rays' hits, when all of them go down) are projected: the others cannot be seen
+    whole. The projection of a subset gives the very pixels of the full grid's rows (row by
+    row arithmetic; tests/unit/simulator/test_fast.py checks frames against the full grid's),
+    so the frames are the same, for 9 of the 441 markers at 1 m."""
 
     def __init__(self, cfg: SimConfig, rng: np.random.Generator):
         self.rng = rng
-        self.camera = Camera(cfg.camera_width_px, cfg.camera_height_px, cfg.camera_focal_px)
+        self.camera = cam = Camera(cfg.camera_width_px, cfg.camera_height_px, cfg.camera_focal_px)
         self.ids, self.corners_world = marker_grid(
             cfg.marker_size_m, cfg.marker_spacing_m, cfg.marker_grid_half_extent_m)
         self.noise_px = cfg.camera_pixel_noise_px
         self.drop_rate = cfg.camera_drop_rate
+        c = self.corners_world
+        self._floor = bool(np.all(c[:, :, 2] == 0.0))   # the footprint cull assumes the markers on z = 0
+        lo, hi = c[:, :, :2].min(axis=1), c[:, :, :2].max(axis=1)
+        # marker_grid's layout: id = iy n + ix, the boxes' x bounds those of column ix, y of row iy;
+        # a box's markers are then a block of columns by a block of rows (bisect on the bounds)
+        n = math.isqrt(len(c))
+        self._grid = None
+        if n * n == len(c) and n > 0:
+            lx, hx, ly, hy = (a.reshape(n, n) for a in (lo[:, 0], hi[:, 0], lo[:, 1], hi[:, 1]))   # [iy, ix]
+            bounds = (lx[0], hx[0], ly[:, 0], hy[:, 0])
+            if ((lx == lx[0]).all() and (hx == hx[0]).all() and (ly == ly[:, :1]).all() and (hy == hy[:, :1]).all()
+                    and all((np.diff(b) > 0).all() for b in bounds)):
+                self._grid = (n, *(b.tolist() for b in bounds))
+        # otherwise each marker's box (lo_x, -hi_x, lo_y, -hi_y) per row: in a box when all four >= (x0, -x1, y0, -y1)
+        self._box = np.stack((lo[:, 0], -hi[:, 0], lo[:, 1], -hi[:, 1]), axis=1)
+        # the image corners' rays in the body frame: x_b = -y_c, y_b = -x_c, z_b = -z_c (flight.camera)
+        cx, cy = cam.principal_point_px
+        f = self._f = cam.focal_px
+        self._c = np.array([cx, cy])
+        self._wh = np.array([cam.width_px, cam.height_px], dtype=np.float64)
+        self._rays = tuple((-(v - cy) / f, -(u - cx) / f, -1.0)
+                           for u in (0.0, float(cam.width_px)) for v in (0.0, float(cam.height_px)))
+
+    def candidates(self, position_m, quaternion) -> np.ndarray | None:
+        """Indices (ascending) of the markers that may be seen whole from this pose; None: all
+        of them (the footprint is unbounded: a corner ray at or above the horizon)."""
+        if not self._floor:
+            return None
+        px, py, pz = np.asarray(position_m, dtype=np.float64).tolist()
+        qw, qx, qy, qz = np.asarray(quaternion, dtype=np.float64).tolist()
+        n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        if not pz > 0.0 or not n > 0.0 or not math.isfinite(px + py + pz + n):
+            return None
+        w, x, y, z = qw / n, qx / n, qy / n, qz / n
+        r00, r01, r02 = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+        r10, r11, r12 = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+        r20, r21, r22 = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+        xs, ys = [], []
+        for bx, by, bz in self._rays:
+            dz = r20 * bx + r21 * by + r22 * bz
+            if not dz < -1e-6:
+                return None
+            s = -pz / dz
+            xs.append(px + s * (r00 * bx + r01 * by + r02 * bz))
+            ys.append(py + s * (r10 * bx + r11 * by + r12 * bz))
+        x0, x1, y0, y1 = min(xs), max(xs), min(ys), max(ys)
+        # far beyond the rounding of either computation (~1e-16 relative)
+        eps = 1e-6 * (1.0 + max(abs(x0), abs(x1), abs(y0), abs(y1)))
+        x0, x1, y0, y1 = x0 - eps, x1 + eps, y0 - eps, y1 + eps
+        # a marker seen whole has its corners in the footprint, so its box in the footprint's box
+        if self._grid is not None:
+            n, lx, hx, ly, hy = self._grid
+            ix0, ix1 = bisect.bisect_left(lx, x0), bisect.bisect_right(hx, x1)
+            iy0, iy1 = bisect.bisect_left(ly, y0), bisect.bisect_right(hy, y1)
+            return np.array([iy * n + ix for iy in range(iy0, iy1) for ix in range(ix0, ix1)], dtype=np.intp)
+        inside = self._box >= np.array([x0, -x1, y0, -y1])
+        return np.flatnonzero(inside.all(axis=1))
 
     def sample(self, position_m, quaternion) -> dict | None:
         """One exposure: the fields, or None when the frame is dropped."""
         # draw the drop first so the stream of draws does not depend on what is seen
         if self.rng.random() < self.drop_rate:
             return None
-        pix, in_front = self.camera.project(self.corners_world.reshape(-1, 3), position_m, quaternion)
-        ok = (in_front & self.camera.in_image(pix)).reshape(-1, 4).all(axis=1)
-        seen = pix.reshape(-1, 4, 2)[ok]
+        idx = self.candidates(position_m, quaternion)
+        if idx is None:
+            corners, ids = self.corners_world, self.ids
+        elif len(idx) == 0:
+            return {"marker_ids": [], "corners_px": []}   # nothing seen: no noise drawn either
+        else:
+            corners, ids = self.corners_world[idx], self.ids[idx]
+        seen, ok = self._seen(corners.reshape(-1, 3), position_m, quaternion, idx is not None)
         seen = seen + self.rng.normal(0.0, self.noise_px, seen.shape)
-        return {"marker_ids": [int(i) for i in self.ids[ok]],
-                "corners_px": [float(e) for e in seen.reshape(-1)]}
+        return {"marker_ids": ids[ok].tolist(), "corners_px": seen.reshape(-1).tolist()}
+
+    def _seen(self, points, position_m, quaternion, near: bool) -> tuple[np.ndarray, np.ndarray]:
+        """(pixels (K, 4, 2) of the markers seen whole, which of them (M,) bool) for their
+        corners (4 M, 3). `near` (the footprint's markers): Camera.project's arithmetic without
+        its masks and copies when every corner is in front, as there at any but extreme tilts."""
+        cam = self.camera
+        if near:
+            p_cam = (points - np.asarray(position_m, dtype=np.float64)) @ _rotation(quaternion) @ _CAM_T
+            depth = p_cam[:, 2:3]
+            near = bool(depth.min() > _MIN_DEPTH_M)
+        if not near:
+            pix, in_front = cam.project(points, position_m, quaternion)
+            ok = (in_front & cam.in_image(pix)).reshape(-1, 4).all(axis=1)
+            return pix.reshape(-1, 4, 2)[ok], ok
+        # u = f x / z + cx, v = f y / z + cy, each element as Camera.project computes it
+        uv = self._f * p_cam[:, :2] / depth + self._c
+        ok = np.logical_and.reduce(((uv >= 0.0) & (uv <= self._wh)).reshape(-1, 8), axis=1)
+        return uv.reshape(-1, 4, 2)[ok], ok

@@ -117,22 +117,24 @@ class Simulator:
         Idempotent within a tick (a second call returns the same messages), so
         noise draws and camera captures do not depend on how often it is called.
         """
-        if self._outputs_tick == self.tick:
-            return list(self._outputs)
         tick = self.tick
-        t = self.t
+        if self._outputs_tick == tick:
+            return list(self._outputs)
+        cfg = self.config
+        t = tick / cfg.tick_rate_hz
         p = self.plant
         d_imu, d_baro, d_mag, d_camera, d_truth, d_battery = self._divisors
         out: list[tuple[str, float, dict]] = []
         rot = acc = None
         if tick % d_imu == 0:
             x = p.x.tolist()
-            rot = rotation_rows(*x[6:10])
-            acc = p.acceleration_floats(self._wind)
+            rot = rotation_rows(x[6], x[7], x[8], x[9])
+            acc = (0.0, 0.0, 0.0) if p.landed else p._acceleration(x, self._wind)
             sample = self.imu.sample_rows(rot, x[10:13], acc, self._g)
             self._pending_imu.append((tick + self._imu_delay_ticks, t, sample))
-        while self._pending_imu and self._pending_imu[0][0] <= tick:
-            _, sample_t, sample = self._pending_imu.popleft()
+        pending = self._pending_imu
+        while pending and pending[0][0] <= tick:
+            _, sample_t, sample = pending.popleft()
             out.append(("imu", sample_t, sample))
         if tick % d_baro == 0:
             out.append(("baro", t, self.baro.sample(float(p.x[2]))))
@@ -140,9 +142,8 @@ class Simulator:
             if rot is None:
                 rot = p.rotation_rows()
             out.append(("mag", t, self.mag.sample_rows(rot)))
-        cfg = self.config
-        silent = 0.0 <= cfg.camera_outage_start_s <= t < cfg.camera_outage_start_s + cfg.camera_outage_s
-        if tick % d_camera == 0 and not silent:
+        if tick % d_camera == 0 and not (0.0 <= cfg.camera_outage_start_s <= t
+                                         < cfg.camera_outage_start_s + cfg.camera_outage_s):
             frame = self.camera.sample(p.position_m, p.quaternion)
             if frame is not None:
                 self._pending_frames.append((tick + self._camera_delay_ticks, t, frame))

@@ -17,7 +17,8 @@ from flight.quat import quat_from_euler, quat_normalize, quat_to_euler, quat_to_
 from flight.vehicle import Vehicle
 from simulator.battery import Battery
 from simulator.config import SimConfig
-from simulator.sensors import TEMPERATURE_K, MarkerCamera, altitude_to_pressure_pa
+from flight.camera import Camera, marker_grid
+from simulator.sensors import TEMPERATURE_K, altitude_to_pressure_pa
 
 P, V, Q, W, F = slice(0, 3), slice(3, 6), slice(6, 10), slice(10, 13), slice(13, 17)
 
@@ -293,6 +294,30 @@ class RefMagnetometer:
         return {"field_ut": [float(e) for e in b]}
 
 
+class RefMarkerCamera:
+    """simulator.sensors.MarkerCamera as of zenpilot 6b2add1: every marker of the grid projected."""
+
+    def __init__(self, cfg: SimConfig, rng: np.random.Generator):
+        self.rng = rng
+        self.camera = Camera(cfg.camera_width_px, cfg.camera_height_px, cfg.camera_focal_px)
+        self.ids, self.corners_world = marker_grid(
+            cfg.marker_size_m, cfg.marker_spacing_m, cfg.marker_grid_half_extent_m)
+        self.noise_px = cfg.camera_pixel_noise_px
+        self.drop_rate = cfg.camera_drop_rate
+
+    def sample(self, position_m, quaternion) -> dict | None:
+        """One exposure: the fields, or None when the frame is dropped."""
+        # draw the drop first so the stream of draws does not depend on what is seen
+        if self.rng.random() < self.drop_rate:
+            return None
+        pix, in_front = self.camera.project(self.corners_world.reshape(-1, 3), position_m, quaternion)
+        ok = (in_front & self.camera.in_image(pix)).reshape(-1, 4).all(axis=1)
+        seen = pix.reshape(-1, 4, 2)[ok]
+        seen = seen + self.rng.normal(0.0, self.noise_px, seen.shape)
+        return {"marker_ids": [int(i) for i in self.ids[ok]],
+                "corners_px": [float(e) for e in seen.reshape(-1)]}
+
+
 _RATE_KEYS = {"imu": "imu_rate_hz", "baro": "baro_rate_hz", "mag": "mag_rate_hz",
               "camera": "camera_rate_hz", "truth": "truth_rate_hz", "battery": "battery_rate_hz"}
 
@@ -317,7 +342,7 @@ class RefSimulator:
         self.imu = RefImu(cfg, np.random.default_rng(imu_ss))
         self.baro = RefBarometer(cfg, np.random.default_rng(baro_ss))
         self.mag = RefMagnetometer(cfg, np.random.default_rng(mag_ss))
-        self.camera = MarkerCamera(cfg, np.random.default_rng(cam_ss))
+        self.camera = RefMarkerCamera(cfg, np.random.default_rng(cam_ss))
         self._wind_rng = np.random.default_rng(wind_ss)
 
         # Not in the spec: starting in the air, the motors start at hover thrust

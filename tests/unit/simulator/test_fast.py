@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from bench.support.sim_reference import RefImu, RefMagnetometer, RefPlant, RefSimulator
+from bench.support.sim_reference import RefImu, RefMagnetometer, RefMarkerCamera, RefPlant, RefSimulator
 from flight.control.laws import attitude_law, position_law
 from flight.control.mixer import mix
 from flight.motor_model import thrust_to_pwm
@@ -14,7 +14,8 @@ from flight.quat import quat_from_euler, quat_to_euler, quat_to_rotation
 from flight.vehicle import load_vehicle
 from simulator import SimConfig, Simulator
 from simulator.plant import Plant
-from simulator.sensors import Imu, Magnetometer
+from simulator import sensors
+from simulator.sensors import IMU_DRAW_BLOCK, Imu, Magnetometer, MarkerCamera
 
 RTOL, ATOL = 1e-9, 1e-10  # "equal to rounding" over seconds of flight
 DT = 1.0 / 2000.0
@@ -152,8 +153,60 @@ def test_imu_and_mag_same_draws_same_numbers():
         np.testing.assert_allclose(c["field_ut"], d["field_ut"], rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(new_imu.gyro_bias, ref_imu.gyro_bias, rtol=1e-12, atol=1e-15)
     np.testing.assert_allclose(new_imu.accel_bias, ref_imu.accel_bias, rtol=1e-12, atol=1e-15)
+    ref_imu.rng.standard_normal(new_imu.draws_ahead)   # the IMU draws its noise a block ahead
     assert new_imu.rng.bit_generator.state == ref_imu.rng.bit_generator.state
     assert new_mag.rng.bit_generator.state == ref_mag.rng.bit_generator.state
+
+
+def test_imu_noise_is_the_per_sample_draw_across_blocks():
+    """Each sample's 12 normals are those standard_normal(12) per sample would give: the
+    block draws change the generator's position, never the noise (same seed, same noise)."""
+    cfg = SimConfig(gyro_noise_var=1.0, accel_noise_var=1.0, gyro_bias_var=0.0, accel_bias_var=0.0,
+                    gyro_bias_walk=0.0, accel_bias_walk=0.0)
+    imu, rng = Imu(cfg, np.random.default_rng(4)), np.random.default_rng(4)
+    rng.normal(0.0, 0.0, 3), rng.normal(0.0, 0.0, 3)   # the biases' draws at start
+    for k in range(3 * IMU_DRAW_BLOCK + 5):
+        z = rng.standard_normal(12).tolist()
+        s = imu.sample_rows((1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.0)
+        assert s["gyro_rad_s"] == z[:3] and s["accel_m_s2"] == z[3:6], k   # std 1, no bias: the draws
+        assert imu.draws_ahead == 12 * (IMU_DRAW_BLOCK - 1 - k % IMU_DRAW_BLOCK)
+
+
+def test_camera_footprint_cull_gives_the_full_grids_frames():
+    """The markers projected are those the image's footprint can hold: the frames (ids, pixels,
+    noise) and the generator equal the full grid's, bit for bit, level, tilted, low, high,
+    near the grid's edge, beyond it, inverted, under the floor."""
+    cfg = SimConfig(camera_drop_rate=0.1)
+    new, ref = MarkerCamera(cfg, np.random.default_rng(2)), RefMarkerCamera(cfg, np.random.default_rng(2))
+    boxes = MarkerCamera(cfg, np.random.default_rng(2))
+    assert new._grid is not None
+    boxes._grid = None      # the cull without marker_grid's layout: every marker's box tested
+    rng = np.random.default_rng(11)
+    seen = culled = 0
+    for k in range(600):
+        pos = rng.uniform([-7.0, -7.0, -0.5], [7.0, 7.0, 6.0])
+        if k % 3 == 0:
+            pos[:2] *= 0.3
+        euler = rng.normal(0.0, [0.05, 0.3, 1.2][k % 3], 3)
+        if k % 50 == 0:
+            euler[0] = np.pi          # inverted
+        q = quat_from_euler(*euler)
+        a, b = new.sample(pos, q), ref.sample(pos, q)
+        assert a == b == boxes.sample(pos, q), (k, pos, euler)
+        if a is not None:
+            assert all(type(i) is int for i in a["marker_ids"]) and all(type(e) is float for e in a["corners_px"])
+            seen += bool(a["marker_ids"])
+            idx = new.candidates(pos, q)
+            culled += idx is not None and len(idx) < len(new.ids) // 4
+    assert new.rng.bit_generator.state == ref.rng.bit_generator.state == boxes.rng.bit_generator.state
+    assert seen > 150 and culled > 150   # the cull did its work on most of the poses that see markers
+
+
+def test_camera_rotation_is_quat_to_rotation_bit_for_bit():
+    rng = np.random.default_rng(6)
+    for _ in range(3000):
+        q = rng.normal(size=4) * rng.uniform(0.2, 3.0)
+        np.testing.assert_array_equal(sensors._rotation(q), quat_to_rotation(q))
 
 
 def _same_messages(a, b, tick):
@@ -208,6 +261,7 @@ def test_simulator_matches_reference_through_a_flight(imu_latency_s):
         ref.step(pwm.copy(), True)
     assert new.landed and ref.landed
     close(new.wind_m_s, ref.wind_m_s)
+    ref.imu.rng.standard_normal(new.imu.draws_ahead)   # the IMU draws its noise a block ahead
     for attr in ("imu", "baro", "mag", "camera"):
         assert getattr(new, attr).rng.bit_generator.state == getattr(ref, attr).rng.bit_generator.state, attr
     assert new._wind_rng.bit_generator.state == ref._wind_rng.bit_generator.state
