@@ -107,15 +107,20 @@ def quat_from_rotation(r) -> np.ndarray:
     return -q if q[0] < 0 else q
 
 
+def quat_from_euler_floats(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
+    """quat_from_euler of three floats, as 4 floats (the 200 Hz loops' case: no array)."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return (cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy)
+
+
 def quat_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
     """q = qz(yaw) (x) qy(pitch) (x) qx(roll), i.e. R = Rz Ry Rx."""
     if isinstance(roll, float) and isinstance(pitch, float) and isinstance(yaw, float):
         # scalars (the control loops' case): math's functions, several times cheaper than numpy's
-        cr, sr = math.cos(roll / 2), math.sin(roll / 2)
-        cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
-        cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-        return np.array([cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
-                         cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy])
+        return np.array(quat_from_euler_floats(roll, pitch, yaw))
     cr, sr = np.cos(roll / 2), np.sin(roll / 2)
     cp, sp = np.cos(pitch / 2), np.sin(pitch / 2)
     cy, sy = np.cos(yaw / 2), np.sin(yaw / 2)
@@ -156,6 +161,11 @@ def rotate_vector(q, v) -> np.ndarray:
 
 def quat_tilt(q) -> float:
     """Angle between the body z axis and the world z axis, rad (0 level, pi inverted)."""
-    w, x, y, z = q.tolist() if isinstance(q, np.ndarray) else (float(v) for v in q)
+    if type(q) is tuple and len(q) == 4:   # quat_from_euler_floats' (floats: as they are)
+        w, x, y, z = q
+        if not (type(w) is float and type(x) is float and type(y) is float and type(z) is float):
+            w, x, y, z = (float(v) for v in q)
+    else:
+        w, x, y, z = q.tolist() if isinstance(q, np.ndarray) else (float(v) for v in q)
     r22 = (w * w - x * x - y * y + z * z) / (w * w + x * x + y * y + z * z)
     return math.acos(min(1.0, max(-1.0, r22)))

@@ -32,12 +32,12 @@ import numpy as np
 
 import schemas
 from flight.control.failsafe import Descent, DescentParams
-from flight.control.laws import attitude_law, stopping_accel
+from flight.control.laws import attitude_law_floats, stopping_accel
 from flight.estimation.attitude_filter import AttitudeFilter, AttitudeFilterParams, accel_roll_pitch
 from flight.estimation.camera_level import CameraLevel, CameraLevelParams
 from flight.estimation.gyro_carrier import GyroCarrier, GyroCarrierParams
 from flight.estimation.gyrovertical import DEFAULT_PARAMS_FILE, GyroVertical, load_trained
-from flight.quat import quat_from_euler, quat_to_euler, quat_to_rotation, rotate_vector
+from flight.quat import quat_from_euler, quat_from_euler_floats, quat_to_euler, quat_to_rotation, rotate_vector
 from flight.vehicle import load_vehicle
 from services.params.attitude import PARAMS  # every parameter: default, unit, bounds, doc
 from services.runtime import Runtime, main_guard, service_parser
@@ -116,10 +116,19 @@ class AttitudeLoop:
         self.state_out = io.publisher(schemas.ATTITUDE_STATE)
         self.k, self.alpha = io.live_array("k"), io.live_array("alpha")
         self.max_accel = stopping_accel(vehicle.max_angular_accel_rad_s2, p["stopping_accel_fraction"])
-        self.last_torque = np.zeros(3)
+        # the law's per-axis values as floats, the gains' refreshed after live_array's own update on param/set
+        self.law_max_accel = tuple(self.max_accel.tolist()) if self.max_accel is not None else None
+        self.gains = (tuple(self.k.tolist()), tuple(self.alpha.tolist()))
+        for key in ("k", "alpha"):
+            io.on_param(key, self._gains_changed)
+        self.inertia = tuple(float(i) for i in vehicle.inertia_kg_m2)   # the law reads floats
+        self.last_torque = (0.0, 0.0, 0.0)
         self.filt_q = np.array([1.0, 0.0, 0.0, 0.0])
         self.gyrovertical = None
         self.gyrovertical_t = None
+
+    def _gains_changed(self, _value) -> None:
+        self.gains = (tuple(self.k.tolist()), tuple(self.alpha.tolist()))
 
     def gyrovertical_update(self, t_s: float, gyro, accel) -> tuple[float, float]:
         """Feed one raw IMU sample to the gyro-vertical (once, in time order); its (roll, pitch)."""
@@ -167,7 +176,8 @@ class AttitudeLoop:
         filt, carrier, level = self.filt, self.carrier, self.level
         # the decoded lists go to the filter as they are (it reads floats); in time order, once
         samples = [(m["header"]["t_s"], m["gyro_rad_s"], m["accel_m_s2"]) for m in self.imu.take()]
-        samples.sort(key=_sample_time)
+        if len(samples) > 1:
+            samples.sort(key=_sample_time)
         self.accel_samples = [(ts, acc) for ts, _, acc in samples]   # raw: the descent's vertical speed
         if self.make_gyrovertical is not None:
             samples = [(ts, gyro, acc, self.gyrovertical_update(ts, np.asarray(gyro), np.asarray(acc)))
@@ -189,14 +199,14 @@ class AttitudeLoop:
             return None
         out = self.motors.latest()  # the torque the motors were really asked for (after saturation)
         applied = (self.vehicle.allocation @ np.asarray(out["thrust_n"]))[1:] if out is not None else self.last_torque
-        est = filt.update(samples, mag_sample, applied, t, accel_ref=accel_ref)
+        # the estimate as floats (lists and tuples) from here to the messages: no arrays on the way
+        euler, rates, q, euler_var, rate_var, _ = filt.update_floats(samples, mag_sample, applied, t,
+                                                                     accel_ref=accel_ref)
         sample_t = samples[-1][0] if samples else filt.last_sample_t
-        q, euler, rates = est.quaternion_wxyz, est.euler_rad, est.rate_rad_s
         if not carrier.active:
             if filt.initialized:   # near level: the carrier only follows the 000 filter
-                sample_euler, sample_rate = filt.sample_state()
-                carrier.follow(filt.last_sample_t, quat_from_euler(*sample_euler),
-                               samples[-1][1] if samples else sample_rate)
+                sample_euler, sample_rate = filt.sample_state_floats()
+                carrier.follow_euler(filt.last_sample_t, sample_euler, samples[-1][1] if samples else sample_rate)
                 carrier.check_enter(q, rates)
         else:
             for s in samples:
@@ -216,9 +226,9 @@ class AttitudeLoop:
                     level.fuse(m["header"]["t_s"], m["quaternion_wxyz"])
                 if frames:
                     self.io.rejected.update(level.rejected)
-                euler = level.apply(euler)
-                q = quat_from_euler(*euler)
-        return q, euler, rates, est.euler_var, est.rate_var, sample_t
+                euler = level.apply_floats(euler)
+                q = quat_from_euler_floats(*euler)
+        return q, euler, rates, euler_var, rate_var, sample_t
 
     def count(self, reason: str) -> None:
         rejected = self.io.rejected
@@ -265,17 +275,18 @@ class AttitudeLoop:
                 self.count("stale_state")
             return
         if sp is None or t - sp["header"]["t_s"] > p["setpoint_timeout_s"]:
-            ref, thrust = np.array([0.0, 0.0, euler[2]]), self.descend(t, q)
+            ref, thrust = [0.0, 0.0, float(euler[2])], self.descend(t, q)
         else:
-            ref, thrust = np.asarray(sp["attitude_ref_rad"]), sp["thrust_n"]
+            ref, thrust = sp["attitude_ref_rad"], sp["thrust_n"]
             if self.descent is not None:
                 self.descent = None
                 self.count("failsafe_recovered")
                 self.io.problem(f"failsafe: position setpoints again at t={t:.3f}: control handed back")
             self.flying = thrust
-        torque = attitude_law(self.vehicle.inertia_kg_m2, euler, rates, ref, self.k, self.alpha, self.max_accel)
+        k, alpha = self.gains
+        torque = attitude_law_floats(self.inertia, euler, rates, ref, k, alpha, self.law_max_accel)
         if thrust <= 0.0:
-            torque = np.zeros(3)  # on the ground, idle: nothing to steer (and nothing to wind up)
+            torque = (0.0, 0.0, 0.0)  # on the ground, idle: nothing to steer (and nothing to wind up)
         self.last_torque = torque
         if sp is not None:   # before any setpoint there is nothing to command: a level restarted in
             # the air would otherwise send zero thrust over the motor driver's own failsafe

@@ -1,5 +1,7 @@
-# flight/estimation/attitude_filter.py as of zenpilot 6b2add1, verbatim: the reference the float
-# rewrite is timed against (bench/attitude_step.py) and checked against (same outputs). Not used in flight.
+# flight/estimation/attitude_filter.py as of zenpilot 6b2add1, verbatim but for quat_from_euler's import (also
+# 6b2add1's, bench/support/attitude_parts_reference.py): the reference the rewrite is timed against
+# (bench/attitude_step.py) and checked against bit for bit (tests/unit/flight/estimation/test_attitude_fast.py).
+# Not used in flight.
 """Attitude-level estimator of document 000 (fast loop): low-pass (12), per-axis
 Kalman filter on the model with the filter lag (13), (16)-(20), analytic
 extrapolator (15) over the transport delay.  Pure algorithm, no I/O.
@@ -82,7 +84,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from flight.param import Declared, declared
-from flight.quat import quat_from_euler, wrap_angle_float
+from bench.support.attitude_parts_reference import quat_from_euler
+from flight.quat import wrap_angle_float
 
 W, WF, A, AF, B = 0, 1, 2, 3, 4    # state indices per axis (B: the gyro bias)
 NX = 5

@@ -1,5 +1,6 @@
-# services/attitude.py (AttitudeLoop) as of zenpilot 6b2add1, verbatim but for the filter it imports
-# (bench/support/attitude_filter_reference.py): the reference bench/attitude_step.py times. Not used in flight.
+# services/attitude.py (AttitudeLoop) as of zenpilot 6b2add1, verbatim but for its imports: the filter
+# (bench/support/attitude_filter_reference.py) and the helpers (bench/support/attitude_parts_reference.py) of
+# 6b2add1 too. The reference bench/attitude_step.py times and compares messages with. Not used in flight.
 """zenpilot-attitude: the attitude level (200 Hz) of 000: filter and law (8).
 
 State source `estimate` (default): every IMU sample goes through the
@@ -34,12 +35,13 @@ import numpy as np
 
 import schemas
 from flight.control.failsafe import Descent, DescentParams
-from flight.control.laws import attitude_law, stopping_accel
+from bench.support.attitude_parts_reference import CameraLevel, GyroCarrier, attitude_law, quat_from_euler
+from flight.control.laws import stopping_accel
 from bench.support.attitude_filter_reference import AttitudeFilter, AttitudeFilterParams, accel_roll_pitch
-from flight.estimation.camera_level import CameraLevel, CameraLevelParams
-from flight.estimation.gyro_carrier import GyroCarrier, GyroCarrierParams
+from flight.estimation.camera_level import CameraLevelParams
+from flight.estimation.gyro_carrier import GyroCarrierParams
 from flight.estimation.gyrovertical import DEFAULT_PARAMS_FILE, GyroVertical, load_trained
-from flight.quat import quat_from_euler, quat_to_euler, quat_to_rotation, rotate_vector
+from flight.quat import quat_to_euler, quat_to_rotation, rotate_vector
 from flight.vehicle import load_vehicle
 from services.params.attitude import PARAMS  # every parameter: default, unit, bounds, doc
 from services.runtime import Runtime, main_guard, service_parser

@@ -52,7 +52,13 @@ def _stopping_rate1(error: float, gain: float, max_accel: float) -> float:
 
 def _three(v) -> tuple[float, float, float]:
     """A per-axis value (a number or 3 of them) as three floats."""
-    if isinstance(v, np.ndarray):
+    t = type(v)
+    if t is list or t is tuple:   # the 200 Hz loops' lists of floats: as they are
+        if len(v) == 3:
+            a, b, c = v
+            if type(a) is float and type(b) is float and type(c) is float:
+                return a, b, c
+    elif isinstance(v, np.ndarray):
         v = v.tolist()
     if isinstance(v, (int, float)):
         return float(v), float(v), float(v)
@@ -73,22 +79,29 @@ def attitude_law(inertia, angles, rates, angles_ref, k, alpha, max_accel=None) -
     airframe cannot stop in time (saturated, the linear law overshoots and can limit-cycle);
     errors below max_accel / (alpha k / (alpha+k))^2 see law (8) exactly. None: law (8).
     """
+    return np.array(attitude_law_floats(inertia, angles, rates, angles_ref, k, alpha, max_accel))
+
+
+def attitude_law_floats(inertia, angles, rates, angles_ref, k, alpha, max_accel=None) -> tuple[float, float, float]:
+    """attitude_law as three floats (the attitude service's 200 Hz path: no array made)."""
     # per axis in floats: this runs every 200 Hz step, where numpy's per-call cost dominates
-    inertia = np.asarray(inertia, dtype=np.float64)
-    if inertia.shape == (3, 3):
-        inertia = np.diag(inertia)
-    inertia, k, alpha = _three(inertia), _three(k), _three(alpha)
-    angles, angles_ref, rates = _three(angles), _three(angles_ref), _three(rates)
-    err = [angles[0] - angles_ref[0], angles[1] - angles_ref[1], angles[2] - angles_ref[2]]
-    err[2] = wrap_angle_float(err[2])  # yaw: take the short way round
+    if not (type(inertia) is tuple and len(inertia) == 3 and type(inertia[0]) is float):   # else: a diagonal's floats
+        inertia = np.asarray(inertia, dtype=np.float64)
+        if inertia.shape == (3, 3):
+            inertia = np.diag(inertia)
+    i0, i1, i2 = _three(inertia)
+    k0, k1, k2 = _three(k)
+    a0, a1, a2 = _three(alpha)
+    (e0, e1, e2), (f0, f1, f2), (w0, w1, w2) = _three(angles), _three(angles_ref), _three(rates)
+    e0, e1, e2 = e0 - f0, e1 - f1, e2 - f2
+    e2 = wrap_angle_float(e2)  # yaw: take the short way round
     if max_accel is None:
-        return np.array([inertia[i] * (-(alpha[i] + k[i]) * rates[i] - alpha[i] * k[i] * err[i]) for i in range(3)])
-    max_accel = _three(max_accel)
-    out = []
-    for i in range(3):
-        rate_ref = -_stopping_rate1(err[i], alpha[i] * k[i] / (alpha[i] + k[i]), max_accel[i])
-        out.append(inertia[i] * (alpha[i] + k[i]) * (rate_ref - rates[i]))
-    return np.array(out)
+        return (i0 * (-(a0 + k0) * w0 - a0 * k0 * e0), i1 * (-(a1 + k1) * w1 - a1 * k1 * e1),
+                i2 * (-(a2 + k2) * w2 - a2 * k2 * e2))
+    m0, m1, m2 = _three(max_accel)
+    return (i0 * (a0 + k0) * (-_stopping_rate1(e0, a0 * k0 / (a0 + k0), m0) - w0),
+            i1 * (a1 + k1) * (-_stopping_rate1(e1, a1 * k1 / (a1 + k1), m1) - w1),
+            i2 * (a2 + k2) * (-_stopping_rate1(e2, a2 * k2 / (a2 + k2), m2) - w2))
 
 
 def attitude_from_thrust_vector(h_world, yaw: float) -> tuple[float, float]:

@@ -80,11 +80,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from flight.param import Declared, declared
-from flight.quat import quat_from_euler, wrap_angle_float
+from flight.quat import TWO_PI as _TWO_PI
+from flight.quat import quat_from_euler_floats, wrap_angle_float
 
 W, WF, A, AF, B = 0, 1, 2, 3, 4    # state indices per axis (B: the gyro bias)
 NX = 5
 G_REF = 9.80665
+_PI = math.pi
 _BIG_ANGLE_VAR = math.pi ** 2      # yaw variance before any magnetometer sample
 
 
@@ -473,6 +475,84 @@ def _update(x, p, z_rate: float, z_angle, r_rate: float, r_angle: float, lag: bo
              p44 - (k4 * c4 + l4 * d4)))
 
 
+def _kf_axis(x, p, coef, q, z_rate: float, z_angle, r_rate: float, r_angle: float):
+    """_predict_p, then _update with the filter lag in H, then _rewrap, of one axis in one call:
+    the same expressions, without the calls and the tuples between them (the filter runs this
+    three times per IMU sample). coef, q: the step's (not None); z_angle None: rate only.
+    Returns (x, P, gain): the gain's columns (k, then l unless rate only) for _kf_state, which
+    updates an axis whose covariance is this one's (the same P, Q and R: the same gain)."""
+    w, wf, a, af, b = x
+    p00, p01, p02, p03, p04, p11, p12, p13, p14, p22, p23, p24, p33, p34, p44 = p
+    h, ee, phi, psi = coef[0], coef[1], coef[2], coef[3]
+    # _predict_p: rows wf, a, af of F P, then F P F^T + Q
+    n10, n11, n12, n13, n14 = (phi * p00 + ee * p01, phi * p01 + ee * p11, phi * p02 + ee * p12,
+                               phi * p03 + ee * p13, phi * p04 + ee * p14)
+    n20, n22, n23, n24 = h * p00 + p02, h * p02 + p22, h * p03 + p23, h * p04 + p24
+    n30, n32, n33, n34 = (psi * p00 + phi * p02 + ee * p03, psi * p02 + phi * p22 + ee * p23,
+                          psi * p03 + phi * p23 + ee * p33, psi * p04 + phi * p24 + ee * p34)
+    p00, p01, p02, p03, p04, p11, p12, p13, p14, p22, p23, p24, p33, p34, p44 = (
+        p00 + q[0], n10 + q[1], n20 + q[2], n30 + q[3], p04,
+        phi * n10 + ee * n11 + q[5], h * n10 + n12 + q[6], psi * n10 + phi * n12 + ee * n13 + q[7], n14,
+        h * n20 + n22 + q[9], psi * n20 + phi * n22 + ee * n23 + q[10], n24,
+        psi * n30 + phi * n32 + ee * n33 + q[12], n34,
+        p44 + q[14])
+    # _update, lag: C = P H^T, c the rate column (P_1 + P_4), d the angle column (P_3)
+    c0, c1, c2, c3, c4 = p01 + p04, p11 + p14, p12 + p24, p13 + p34, p14 + p44
+    s00 = c1 + c4 + r_rate
+    y0 = z_rate - (wf + b)
+    if z_angle is None:
+        g = 1.0 / s00
+        k0, k1, k2, k3, k4 = gain = (c0 * g, c1 * g, c2 * g, c3 * g, c4 * g)
+        w, wf, a, af, b = w + k0 * y0, wf + k1 * y0, a + k2 * y0, af + k3 * y0, b + k4 * y0
+        p = (p00 - k0 * c0, p01 - k0 * c1, p02 - k0 * c2, p03 - k0 * c3, p04 - k0 * c4,
+             p11 - k1 * c1, p12 - k1 * c2, p13 - k1 * c3, p14 - k1 * c4,
+             p22 - k2 * c2, p23 - k2 * c3, p24 - k2 * c4,
+             p33 - k3 * c3, p34 - k3 * c4, p44 - k4 * c4)
+    else:
+        d0, d1, d2, d3, d4 = p03, p13, p23, p33, p34
+        s01, s11 = d1 + d4, d3 + r_angle
+        y1 = z_angle - af
+        det = s00 * s11 - s01 * s01
+        i00, i01, i11 = s11 / det, -s01 / det, s00 / det
+        k0, k1, k2, k3, k4, l0, l1, l2, l3, l4 = gain = (
+            c0 * i00 + d0 * i01, c1 * i00 + d1 * i01, c2 * i00 + d2 * i01, c3 * i00 + d3 * i01, c4 * i00 + d4 * i01,
+            c0 * i01 + d0 * i11, c1 * i01 + d1 * i11, c2 * i01 + d2 * i11, c3 * i01 + d3 * i11, c4 * i01 + d4 * i11)
+        w, wf, a, af, b = (w + (k0 * y0 + l0 * y1), wf + (k1 * y0 + l1 * y1), a + (k2 * y0 + l2 * y1),
+                           af + (k3 * y0 + l3 * y1), b + (k4 * y0 + l4 * y1))
+        p = (p00 - (k0 * c0 + l0 * d0), p01 - (k0 * c1 + l0 * d1), p02 - (k0 * c2 + l0 * d2),
+             p03 - (k0 * c3 + l0 * d3), p04 - (k0 * c4 + l0 * d4),
+             p11 - (k1 * c1 + l1 * d1), p12 - (k1 * c2 + l1 * d2), p13 - (k1 * c3 + l1 * d3),
+             p14 - (k1 * c4 + l1 * d4),
+             p22 - (k2 * c2 + l2 * d2), p23 - (k2 * c3 + l2 * d3), p24 - (k2 * c4 + l2 * d4),
+             p33 - (k3 * c3 + l3 * d3), p34 - (k3 * c4 + l3 * d4),
+             p44 - (k4 * c4 + l4 * d4))
+    # _rewrap (wrap_angle_float written out)
+    s = ((a + _PI) % _TWO_PI - _PI) - a
+    if s != 0.0:
+        a += s
+        af += s
+    return (w, wf, a, a + ((af - a + _PI) % _TWO_PI - _PI), b), p, gain
+
+
+def _kf_state(x, gain, z_rate: float, z_angle):
+    """The state part of _kf_axis with a gain it returned: the update of x, then _rewrap."""
+    w, wf, a, af, b = x
+    y0 = z_rate - (wf + b)
+    if z_angle is None:
+        k0, k1, k2, k3, k4 = gain
+        w, wf, a, af, b = w + k0 * y0, wf + k1 * y0, a + k2 * y0, af + k3 * y0, b + k4 * y0
+    else:
+        k0, k1, k2, k3, k4, l0, l1, l2, l3, l4 = gain
+        y1 = z_angle - af
+        w, wf, a, af, b = (w + (k0 * y0 + l0 * y1), wf + (k1 * y0 + l1 * y1), a + (k2 * y0 + l2 * y1),
+                           af + (k3 * y0 + l3 * y1), b + (k4 * y0 + l4 * y1))
+    s = ((a + _PI) % _TWO_PI - _PI) - a
+    if s != 0.0:
+        a += s
+        af += s
+    return w, wf, a, a + ((af - a + _PI) % _TWO_PI - _PI), b
+
+
 def _rewrap(x):
     """Wrap the angle state to [-pi, pi) and move af by the same turn (keeps af - a small)."""
     w, wf, a, af, b = x
@@ -486,14 +566,19 @@ def _rewrap(x):
 def _angle_lowpass(af: float, prev: float, cur: float, c: float) -> float:
     """One step of the low-pass (12) on an angle: its input the mean of the previous and this
     sample (the short way round), the output wrapped."""
-    mid = prev + 0.5 * wrap_angle_float(cur - prev)
-    af = af + c * wrap_angle_float(mid - af)
-    return wrap_angle_float(af)
+    mid = prev + 0.5 * ((cur - prev + _PI) % _TWO_PI - _PI)    # wrap_angle_float written out
+    af = af + c * ((mid - af + _PI) % _TWO_PI - _PI)
+    return (af + _PI) % _TWO_PI - _PI
 
 
 def floats3(v) -> tuple[float, float, float] | None:
     """v (a list, tuple or array of 3 numbers, any shape) as three Python floats; None if it
     is not (the attitude level's inputs, here and in camera_level.py and gyro_carrier.py)."""
+    t = type(v)
+    if (t is list or t is tuple) and len(v) == 3:   # a decoded message's list: no conversion needed
+        a, b, c = v
+        if type(a) is float and type(b) is float and type(c) is float:
+            return a, b, c
     if isinstance(v, np.ndarray):
         if v.shape != (3,):
             v = v.reshape(-1)
@@ -530,7 +615,11 @@ class AttitudeFilter:
 
     The three axes' Kalman filters are held as plain floats (x: 5 per axis, P: its upper
     triangle), the structure of F and H written out: at this size that is several times
-    cheaper than numpy (or filterpy) calls.  ``x`` and ``P`` give them as arrays.
+    cheaper than numpy (or filterpy) calls.  ``x`` and ``P`` give them as arrays.  With the
+    filter lag in H, a step's covariance prediction, update and re-wrap are one call per axis
+    (_kf_axis); roll and pitch with the same noise settings keep the same covariance, so pitch
+    takes roll's gain (_kf_state).  ``update_floats`` returns the estimate as floats (the
+    attitude service's path), ``update`` as arrays; the numbers are the same.
     """
 
     def __init__(self, inertia_kg_m2, params: AttitudeFilterParams | None = None, dt: float = 1.0 / 200.0,
@@ -555,6 +644,10 @@ class AttitudeFilter:
         self._lag = p.model_filter_lag
         self._angle_meas_idx = AF if p.model_filter_lag else A
         self._r = tuple(zip(p.rate_meas_var, p.angle_meas_var))
+        # roll and pitch with the same noise settings: their covariances stay equal (the same start,
+        # the same steps and the same measurement flags), so pitch reuses roll's gain
+        self._share_rp = all(v[0] == v[1] for v in (p.rate_meas_var, p.angle_meas_var, p.rate_process_var,
+                                                      p.angle_process_var, p.bias_process_var))
         self._max_horizon = p.max_delay_steps * self.dt
         self._tau = p.lpf_tau_s
         self.reset()
@@ -574,6 +667,7 @@ class AttitudeFilter:
         self._wf = [0.0, 0.0, 0.0]    # low-pass states (12)
         self._af = [0.0, 0.0, 0.0]
         self._g_prev = _ZERO3         # previous raw samples (input averaging over the step)
+        self._c_h, self._c = None, 0.0   # the last step length and its low-pass factor
         self._a_prev = [0.0, 0.0, 0.0]
         self._yaw_hold: float | None = None   # newest magnetometer yaw, carried by the z gyro
         self._yaw_hold_t: float = 0.0
@@ -657,6 +751,8 @@ class AttitudeFilter:
         """[(duration, u)] covering [t0, t1): stored torques, gaps held at the previous one (0 before any)."""
         starts, ends, us = self._seg_t0, self._seg_t1, self._seg_u
         i = bisect.bisect_right(ends, t0)      # the first segment ending after t0
+        if i < len(ends) and starts[i] <= t0 and t1 <= ends[i] and t1 - t0 > 1e-9:
+            return [(t1 - t0, us[i])]          # within one segment (the loop below gives the same)
         u_last = us[i - 1] if i else _ZERO3
         out = []
         t = t0
@@ -681,20 +777,36 @@ class AttitudeFilter:
     def _propagate(self, xs, t0: float, t1: float):
         """The states xs carried over [t0, t1) with the applied torques; returns (xs, step key):
         the covariance is carried once over the summed steps (F and Q of a time-invariant model
-        compose: F(h2) F(h1) = F(h1 + h2), F(h2) Q(h1) F(h2)^T + Q(h2) = Q(h1 + h2))."""
-        disc, kinematics = self._disc, self.params.euler_kinematics
+        compose: F(h2) F(h1) = F(h1 + h2), F(h2) Q(h1) F(h2)^T + Q(h2) = Q(h1 + h2)).
+        _predict_x and _euler_rate_excess written out for the three axes."""
+        cache, kinematics = self._disc.cache, self.params.euler_kinematics
         keys = 0
-        for h, u in self._pieces(t0, t1):
-            key = _step_key(h)
+        (w0, wf0, a0, af0, b0), (w1, wf1, a1, af1, b1), (w2, wf2, a2, af2, b2) = xs
+        for h, (u0, u1, u2) in self._pieces(t0, t1):
+            key = int(round(h * 1e4))          # _step_key
             if key == 0:     # rounded to 0.1 ms: F = I, B = 0, Q = 0
                 continue
-            coef = disc(key)[0]
+            hit = cache.get(key)
+            h, ee, phi, psi, h2, u_af = (hit if hit is not None else self._disc(key))[0]
             # the Euler rate less the body rate at the piece's start (zero with euler_kinematics off)
-            e = _euler_rate_excess(xs[0][A], xs[1][A], xs[0][W], xs[1][W], xs[2][W]) if kinematics else _ZERO3
-            xs = [_predict_x(xs[0], coef, u[0], e[0]), _predict_x(xs[1], coef, u[1], e[1]),
-                  _predict_x(xs[2], coef, u[2], e[2])]
+            if kinematics:
+                sr, cr = math.sin(a0), math.cos(a0)
+                cp = math.cos(a1)
+                cp = math.copysign(max(abs(cp), _MIN_COS_PITCH), cp)
+                tp = math.sin(a1) / cp
+                e0, e1, e2 = ((sr * w1 + cr * w2) * tp, (cr - 1.0) * w1 - sr * w2, (sr * w1 + cr * w2) / cp - w2)
+            else:
+                e0 = e1 = e2 = 0.0
+            w0, wf0, a0, af0 = (w0 + h * u0, (phi * w0 + ee * wf0) + psi * u0, (h * w0 + a0) + (h2 * u0 + h * e0),
+                                (psi * w0 + phi * a0 + ee * af0) + (u_af * u0 + psi * e0))
+            w1, wf1, a1, af1 = (w1 + h * u1, (phi * w1 + ee * wf1) + psi * u1, (h * w1 + a1) + (h2 * u1 + h * e1),
+                                (psi * w1 + phi * a1 + ee * af1) + (u_af * u1 + psi * e1))
+            w2, wf2, a2, af2 = (w2 + h * u2, (phi * w2 + ee * wf2) + psi * u2, (h * w2 + a2) + (h2 * u2 + h * e2),
+                                (psi * w2 + phi * a2 + ee * af2) + (u_af * u2 + psi * e2))
             keys += key
-        return xs, keys
+        if not keys:
+            return xs, 0
+        return [(w0, wf0, a0, af0, b0), (w1, wf1, a1, af1, b1), (w2, wf2, a2, af2, b2)], keys
 
     # -------------------------------------------------------------- helpers
     def _compute_mag_yaw(self, field, roll: float, pitch: float) -> float | None:
@@ -779,10 +891,12 @@ class AttitudeFilter:
                 self._set_yaw_from_mag(yaw_keep)
             return
         # low-pass (12), exact for an input linear over the step (mean of the two samples)
-        c = 1.0 - math.exp(-h / self._tau)
-        wf, gp = self._wf, self._g_prev
-        self._wf = wf = [wf[0] + c * (0.5 * (gp[0] + gyro[0]) - wf[0]), wf[1] + c * (0.5 * (gp[1] + gyro[1]) - wf[1]),
-                         wf[2] + c * (0.5 * (gp[2] + gyro[2]) - wf[2])]
+        if h != self._c_h:     # the factor of the last step length, kept (every step is 2.5 ms in lockstep)
+            self._c_h, self._c = h, 1.0 - math.exp(-h / self._tau)
+        c = self._c
+        (wf0, wf1, wf2), (gp0, gp1, gp2), (g0, g1, g2) = self._wf, self._g_prev, gyro
+        self._wf = wf = [wf0 + c * (0.5 * (gp0 + g0) - wf0), wf1 + c * (0.5 * (gp1 + g1) - wf1),
+                         wf2 + c * (0.5 * (gp2 + g2) - wf2)]
         self._g_prev = gyro
         # Kalman filter prediction over [t_kf, t) with the applied torques (the states here, the
         # covariance with the update below)
@@ -794,8 +908,16 @@ class AttitudeFilter:
             rp = self._accel_angles(accel) if tilt is None else tilt
         af, a_prev = self._af, self._a_prev
         if rp is not None:
-            af[0], a_prev[0] = _angle_lowpass(af[0], a_prev[0], rp[0], c), rp[0]
-            af[1], a_prev[1] = _angle_lowpass(af[1], a_prev[1], rp[1], c), rp[1]
+            # _angle_lowpass written out, on roll and pitch
+            r_roll, r_pitch = rp
+            prev, f = a_prev[0], af[0]
+            mid = prev + 0.5 * ((r_roll - prev + _PI) % _TWO_PI - _PI)
+            f = f + c * ((mid - f + _PI) % _TWO_PI - _PI)
+            af[0], a_prev[0] = (f + _PI) % _TWO_PI - _PI, r_roll
+            prev, f = a_prev[1], af[1]
+            mid = prev + 0.5 * ((r_pitch - prev + _PI) % _TWO_PI - _PI)
+            f = f + c * ((mid - f + _PI) % _TWO_PI - _PI)
+            af[1], a_prev[1] = (f + _PI) % _TWO_PI - _PI, r_pitch
         yaw_ok = False
         if self._yaw_hold is not None:
             # carry the held magnetometer yaw on with the z gyro up to this sample
@@ -808,20 +930,41 @@ class AttitudeFilter:
         # Kalman filter: the covariance's prediction, then the update with [wf, af] (the angle
         # innovation wrapped)
         m, lag = self._angle_meas_idx, self._lag
-        coef, qs = self._disc(key) if key else (None, (None, None, None))
-        xs, ps = [], []
-        for x, pp, q, angle_ok, z_rate, af_i, (r_rate, r_angle) in zip(
-                self._xs, self._ps, qs, (rp is not None, rp is not None, yaw_ok), wf, af, self._r):
-            if key:
-                pp = _predict_p(pp, coef, q)
-            z_angle = None
-            if angle_ok:
-                pred = x[m]
-                z_angle = pred + wrap_angle_float(af_i - pred)
-            x, pp = _update(x, pp, z_rate, z_angle, r_rate, r_angle, lag)
-            xs.append(_rewrap(x))
-            ps.append(pp)
-        self._xs, self._ps = xs, ps
+        if key and lag:   # the filter's own case, the three axes written out (_kf_axis)
+            hit = self._disc.cache.get(key)
+            coef, (q0, q1, q2) = hit if hit is not None else self._disc(key)
+            (x0, x1, x2), (p0, p1, p2), (r0, r1, r2) = self._xs, self._ps, self._r
+            z0 = z1 = z2 = None
+            if rp is not None:
+                pred0, pred1 = x0[AF], x1[AF]
+                z0, z1 = (pred0 + ((af[0] - pred0 + _PI) % _TWO_PI - _PI),
+                          pred1 + ((af[1] - pred1 + _PI) % _TWO_PI - _PI))
+            if yaw_ok:
+                pred2 = x2[AF]
+                z2 = pred2 + ((af[2] - pred2 + _PI) % _TWO_PI - _PI)
+            x0, p0, gain = _kf_axis(x0, p0, coef, q0, wf[0], z0, *r0)
+            if self._share_rp and (p1 is self._ps[0] or p1 == self._ps[0]):
+                # roll's and pitch's P, Q and R are the same (equal noise settings): so is the gain
+                x1, p1 = _kf_state(x1, gain, wf[1], z1), p0
+            else:
+                x1, p1, _ = _kf_axis(x1, p1, coef, q1, wf[1], z1, *r1)
+            x2, p2, _ = _kf_axis(x2, p2, coef, q2, wf[2], z2, *r2)
+            self._xs, self._ps = [x0, x1, x2], [p0, p1, p2]
+        else:
+            coef, qs = self._disc(key) if key else (None, (None, None, None))
+            xs, ps = [], []
+            for x, pp, q, angle_ok, z_rate, af_i, (r_rate, r_angle) in zip(
+                    self._xs, self._ps, qs, (rp is not None, rp is not None, yaw_ok), wf, af, self._r):
+                if key:
+                    pp = _predict_p(pp, coef, q)
+                z_angle = None
+                if angle_ok:
+                    pred = x[m]
+                    z_angle = pred + wrap_angle_float(af_i - pred)
+                x, pp = _update(x, pp, z_rate, z_angle, r_rate, r_angle, lag)
+                xs.append(_rewrap(x))
+                ps.append(pp)
+            self._xs, self._ps = xs, ps
         self._t_kf = t
         self._record_amodel(t, accel)
 
@@ -835,12 +978,15 @@ class AttitudeFilter:
 
     def _record_amodel(self, t: float, accel) -> None:
         """a_model(t) = R f + g: the acceleration that the specific force f implies at the filter's attitude."""
-        xs = self._xs
-        r0, r1, r2 = _rotation_rows(xs[0][A], xs[1][A], xs[2][A])
+        (_, _, roll, _, _), (_, _, pitch, _, _), (_, _, yaw, _, _) = self._xs
+        # _rotation_rows written out
+        cr, sr = math.cos(roll), math.sin(roll)
+        cp, sp = math.cos(pitch), math.sin(pitch)
+        cy, sy = math.cos(yaw), math.sin(yaw)
         f0, f1, f2 = accel
-        v = (r0[0] * f0 + r0[1] * f1 + r0[2] * f2,
-             r1[0] * f0 + r1[1] * f1 + r1[2] * f2,
-             r2[0] * f0 + r2[1] * f1 + r2[2] * f2 - self.gravity)
+        v = (cy * cp * f0 + (cy * sp * sr - sy * cr) * f1 + (cy * sp * cr + sy * sr) * f2,
+             sy * cp * f0 + (sy * sp * sr + cy * cr) * f1 + (sy * sp * cr - cy * sr) * f2,
+             -sp * f0 + cp * sr * f1 + cp * cr * f2 - self.gravity)
         ts, vs, cs = self._am_t, self._am_v, self._am_c
         if ts:
             dt, (v0, v1, v2), (c0, c1, c2) = t - ts[-1], vs[-1], cs[-1]
@@ -911,12 +1057,16 @@ class AttitudeFilter:
     def _aided_angles(self, corr) -> tuple[float, float]:
         """(roll, pitch) of the accelerometer compensated with a = R f + g + c at the predicted attitude R:
         f - R^T a = R^T ([0, 0, g] - c), i.e. the predicted attitude moved by the correction c."""
-        xs = self._xs
-        r0, r1, r2 = _rotation_rows(xs[0][A], xs[1][A], xs[2][A])
+        (_, _, roll, _, _), (_, _, pitch, _, _), (_, _, yaw, _, _) = self._xs
+        # _rotation_rows and _roll_pitch written out
+        cr, sr = math.cos(roll), math.sin(roll)
+        cp, sp = math.cos(pitch), math.sin(pitch)
+        cy, sy = math.cos(yaw), math.sin(yaw)
         v0, v1, v2 = 0.0 - corr[0], 0.0 - corr[1], self.gravity - corr[2]
-        return _roll_pitch(r0[0] * v0 + r1[0] * v1 + r2[0] * v2,
-                           r0[1] * v0 + r1[1] * v1 + r2[1] * v2,
-                           r0[2] * v0 + r1[2] * v1 + r2[2] * v2)
+        ax = cy * cp * v0 + sy * cp * v1 + -sp * v2
+        ay = (cy * sp * sr - sy * cr) * v0 + (sy * sp * sr + cy * cr) * v1 + cp * sr * v2
+        az = (cy * sp * cr + sy * sr) * v0 + (sy * sp * cr - cy * sr) * v1 + cp * cr * v2
+        return math.atan2(ay, az), math.atan2(-ax, math.hypot(ay, az))
 
     def sample_state(self) -> tuple[np.ndarray, np.ndarray]:
         """(euler, rate) of the KF at its newest IMU sample (not extrapolated)."""
@@ -945,8 +1095,11 @@ class AttitudeFilter:
         self._drop_aid_history()
 
     def _healthy(self) -> bool:
-        # one finiteness test: a NaN or inf anywhere makes the sum non-finite
-        return math.isfinite(sum(map(sum, self._xs)) + sum(map(sum, self._ps)))
+        # one finiteness test: a NaN or inf anywhere makes the sum non-finite (the sums of
+        # sum(map(sum, xs)) + sum(map(sum, ps)) in its order; pitch's P often is roll's object)
+        (x0, x1, x2), (p0, p1, p2) = self._xs, self._ps
+        sp0 = sum(p0)
+        return math.isfinite(sum(x0) + sum(x1) + sum(x2) + (sp0 + (sp0 if p1 is p0 else sum(p1)) + sum(p2)))
 
     # -------------------------------------------------------------- main entry
     def update(self, imu_samples, mag, torque_nm, t_now: float, accel_ref=None) -> AttitudeEstimate:
@@ -964,6 +1117,13 @@ class AttitudeFilter:
         Vectors may be lists, tuples or arrays.
         Returns the estimate at t_now (extrapolated over the delay when ``extrapolate``).
         """
+        euler, rate, q, var_a, var_w, delay = self.update_floats(imu_samples, mag, torque_nm, t_now, accel_ref)
+        return AttitudeEstimate(np.array(euler), np.array(rate), np.array(q), np.array(var_a), np.array(var_w),
+                                delay)
+
+    def update_floats(self, imu_samples, mag, torque_nm, t_now: float, accel_ref=None) -> tuple:
+        """update() with the estimate as floats: (euler [3], rate [3], quaternion (4), euler_var [3],
+        rate_var [3], delay_s), the fields of AttitudeEstimate (the attitude service's 200 Hz path)."""
         t_now = float(t_now)
         self._aid_ref = None
         if accel_ref is not None:
@@ -978,17 +1138,19 @@ class AttitudeFilter:
         self._add_torque(torque_nm, t_now)
         self._t_prev_call = t_now
         samples = []
+        isfinite = math.isfinite
         for s in imu_samples or ():
             t, g, a = s[0], floats3(s[1]), floats3(s[2])
             tilt = s[3] if len(s) > 3 else None
             t = float(t)
             if tilt is not None:
                 tilt = (float(tilt[0]), float(tilt[1]))
-                if not math.isfinite(tilt[0] + tilt[1]):
+                if not isfinite(tilt[0] + tilt[1]):
                     tilt = None
-            if g is not None and a is not None and math.isfinite(t + g[0] + g[1] + g[2] + a[0] + a[1] + a[2]):
+            if g is not None and a is not None and isfinite(t + g[0] + g[1] + g[2] + a[0] + a[1] + a[2]):
                 samples.append((t, g, a, tilt))
-        samples.sort(key=_first)
+        if len(samples) > 1:
+            samples.sort(key=_first)
         mag_item = None
         if mag is not None:
             t_m, field = mag
@@ -1006,14 +1168,14 @@ class AttitudeFilter:
             self.reset()
         return self._estimate(t_now)
 
-    def _estimate(self, t_now: float) -> AttitudeEstimate:
+    def _estimate(self, t_now: float) -> tuple:
+        """The estimate at t_now as update_floats returns it."""
         p = self.params
         ps = self._ps
         var_a = [ps[0][_P_AA], ps[1][_P_AA], ps[2][_P_AA]]
         var_w = [ps[0][_P_WW], ps[1][_P_WW], ps[2][_P_WW]]
         if self._t_kf is None:
-            return AttitudeEstimate(np.zeros(3), np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]),
-                                    np.array(var_a), np.array(var_w), 0.0)
+            return [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], (1.0, 0.0, 0.0, 0.0), var_a, var_w, 0.0
         delay = max(0.0, t_now - self._t_kf)
         xs = self._xs
         if p.extrapolate and delay > 0.0:
@@ -1026,12 +1188,17 @@ class AttitudeFilter:
                     p00, p02, p22 = pp[0], pp[2], pp[9]
                     var_w[i] = p00 + q[0]
                     var_a[i] = h * (h * p00 + p02) + (h * p02 + p22) + q[9]
-        euler = [wrap_angle_float(xs[0][A]), wrap_angle_float(xs[1][A]), wrap_angle_float(xs[2][A])]
-        rate = [xs[0][W], xs[1][W], xs[2][W]]
+        (w0, _, a0, _, _), (w1, _, a1, _, _), (w2, _, a2, _, _) = xs
+        euler = [(a0 + _PI) % _TWO_PI - _PI, (a1 + _PI) % _TWO_PI - _PI, (a2 + _PI) % _TWO_PI - _PI]
+        rate = [w0, w1, w2]
         if not math.isfinite(sum(euler) + sum(rate)):
             euler, rate = [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]
-        q = quat_from_euler(*euler)
-        return AttitudeEstimate(np.array(euler), np.array(rate), q, np.array(var_a), np.array(var_w), float(delay))
+        return euler, rate, quat_from_euler_floats(*euler), var_a, var_w, float(delay)
+
+    def sample_state_floats(self) -> tuple[list, list]:
+        """sample_state() as lists of floats."""
+        (w0, _, a0, _, _), (w1, _, a1, _, _), (w2, _, a2, _, _) = self._xs
+        return [(a0 + _PI) % _TWO_PI - _PI, (a1 + _PI) % _TWO_PI - _PI, (a2 + _PI) % _TWO_PI - _PI], [w0, w1, w2]
 
 
 # The per-axis filter of 000 as printed (an ablation): no gyro-bias state, the body rate taken

@@ -12,7 +12,6 @@ import numpy as np
 
 from flight.estimation.attitude_filter import floats3
 from flight.param import Declared, declared
-from flight.quat import quat_to_euler
 
 _first = operator.itemgetter(0)
 
@@ -57,11 +56,21 @@ class CameraLevel:
         self.gate_rad = params.gate_rad
         self.history_s = params.history_s
         self.max_offset_rad = params.max_offset_rad
-        self.offset_rad = np.zeros(2)   # (roll, pitch): estimate minus camera
+        self._offset = (0.0, 0.0)       # (roll, pitch): estimate minus camera
         self.fused = 0
         self.rejected: dict[str, int] = {}
         self._history: deque = deque()  # (t, roll, pitch, |rate|), oldest first
         self._last_fused_t = None
+
+    @property
+    def offset_rad(self) -> np.ndarray:
+        """(roll, pitch) offset: estimate minus camera, rad."""
+        return np.array(self._offset)
+
+    @offset_rad.setter
+    def offset_rad(self, value) -> None:
+        roll, pitch = np.asarray(value, dtype=np.float64).reshape(2).tolist()
+        self._offset = (roll, pitch)
 
     def record(self, t_s: float, euler_rad, rate_rad_s) -> None:
         """The estimate (before the offset is removed) at t_s, in time order."""
@@ -77,35 +86,54 @@ class CameraLevel:
         return False
 
     def fuse(self, t_exposure_s: float, quaternion_wxyz) -> bool:
-        """One camera attitude at its exposure time; True when it moved the offset."""
+        """One camera attitude at its exposure time; True when it moved the offset.
+
+        In floats, with the operations of the array version: numpy's norm (np.linalg.norm of a
+        vector is sqrt(q.dot(q))) and quat_to_euler's normalisation, then per component."""
         q = np.asarray(quaternion_wxyz, dtype=np.float64)
-        if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) < 0.5:
+        if q.shape != (4,):
             return self._reject("camera_level_bad_quaternion")
-        roll, pitch, _ = quat_to_euler(q / np.linalg.norm(q))
+        isfinite = math.isfinite
+        w, x, y, z = q.tolist()
+        if not (isfinite(w) and isfinite(x) and isfinite(y) and isfinite(z)):
+            return self._reject("camera_level_bad_quaternion")
+        n = math.sqrt(q.dot(q))
+        if n < 0.5:
+            return self._reject("camera_level_bad_quaternion")
+        q = q / n
+        w, x, y, z = (q / math.sqrt(q.dot(q))).tolist()    # quat_to_euler normalises it again
+        roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+        pitch = math.asin(min(1.0, max(-1.0, 2 * (w * y - z * x))))
         h = self._history
         if len(h) < 2 or not (h[0][0] <= t_exposure_s <= h[-1][0]):
             return self._reject("camera_level_outside_history")
         i = bisect.bisect_left(h, t_exposure_s, lo=1, key=_first)   # the first sample at or after it
         (t0, r0, p0, w0), (t1, r1, p1, w1) = h[i - 1], h[i]
         f = (t_exposure_s - t0) / (t1 - t0) if t1 > t0 else 1.0
-        est = np.array([r0 + f * (r1 - r0), p0 + f * (p1 - p0)])
+        est_r, est_p = r0 + f * (r1 - r0), p0 + f * (p1 - p0)
         if max(w0, w1) > self.max_rate_rad_s:
             return self._reject("camera_level_turning")
-        if max(abs(roll), abs(pitch), *np.abs(est)) > self.max_tilt_rad:
+        if max(abs(roll), abs(pitch), abs(est_r), abs(est_p)) > self.max_tilt_rad:
             return self._reject("camera_level_tilted")
-        diff = est - np.array([roll, pitch])
-        if np.any(np.abs(diff - self.offset_rad) > self.gate_rad):
+        diff_r, diff_p = est_r - roll, est_p - pitch
+        o_r, o_p = self._offset
+        if abs(diff_r - o_r) > self.gate_rad or abs(diff_p - o_p) > self.gate_rad:
             return self._reject("camera_level_inconsistent")
         dt = (t_exposure_s - self._last_fused_t) if self._last_fused_t is not None else 0.05
         gain = min(1.0, max(dt, 0.0) / self.time_constant_s)
-        self.offset_rad = np.clip(self.offset_rad + gain * (diff - self.offset_rad),
-                                  -self.max_offset_rad, self.max_offset_rad)
+        lim = self.max_offset_rad
+        self._offset = (min(max(o_r + gain * (diff_r - o_r), -lim), lim),
+                        min(max(o_p + gain * (diff_p - o_p), -lim), lim))
         self._last_fused_t = t_exposure_s
         self.fused += 1
         return True
 
     def apply(self, euler_rad) -> np.ndarray:
         """The estimate's (roll, pitch, yaw) with the offset removed."""
+        return np.array(self.apply_floats(euler_rad))
+
+    def apply_floats(self, euler_rad) -> list[float]:
+        """apply() as a list of floats."""
         roll, pitch, yaw = floats3(euler_rad)
-        d_roll, d_pitch = self.offset_rad.tolist()
-        return np.array([roll - d_roll, pitch - d_pitch, yaw])
+        d_roll, d_pitch = self._offset
+        return [roll - d_roll, pitch - d_pitch, yaw]

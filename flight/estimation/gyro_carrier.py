@@ -9,7 +9,7 @@ import numpy as np
 
 from flight.estimation.attitude_filter import floats3
 from flight.param import Declared, declared
-from flight.quat import quat_integrate, quat_tilt
+from flight.quat import quat_from_euler_floats, quat_integrate, quat_tilt
 
 
 @dataclass(frozen=True)
@@ -61,13 +61,52 @@ class GyroCarrier:
         self.active = False
         self.activations = 0
 
+    # q and gyro as arrays; `follow` (every 200 Hz run near level) leaves floats that become
+    # arrays only when read (when the carrier takes over, or by a test)
+    @property
+    def q(self) -> np.ndarray:
+        if self._q is None:
+            if self._q_floats is None:   # follow_euler's: the quaternion made now, as follow makes it
+                w, x, y, z = quat_from_euler_floats(*self._euler)
+                n = math.sqrt(w * w + x * x + y * y + z * z)
+                self._q_floats = (w / n, x / n, y / n, z / n)
+            self._q = np.array(self._q_floats)
+        return self._q
+
+    @q.setter
+    def q(self, value) -> None:
+        self._q = value
+
+    @property
+    def gyro(self) -> np.ndarray:
+        if self._gyro is None:
+            self._gyro = np.array(self._gyro_floats, dtype=np.float64)
+        return self._gyro
+
+    @gyro.setter
+    def gyro(self, value) -> None:
+        self._gyro = value
+
     def follow(self, t_s: float, q, gyro) -> None:
         """Inactive: take the 000 filter's attitude at its newest sample time and that sample's gyro."""
         w, x, y, z = q.tolist() if isinstance(q, np.ndarray) else q
         n = math.sqrt(w * w + x * x + y * y + z * z)
-        self.q = np.array([w / n, x / n, y / n, z / n])
+        self._q, self._q_floats = None, (w / n, x / n, y / n, z / n)
         self.t = float(t_s)
-        self.gyro = np.array(gyro, dtype=np.float64)
+        self._follow_gyro(gyro)
+
+    def follow_euler(self, t_s: float, euler, gyro) -> None:
+        """follow() with the 000 filter's attitude as its (roll, pitch, yaw) floats: the
+        quaternion follow() would make from quat_from_euler of them is made only when read."""
+        self._q, self._q_floats, self._euler = None, None, tuple(euler)
+        self.t = float(t_s)
+        self._follow_gyro(gyro)
+
+    def _follow_gyro(self, gyro) -> None:
+        if type(gyro) is list or type(gyro) is tuple:
+            self._gyro, self._gyro_floats = None, tuple(gyro)
+        else:
+            self._gyro = np.array(gyro, dtype=np.float64)
 
     def check_enter(self, q, rate) -> bool:
         """Become active when the attitude (q, rate) is beyond what the 000 filter represents."""
