@@ -137,10 +137,13 @@ class Launcher:
         self.procs[name] = proc
         return proc
 
-    def start_router(self) -> None:
+    def _check_machine_by_machine(self) -> None:
         if self.stack.security is not None and self.machine is None:
             raise StackError(f"{self.stack.path}: a stack with [security] starts machine by machine "
                              f"(`zenpilot up --machine NAME`), each router as its machine says")
+
+    def start_router(self) -> None:
+        self._check_machine_by_machine()
         machine = ["--stack", str(self.stack.path), "--machine", self.machine] if self.machine else []
         self._spawn("router", [sys.executable, "-m", "deploy.router", "--listen", self.router, *machine])
         if not wait_port(self.router, ROUTER_START_TIMEOUT_S):
@@ -180,6 +183,7 @@ class Launcher:
         with the command line its own process would have; no router. Registered as ONE_PROCESS."""
         if not self.lockstep:
             raise StackError("one process runs lockstep only: real time runs a process per service")
+        self._check_machine_by_machine()   # as with a process per service: the stack file's word stands
         order = sorted(names, key=lambda n: (n != "recorder", n == "sim"))
         services = [(n, SERVICE_MODULES[n], self.service_argv(n)[3:]) for n in order]   # past python -m module
         return self._spawn(ONE_PROCESS, [sys.executable, "-m", "deploy.one_process", "--logs",
