@@ -107,13 +107,13 @@ class Host:
 
     def forward(self) -> None:
         """What the bus carried since the last call, to the recorder."""
-        queue = self.to_record._queue
-        if self.recorder is None or not queue or self.recorder.stdin.closed:
+        if self.recorder is None or self.recorder.stdin.closed:
             return
         batch = []
-        while queue:
-            sample = queue.popleft()
+        while (sample := self.to_record.try_recv()) is not None:
             batch.append((sample.key_expr, sample.payload))
+        if not batch:
+            return
         try:
             self.recorder.stdin.write(local_bus.frames(batch))
             self.recorder.stdin.flush()
