@@ -191,6 +191,10 @@ class MarkerCamera:
         px, py, pz = np.asarray(position_m, dtype=np.float64).tolist()
         qw, qx, qy, qz = np.asarray(quaternion, dtype=np.float64).tolist()
         n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        if pz == 0.0 and qx == 0.0 and qy == 0.0 and n > 0.0 and math.isfinite(px + py + n):
+            # resting level on the floor (the plant's rest): every marker corner at depth 0 exactly
+            # (R's third column is (0, 0, 1)), none in front of the camera
+            return np.zeros(0, dtype=np.intp)
         if not pz > 0.0 or not n > 0.0 or not math.isfinite(px + py + pz + n):
             return None
         w, x, y, z = qw / n, qx / n, qy / n, qz / n

@@ -191,6 +191,10 @@ def test_camera_footprint_cull_gives_the_full_grids_frames():
         if k % 50 == 0:
             euler[0] = np.pi          # inverted
         q = quat_from_euler(*euler)
+        if k % 40 == 1:               # resting level on the floor, as the plant leaves it
+            pos[2], q = 0.0, np.array([math.cos(euler[2] / 2), 0.0, 0.0, math.sin(euler[2] / 2)])
+        elif k % 40 == 21:            # on the floor, tilted (the horizon in view)
+            pos[2], q = 0.0, quat_from_euler(1.1 * np.sign(euler[0]), euler[1], euler[2])
         a, b = new.sample(pos, q), ref.sample(pos, q)
         assert a == b == boxes.sample(pos, q), (k, pos, euler)
         if a is not None:
