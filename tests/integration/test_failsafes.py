@@ -73,6 +73,7 @@ def test_vision_killed_the_ekf_coasts_then_lands(tmp_path):
 # Real time: a frozen (SIGSTOP) service. On a quiet machine the runtime holds its rates; on a
 # loaded one these flights are not a valid measure of anything but "it did not fall".
 
+@pytest.mark.realtime
 def test_attitude_frozen_2s_real_time_the_motor_driver_covers_and_hands_back(tmp_path):
     m = fly_with_fault(tmp_path, "attitude", "stop", stop_s=2.0, lockstep=False, settings=TRUTH_STATE)
     f = m["fault"]
@@ -84,6 +85,7 @@ def test_attitude_frozen_2s_real_time_the_motor_driver_covers_and_hands_back(tmp
     assert_no_stale_command_acted_on(tmp_path)
 
 
+@pytest.mark.realtime
 def test_position_frozen_2s_real_time_the_attitude_level_covers(tmp_path):
     m = fly_with_fault(tmp_path, "position", "stop", stop_s=2.0, lockstep=False, settings=TRUTH_STATE)
     f = m["fault"]

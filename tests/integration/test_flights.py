@@ -63,6 +63,7 @@ def test_position_steps_settle_within_4_s(tmp_path):
     assert m["position_rms_m"] < 0.01
 
 
+@pytest.mark.realtime
 def test_hover_real_time(tmp_path):
     proc, m = fly(tmp_path, "hover", *TRUTH_STATE, lockstep=False)
     assert proc.returncode == 0, proc.stdout + proc.stderr

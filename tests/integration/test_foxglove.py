@@ -147,6 +147,7 @@ def test_lockstep_log_has_the_well_known_channels(hover_lockstep):
     check_log_for_foxglove(out / "flight.mcap", truth_hz=200)
 
 
+@pytest.mark.realtime
 def test_real_time_log_has_the_well_known_channels(tmp_path):
     proc, m = fly(tmp_path, "hover", *TRUTH_STATE, lockstep=False)
     assert m["completed"], proc.stdout + proc.stderr

@@ -33,7 +33,7 @@ from flight import mavframes as mf  # noqa: E402
 
 from .conftest import ROOT  # noqa: E402
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.realtime]
 mavlink = mavutil.mavlink
 # The default stack on its estimates; ZENPILOT_MAVLINK_TRUTH=1: the flight services and the bridge
 # on the truth state only (the file says why one would)

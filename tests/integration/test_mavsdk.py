@@ -37,7 +37,7 @@ from mavsdk.asyncio.plugins.offboard import OffboardAsync, PositionNedYaw  # noq
 from mavsdk.asyncio.plugins.param import ParamAsync  # noqa: E402
 from mavsdk.asyncio.plugins.telemetry import FlightMode, LandedState, TelemetryAsync  # noqa: E402
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.realtime]
 mavlink = mavutil.mavlink
 HOME = (47.397742, 8.545594, 488.0)   # the bridge's default home (services/params/mavlink.py)
 

@@ -19,7 +19,7 @@ from flight.vehicle import load_vehicle  # noqa: E402
 from .conftest import ROOT  # noqa: E402
 from bench.support.gcs import free_udp_port  # noqa: E402
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.realtime]
 
 
 def test_actuator_controls_at_the_motor_rate(tmp_path):

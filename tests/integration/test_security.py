@@ -129,6 +129,7 @@ def procs():
     p.stop()
 
 
+@pytest.mark.realtime
 def test_default_stack_services_listen_on_loopback_only(tmp_path, procs):
     stack = load_stack(DEFAULT_STACK)
     for name, spec in stack.services.items():   # what every service's session is told
@@ -172,6 +173,7 @@ def _session(endpoint: str, sec: security.Security | None = None, machine: str |
     return zenoh.open(conf)
 
 
+@pytest.mark.realtime
 def test_wrong_credentials_are_refused(tmp_path, procs):
     path, ends = secure_stack(tmp_path)
     sec = load_stack(path).security
@@ -200,6 +202,7 @@ def test_wrong_credentials_are_refused(tmp_path, procs):
     _session(ends["link"], sec, "ground").close()   # the right ones are accepted
 
 
+@pytest.mark.realtime
 def test_unauthorised_motor_commands_never_reach_the_motor_driver(tmp_path, procs):
     path, ends = secure_stack(tmp_path)
     sec = load_stack(path).security

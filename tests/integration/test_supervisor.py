@@ -9,7 +9,7 @@ import pytest
 
 from .conftest import fly, processes_mentioning
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.realtime]
 
 
 def _read(path):

@@ -24,6 +24,7 @@ def zp(*args, env):
                           capture_output=True, text=True, timeout=120)
 
 
+@pytest.mark.realtime
 def test_up_two_machines_status_down(tmp_path):
     """`down` stops its own stack only (another one beside it keeps running), services first and
     the recorder last, which leaves a complete, indexed flight log."""
