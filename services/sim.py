@@ -129,6 +129,7 @@ class SimService:
             clock.close()
 
     def _ticks(self, clock: lockstep.Clock) -> None:
+        """Tick until the flight is over or the service is stopped."""
         rt, loop, timer = self.rt, self.loop, time.perf_counter
         while not rt.stop_event.is_set():
             t0 = timer()
