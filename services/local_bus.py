@@ -41,6 +41,14 @@ def running_as(owner: str):
         _delivery.owner = previous
 
 
+def swap_owner(owner: str | None) -> str | None:
+    """`running_as` without the context manager (a few microseconds less per call: the lockstep
+    clock's inline runs, several per tick): sets the owner, returns the one to put back."""
+    previous = getattr(_delivery, "owner", None)
+    _delivery.owner = owner
+    return previous
+
+
 def delivering_to() -> str | None:
     """The owner of the session whose subscriber callback runs on this thread now, if any
     (its output belongs to that service, not to the publisher whose thread it borrows)."""

@@ -39,9 +39,9 @@ import numpy as np
 import schemas
 from flight.control.laws import STOPPING_ACCEL_FRACTION, attitude_law, stopping_accel
 from flight.control.failsafe import Descent, DescentParams, LevelEstimate
-from flight.control.mixer import mix
-from flight.control.plan import RotorPlan, body_state, scale_collective
-from flight.motor_model import pwm_to_thrust, thrust_step, thrust_to_pwm
+from flight.control.mixer import mix, mix_floats
+from flight.control.plan import RotorPlan, body_state, scale_collective_floats
+from flight.motor_model import decay, pwm_to_thrust, thrust_step, thrust_step_floats, thrust_to_pwm, thrust_to_pwm_floats
 from flight.vehicle import load_vehicle
 from services.params.motors import PARAMS  # every parameter: default, unit, bounds, doc
 from services.runtime import Runtime, main_guard, service_parser
@@ -67,6 +67,7 @@ class MotorDriver:
         self.kf = vehicle.thrust_coefficient_kf
         self.u_max = vehicle.max_rotor_speed_rad_s
         self.dt_tick = 1.0 / io.rate_hz if io.rate_hz > 0 else 1.0 / io.tick_rate
+        self.decay = decay(self.dt_tick, vehicle.motor_time_constant_s)   # thrust_step's, per tick
         self.held_plans: list = []        # the newest two plans received
         self.forces = np.zeros(4)         # the rotors' forces as the plan's model sees them
         self.cmd = None                   # the attitude command being flown
@@ -156,15 +157,16 @@ class MotorDriver:
             pwm = thrust_to_pwm(vehicle, forces)
             forces = pwm_to_thrust(vehicle, pwm)  # what the motors will really be asked for
             saturated = bool(np.any(pwm <= vehicle.pwm_min_us) or np.any(pwm >= vehicle.pwm_max_us))
-        else:
-            forces, saturated = mix(vehicle, cmd["thrust_n"], cmd["torque_nm"])
-            pwm = thrust_to_pwm(vehicle, forces)
+            forces, pwm = forces.tolist(), pwm.tolist()
+        else:   # the 400 Hz path in Python floats (the same numbers as the arrays' functions)
+            forces, saturated = mix_floats(vehicle, cmd["thrust_n"], cmd["torque_nm"])
+            pwm = thrust_to_pwm_floats(vehicle, forces)
         # the plan's motor states: what was sent, as the plan's model (the airframe file's) sees it
-        as_planned = scale_collective(vehicle.allocation, forces, thrust_scale)
-        self.forces = thrust_step(self.forces, as_planned, self.dt_tick, tau)
+        as_planned = scale_collective_floats(vehicle.allocation, forces, thrust_scale)
+        self.forces = np.array(thrust_step_floats(self.forces.tolist(), as_planned, self.decay))
         if link:
-            link(t, forces)
-        out.put({"pwm_us": pwm, "thrust_n": np.asarray(forces),
+            link(t, np.array(forces))
+        out.put({"pwm_us": pwm, "thrust_n": forces,
                  "armed": True, "saturated": bool(saturated), "imu_t_s": cmd["imu_t_s"]}, t_s=t)
 
 

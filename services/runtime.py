@@ -344,9 +344,17 @@ class Inbox:
         with self._lock:
             self._read_queued()
             limit, taken = self.limit, self._taken
-            out = [m for tag, n, m in self._items if tag < limit and n > taken]
-            if out:
-                self._taken = max(n for tag, n, _ in self._items if tag < limit and n > taken)
+            # arrival numbers rise along the deque: the ones not taken are a suffix, read from the
+            # newest back (a keep=32 inbox read each run scanned all 32 for its one or two new)
+            out = []
+            for tag, n, m in reversed(self._items):
+                if n <= taken:
+                    break
+                if tag < limit:
+                    out.append(m)
+                    if n > self._taken:
+                        self._taken = n
+            out.reverse()
         return out
 
 

@@ -123,7 +123,14 @@ class SimService:
         rt.enter_loop()
         self.first_tick = time.monotonic()
         print(f"zenpilot-sim: first tick at {time.time():.3f}", flush=True)
-        timer = time.perf_counter
+        try:
+            self._ticks(clock)
+        finally:
+            clock.close()
+
+    def _ticks(self, clock: lockstep.Clock) -> None:
+        """Tick until the flight is over or the service is stopped."""
+        rt, loop, timer = self.rt, self.loop, time.perf_counter
         while not rt.stop_event.is_set():
             t0 = timer()
             k = self.sim.tick

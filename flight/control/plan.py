@@ -148,8 +148,21 @@ def scale_collective(allocation, forces_n, factor: float) -> np.ndarray:
         wrench = np.asarray(allocation) @ f
         wrench[0] *= factor
         return np.linalg.solve(allocation, wrench)
-    f0, f1, f2, f3 = f.tolist()
+    return np.array(_scale_collective_4(allocation, f.tolist(), factor, column))
+
+
+def scale_collective_floats(allocation, forces_n: list, factor: float) -> list:
+    """scale_collective of 4 Python floats with a 4x4 allocation array, as a list (the same
+    numbers: the 400 Hz motor driver keeps its forces in floats)."""
+    column = _collective_column(allocation)
+    if column is None or len(forces_n) != 4:
+        return scale_collective(allocation, forces_n, factor).tolist()
+    return _scale_collective_4(allocation, forces_n, factor, column)
+
+
+def _scale_collective_4(allocation, forces_n, factor: float, column: tuple) -> list:
+    f0, f1, f2, f3 = forces_n
     r0, r1, r2, r3 = allocation[0].tolist()
     extra = (factor - 1.0) * (r0 * f0 + r1 * f1 + r2 * f2 + r3 * f3)
     k0, k1, k2, k3 = column
-    return np.array([f0 + k0 * extra, f1 + k1 * extra, f2 + k2 * extra, f3 + k3 * extra])
+    return [f0 + k0 * extra, f1 + k1 * extra, f2 + k2 * extra, f3 + k3 * extra]

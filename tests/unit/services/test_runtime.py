@@ -86,6 +86,22 @@ def test_inbox_visibility_limit_and_wake():
     assert box.latest()["header"]["seq"] == 0
 
 
+def test_take_returns_each_visible_message_once_in_arrival_order():
+    rt = FakeRuntime()
+    box = Inbox(rt, schemas.IMU, "zp/0/sim/imu", "sim", keep=8)
+    for seq, tick in enumerate((3, 4, 4, 6, 7)):
+        rt.tick = tick
+        deliver(box, imu_payload(seq))
+    box.limit = 5                              # tags 3, 4, 4 visible; 6 and 7 not yet
+    assert [m["header"]["seq"] for m in box.take()] == [0, 1, 2]
+    assert box.take() == []
+    box.limit = 8
+    assert [m["header"]["seq"] for m in box.take()] == [3, 4]
+    for seq in range(5, 15):                   # more than keep: the oldest go, the rest taken once
+        deliver(box, imu_payload(seq))
+    assert [m["header"]["seq"] for m in box.take()] == list(range(7, 15))
+
+
 def test_unread_overflow_is_a_loss_only_for_a_reader_of_every_message():
     rt = FakeRuntime()
     newest = Inbox(rt, schemas.IMU, "newest", "sim", keep=2)

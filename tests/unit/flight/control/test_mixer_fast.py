@@ -8,7 +8,7 @@ import pytest
 from bench.support.sim_reference import (ref_mix, ref_motor_forces_update, ref_pwm_to_thrust, ref_scale_collective,
                                          ref_thrust_to_pwm)
 from flight.control.mixer import mix, mix_floats
-from flight.control.plan import scale_collective
+from flight.control.plan import scale_collective, scale_collective_floats
 from flight.motor_model import pwm_to_thrust, pwm_to_thrust_floats, thrust_step, thrust_to_pwm, thrust_to_pwm_floats
 from flight.vehicle import load_vehicle
 
@@ -107,6 +107,8 @@ def test_scale_collective_and_motor_lag_match_reference(veh):
                                    rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(scale_collective(a, list(f), factor), ref_scale_collective(a, f, factor),
                                    rtol=1e-12, atol=1e-12)
+        floats = scale_collective_floats(a, f.tolist(), factor)   # the motor driver's: the same bits
+        assert floats == scale_collective(a, f, factor).tolist() and all(type(e) is float for e in floats)
         g = rng.uniform(0.0, veh.max_thrust_n, 4)
         np.testing.assert_array_equal(thrust_step(f, g, 0.0025, 0.02),
                                       ref_motor_forces_update(f, g, 0.0025, 0.02))
@@ -115,6 +117,7 @@ def test_scale_collective_and_motor_lag_match_reference(veh):
     many = rng.uniform(0.0, veh.max_thrust_n, (4, 5))
     np.testing.assert_allclose(scale_collective(a, many, 0.9), ref_scale_collective(a, many, 0.9), rtol=1e-12)
     np.testing.assert_allclose(scale_collective(a.tolist(), f, 0.9), ref_scale_collective(a, f, 0.9), rtol=1e-12)
+    assert scale_collective_floats(a.tolist(), f.tolist(), 0.9) == scale_collective(a.tolist(), f, 0.9).tolist()
     # round trip as the driver and the planner use it
     sent = scale_collective(a, f, 1 / 0.9)
     np.testing.assert_allclose(scale_collective(a, sent, 0.9), f, atol=1e-12)
