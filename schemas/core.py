@@ -369,9 +369,18 @@ def _scalar_test(f: Field, x: str, consts: dict) -> str:
     return test
 
 
+UNROLL_MAX = 16   # fixed-length arrays up to this long are checked item by item, without a loop
+
+
 def _field_checks(f: Field, v: str, consts: dict, indent: str) -> list[str]:
     """Lines that raise _Reject unless the value named `v` passes `_check_field`."""
     if f.kind.endswith("[]"):
+        if f.length is not None and 0 < f.length <= UNROLL_MAX:   # unpacked: no loop, and a wrong length raises
+            xs = [f"_x{i}" for i in range(int(f.length))]
+            return [f"{indent}if type({v}) is not list:", f"{indent}    raise _Reject",
+                    f"{indent}{', '.join(xs)}, = {v}",
+                    f"{indent}if not ({' and '.join(f'({_scalar_test(f, x, consts)})' for x in xs)}):",
+                    f"{indent}    raise _Reject"]
         cond = f"type({v}) is not list"
         if f.length is not None:
             cond += f" or len({v}) != {int(f.length)!r}"
