@@ -215,12 +215,13 @@ class Side:
                     # the runtime has one wake event; a second woken inbox gets a view of the
                     # runtime with its own (else two readers race for one event)
                     owner = SimpleNamespace(_sync_tick=rt._sync_tick, count_dropped=rt.count_dropped,
-                                            reject=rt.reject, _arrival=rt._arrival,
-                                            _wake=threading.Event(), _wake_t=0.0)
+                                            reject=rt.reject, count_rejects=rt.count_rejects,
+                                            lockstep=rt.lockstep, event_driven=rt.event_driven,
+                                            _arrival=rt._arrival, _wake=threading.Event(), _wake_t=0.0)
                 box = Inbox(owner, schemas.IMU, in_key, "sim", keep=4)
                 rt.inboxes.append(box)
                 box.wakes = True   # what run(wake_on=box) sets
-                seen = [-1]
+                seen = [None]   # the last message read: each decoded message is a new dict
 
                 def recv(timeout, box=box, seen=seen, wake=owner._wake):
                     if not wake.wait(timeout):
@@ -228,9 +229,9 @@ class Side:
                     self.t_woke = time.perf_counter()
                     wake.clear()
                     m = box.latest()
-                    if m is None or m["_n"] == seen[0]:
+                    if m is None or m is seen[0]:
                         return False
-                    seen[0] = m["_n"]
+                    seen[0] = m
                     self.last = m
                     return True
                 self.recv[variant] = recv
