@@ -22,12 +22,12 @@ validator walking the Field definitions), which finds the reason and the
 detail text. So the compiled path may only ever accept what the reference
 path accepts; every reason and message text comes from the reference path.
 
-msgspec (when installed) packs and unpacks on the compiled path, msgpack
+msgspec packs and unpacks on the compiled path, msgpack
 everywhere else: a map the compiled checks pass holds only plain types, which
 msgspec packs to msgpack's bytes (or refuses: msgpack packs it then), and a
 payload msgspec unpacks into a map the checks pass, msgpack unpacks into the
 same map. Anything else (msgspec refuses it, or a check fails) is decoded
-again exactly as without msgspec, so the reasons and what is accepted do not
+again by msgpack, so the reasons and what is accepted do not
 depend on it (tests/unit/schemas/test_codec_msgspec.py).
 """
 
@@ -40,14 +40,12 @@ from typing import Any, Callable
 
 import msgpack
 
-try:
-    import msgspec
-    # The same MessagePack as msgpack for the codec's plain maps, in a third of the time (pack)
-    # and half (unpack); Encoder/Decoder methods are thread safe since msgspec 0.16 (#402).
-    _fast_pack = msgspec.msgpack.Encoder().encode
-    _fast_unpack = msgspec.msgpack.Decoder().decode
-except ImportError:   # an environment installed before it was a dependency: msgpack alone
-    _fast_pack = _fast_unpack = None
+import msgspec
+
+# The same MessagePack as msgpack for the codec's plain maps, in a third of the time (pack)
+# and half (unpack); Encoder/Decoder methods are thread safe since msgspec 0.16 (#402).
+_fast_pack = msgspec.msgpack.Encoder().encode
+_fast_unpack = msgspec.msgpack.Decoder().decode
 
 REASONS = (
     "malformed",  # not MessagePack, or not a map
@@ -424,7 +422,6 @@ def _compile(m: Message) -> dict:
         return lines
 
     size = _size_bound(m)
-    fast = _fast_unpack is not None
     src = ["def _decode_msgpack(payload):",
            f"    if len(payload) > {size}:",
            f"        raise _SchemaError('too_large', _NAME, f'{{len(payload)}} bytes, at most {size}')",
@@ -451,20 +448,17 @@ def _compile(m: Message) -> dict:
            "        pass",
            "    return None",
            ""]
-    if fast:   # msgspec first; anything it refuses or a check fails on: msgpack's functions decide
-        for name in ("_decode", "_accept"):
-            src += [f"def {name}(payload):",
-                    f"    if len(payload) <= {size}:",
-                    "        try:",
-                    "            doc = _fast_unpack(payload)",
-                    *doc_checks("            "), *["    " + line for line in check],
-                    "            return doc",
-                    "        except Exception:",
-                    "            pass",
-                    f"    return {name}_msgpack(payload)",
-                    ""]
-    else:
-        src += ["_decode, _accept = _decode_msgpack, _accept_msgpack", ""]
+    for name in ("_decode", "_accept"):   # msgspec first; anything it refuses or a check fails on: msgpack's decide
+        src += [f"def {name}(payload):",
+                f"    if len(payload) <= {size}:",
+                "        try:",
+                "            doc = _fast_unpack(payload)",
+                *doc_checks("            "), *["    " + line for line in check],
+                "            return doc",
+                "        except Exception:",
+                "            pass",
+                f"    return {name}_msgpack(payload)",
+                ""]
     src += [
            "def _validate(doc):",
            "    try:",
@@ -505,7 +499,7 @@ def _compile(m: Message) -> dict:
                "        try:",
                "            return _fast_pack(doc)",
                "        except Exception:   # e.g. a float subclass (numpy.float64) in a list: msgpack packs it",
-               "            pass"] if _fast_pack is not None and type(m.version) is int else []),
+               "            pass"] if type(m.version) is int else []),
             "    packer = _packers.get(_get_ident())",
             "    if packer is None:",
             "        packer = _new_packer()",

@@ -11,8 +11,6 @@ import schemas.core as core
 from tests.unit.schemas.test_messages import (CODEC_CASES, EVERY_KIND, HEADER, outcome, reference_decode,
                                               valid_doc, valid_values)
 
-pytestmark = pytest.mark.skipif(core._fast_pack is None, reason="msgspec is not installed")
-
 # every boundary between two MessagePack integer widths, both sides, both signs
 INT_EDGES = sorted({s * (b + d) for b in (0, 31, 32, 127, 128, 255, 256, 2**15, 2**16, 2**31, 2**32, 2**63)
                     for d in (-1, 0, 1) for s in (1, -1) if -2**63 <= s * (b + d) < 2**64} | {2**64 - 1})
@@ -134,16 +132,3 @@ def test_decoding_accepts_and_rejects_as_msgpack_did(m):
         assert outcome(m.decode, payload) == expected, what
         if m.fast_exact:
             assert m.accept(payload) == (expected[1] if expected[0] == "ok" else None), what
-
-
-def test_the_fallback_without_msgspec_is_the_same_codec(monkeypatch):
-    monkeypatch.setattr(core, "_fast_pack", None)
-    monkeypatch.setattr(core, "_fast_unpack", None)
-    for m in CODEC_CASES:
-        plain = schemas.Message(m.name, m.topic, m.version, m.doc, m.fields, m.check)
-        assert "_fast" not in plain._source
-        values = valid_values(m)
-        assert plain.encode(1.0, 3, "sim", values) == m.encode(1.0, 3, "sim", values)
-        for what, payload in tricky_payloads(m):
-            assert outcome(plain.decode, payload) == outcome(m.decode, payload), what
-            assert plain.accept(payload) == m.accept(payload), what
