@@ -4,8 +4,8 @@ The stack runs with no mission (the planner waits for commands), in real time, o
 the default stack: the whole estimator cascade, vision and the recorder included
 (ZENPILOT_MAVLINK_TRUTH=1 flies the lean truth-state stack of
 tests/integration/stacks/realtime-truth.toml instead); the bridge sends to a free UDP
-port where this test listens, as QGroundControl listens on 14550. ZENPILOT_MAVLINK_FLOOD_S sets how long garbage is sprayed
-(the issue asks for a minute; 10 s by default here).
+port where this test listens, as QGroundControl listens on 14550. ZENPILOT_MAVLINK_FLOOD_S sets how
+long garbage is sprayed (a minute by default, as the issue asks).
 """
 
 import json
