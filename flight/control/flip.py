@@ -275,7 +275,7 @@ class FlipPhaseMachine:
         yaw_rate = -math.copysign(self.config.settle_yaw_rate_rad_s or 0.0, start_yaw_rad)
         turning = times < abs(start_yaw_rad) / max(abs(yaw_rate), 1e-9)
         yaws = np.where(turning, start_yaw_rad + yaw_rate * times, 0.0)
-        targets[:, 6:10] = np.array([quat_from_yaw(yaw) for yaw in yaws])
+        targets[:, 6:10] = [[math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)] for yaw in yaws.tolist()]  # quat_from_yaw's
         targets[:, 12] = np.where(turning, yaw_rate, 0.0)
         return targets
 
@@ -328,7 +328,7 @@ class FlipPhaseMachine:
             heading = quat_from_yaw(quat_to_euler(x[6:10])[2])
             targets[:n, 6:10] = np.array([quat_multiply(heading, quat_from_roll(r)) for r in rolls])
         else:
-            targets[:n, 6:10] = np.array([quat_from_roll(r) for r in rolls])
+            targets[:n, 6:10] = [[math.cos(r / 2), math.sin(r / 2), 0.0, 0.0] for r in rolls.tolist()]  # quat_from_roll's
         targets[:n, 10:13] = rate
         targets[n] = targets[n - 1]
         if self.phase in (Phase.IDLE, Phase.DONE):
