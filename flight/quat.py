@@ -132,9 +132,24 @@ def quat_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
     ])
 
 
+def unit_floats(w: float, x: float, y: float, z: float) -> tuple[float, float, float, float]:
+    """quat_normalize on 4 floats: the same bits (np.linalg.norm of a 4-vector sums the squares
+    in order here, checked bit for bit in tests/unit/flight/test_quat.py), no array."""
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    if n == 0.0 or not math.isfinite(n):
+        raise ValueError("cannot normalise a zero or non-finite quaternion")
+    return w / n, x / n, y / n, z / n
+
+
+def roll_floats(w: float, x: float, y: float, z: float) -> float:
+    """quat_to_euler(q)[0] of a quaternion given as 4 floats (the plan's 32 target rolls)."""
+    w, x, y, z = unit_floats(w, x, y, z)
+    return math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+
+
 def quat_to_euler(q) -> tuple[float, float, float]:
     """(roll, pitch, yaw) of the ZYX convention; pitch in [-pi/2, pi/2]."""
-    w, x, y, z = quat_normalize(q).tolist()
+    w, x, y, z = unit_floats(*_q(q).tolist())
     roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
     # clip: rounding can push the sine just past +-1 at gimbal lock
     pitch = math.asin(min(1.0, max(-1.0, 2 * (w * y - z * x))))

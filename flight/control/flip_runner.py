@@ -35,7 +35,7 @@ from flight.control.flip import (
     Phase,
     tilt_rad,
 )
-from flight.quat import quat_to_euler, wrap_angle_float
+from flight.quat import quat_to_euler, roll_floats, wrap_angle_float
 from flight.vehicle import Vehicle
 
 METHODS = ("ilqr-project", "ilqr-thesis", "baseline")
@@ -171,7 +171,8 @@ class FlipController:
             return step
         self.plan, self.plan_t_s = candidate, t_s
         roll_now, euler_roll = self.machine.roll.roll_rad, quat_to_euler(x[6:10])[0]
-        target_roll = [roll_now + wrap_angle_float(quat_to_euler(q)[0] - euler_roll) for q in targets[:h, 6:10]]
+        # the rolls from the targets' rows as floats (roll_floats: quat_to_euler's roll, the same bits)
+        target_roll = [roll_now + wrap_angle_float(roll_floats(*q) - euler_roll) for q in targets[:h, 6:10].tolist()]
         step.plan = {
             "method": self.method, "phase": step.phase, "t0_s": t_s, "dt_s": candidate.dt_s,
             "horizon": h, "state_dim": candidate.states.shape[1],

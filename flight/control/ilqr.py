@@ -626,6 +626,9 @@ class ILQRSolver:
                                  sol.converged.astype(sol.cost.dtype)])
             return sol.states, sol.controls, sol.gains, sol.feedforward, scalars
         self._solve = jax.jit(solve_packed, compiler_options=solver_compiler_options())
+        # the default warm start and control targets, converted once (the same float32s each solve)
+        self._hover_controls_f32 = np.asarray(self.hover_controls(), np.float32)
+        self._hover_controls_f32.flags.writeable = False
         if warm_up:
             x0 = hover_state(np.zeros(3))
             self.solve(x0, np.repeat(x0[None], config.horizon + 1, axis=0))
@@ -648,13 +651,12 @@ class ILQRSolver:
         estimate of flight.motor_model.thrust_step, else hover is assumed); x_targets (H+1, 13) or
         (H+1, state_dim) (rotor forces carry no cost); u_targets (H, 4) (default hover);
         warm (H, 4) initial controls (default hover; pass warm_start(previous plan, elapsed))."""
-        u_targets = self.hover_controls() if u_targets is None else u_targets
-        warm = self.hover_controls() if warm is None else warm
+        hover = self._hover_controls_f32
         x0, x_targets = self.full_state(x0), self.full_state(x_targets)
         # numpy in (jit converts it on the way; jnp.asarray per argument costs more), one copy out
         states, controls, gains, ffs, (cost, cost0, iterations, converged) = jax.device_get(self._solve(
-            np.asarray(x0, np.float32), np.asarray(warm, np.float32),
-            np.asarray(x_targets, np.float32), np.asarray(u_targets, np.float32)))
+            np.asarray(x0, np.float32), hover if warm is None else np.asarray(warm, np.float32),
+            np.asarray(x_targets, np.float32), hover if u_targets is None else np.asarray(u_targets, np.float32)))
         return Plan(np.asarray(states, np.float64), np.asarray(controls, np.float64),
                     np.asarray(gains, np.float64), np.asarray(ffs, np.float64),
                     float(cost), float(cost0), int(iterations), bool(converged > 0.5), self.config.dt_s)

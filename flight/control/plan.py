@@ -17,11 +17,12 @@ commands imply through the motor lag (flight.motor_model.thrust_step).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from flight.quat import quat_integrate, quat_to_rotation
+from flight.quat import quat_integrate, quat_to_rotation, unit_floats
 
 BODY_DIM = 13
 QUAT = slice(6, 10)
@@ -91,6 +92,14 @@ def body_state(t_s: float, att: dict, pos: dict, vehicle=None, rotor_forces_n=No
     (docs/flip-history.md, "Estimation through the flip")."""
     a_age = max(0.0, t_s - att["header"]["t_s"])
     p_age = max(0.0, t_s - pos["header"]["t_s"])
+    try:   # in Python floats: the same operations in the same order as below, without numpy's per-call cost
+        return np.array(_body_state_floats(a_age, p_age, att, pos, vehicle, rotor_forces_n))
+    except (ZeroDivisionError, ValueError, TypeError):   # a zero quaternion, odd values: numpy's way
+        return _body_state_arrays(a_age, p_age, att, pos, vehicle, rotor_forces_n)
+
+
+def _body_state_arrays(a_age: float, p_age: float, att: dict, pos: dict, vehicle, rotor_forces_n) -> np.ndarray:
+    """body_state in numpy (the definition _body_state_floats follows)."""
     v = np.asarray(pos["velocity_m_s"], dtype=np.float64)
     p = np.asarray(pos["position_m"], dtype=np.float64)
     w = np.asarray(att["rate_rad_s"], dtype=np.float64)
@@ -99,6 +108,43 @@ def body_state(t_s: float, att: dict, pos: dict, vehicle=None, rotor_forces_n=No
         accel = thrust_acceleration(vehicle, q, rotor_forces_n, v)
         return np.concatenate([p + v * p_age + 0.5 * accel * p_age ** 2, v + accel * p_age, q, w])
     return np.concatenate([p + v * p_age, v, q, w])
+
+
+def _body_state_floats(a_age: float, p_age: float, att: dict, pos: dict, vehicle, rotor_forces_n) -> list:
+    """body_state's 13 values as floats, bit for bit (tests/unit/flight/control/test_plan.py):
+    quat_integrate, thrust_acceleration and the carry written out; the norms and the sum of
+    the forces in numpy's order for 3- and 4-vectors (squares, then terms, summed in order)."""
+    px, py, pz = [float(c) for c in pos["position_m"]]
+    vx, vy, vz = [float(c) for c in pos["velocity_m_s"]]
+    wx, wy, wz = [float(c) for c in att["rate_rad_s"]]
+    qw, qx, qy, qz = [float(c) for c in att["quaternion_wxyz"]]
+    norm = math.sqrt(wx * wx + wy * wy + wz * wz)
+    angle = norm * a_age
+    if not angle < 1e-12:   # quat_integrate: q (x) exp(0.5 w h), normalised
+        s = math.sin(0.5 * angle)
+        dw, dx, dy, dz = math.cos(0.5 * angle), s * (wx / norm), s * (wy / norm), s * (wz / norm)
+        qw, qx, qy, qz = (qw * dw - qx * dx - qy * dy - qz * dz, qw * dx + qx * dw + qy * dz - qz * dy,
+                          qw * dy - qx * dz + qy * dw + qz * dx, qw * dz + qx * dy - qy * dx + qz * dw)
+        n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        qw, qx, qy, qz = qw / n, qx / n, qy / n, qz / n
+    if vehicle is not None and rotor_forces_n is not None and p_age > 0.0:
+        forces = rotor_forces_n.tolist() if isinstance(rotor_forces_n, np.ndarray) else [float(f) for f in rotor_forces_n]
+        if len(forces) > 7:   # numpy sums longer arrays pairwise
+            raise ValueError("more than 7 rotor forces")
+        collective = forces[0]
+        for f in forces[1:]:
+            collective += f
+        w, x, y, z = unit_floats(qw, qx, qy, qz)   # quat_to_rotation's third column
+        bx, by, bz = 2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)
+        drag, mass = vehicle.drag_n_per_m_s, vehicle.mass_kg
+        ax = (bx * collective - drag * vx) / mass - 0.0
+        ay = (by * collective - drag * vy) / mass - 0.0
+        az = (bz * collective - drag * vz) / mass - vehicle.gravity_m_s2
+        age2 = p_age ** 2
+        return [px + vx * p_age + 0.5 * ax * age2, py + vy * p_age + 0.5 * ay * age2,
+                pz + vz * p_age + 0.5 * az * age2, vx + ax * p_age, vy + ay * p_age, vz + az * p_age,
+                qw, qx, qy, qz, wx, wy, wz]
+    return [px + vx * p_age, py + vy * p_age, pz + vz * p_age, vx, vy, vz, qw, qx, qy, qz, wx, wy, wz]
 
 
 def thrust_acceleration(vehicle, q, rotor_forces_n, velocity_m_s) -> np.ndarray:

@@ -106,3 +106,20 @@ def test_the_batch_euler_is_the_scalar_one_through_gimbal_lock():
     qs = rng.normal(size=(200, 4))
     qs[:3] = [quat_from_euler(0.3, math.pi / 2, -1.0), quat_from_euler(-2.0, -math.pi / 2, 0.5), [2.0, 0, 0, 0]]
     np.testing.assert_allclose(quats_to_euler(qs), [quat_to_euler(q) for q in qs], atol=1e-12)
+
+
+def test_float_euler_and_norm_match_numpy_bit_for_bit():
+    """quat_to_euler and roll_floats normalise in floats: the same bits as dividing by
+    np.linalg.norm (a flight's plans must not change with the faster path)."""
+    from flight.quat import roll_floats, unit_floats
+    rng = np.random.default_rng(7)
+    for _ in range(20000):
+        q = rng.normal(size=4) * 10 ** rng.uniform(-3, 3)
+        w, x, y, z = (q / np.linalg.norm(q)).tolist()
+        roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+        assert unit_floats(*q.tolist()) == (w, x, y, z)
+        assert quat_to_euler(q)[0] == roll and roll_floats(*q.tolist()) == roll
+    with pytest.raises(ValueError, match="zero or non-finite"):
+        roll_floats(0.0, 0.0, 0.0, 0.0)
+    with pytest.raises(ValueError, match="zero or non-finite"):
+        quat_to_euler([math.nan, 0.0, 0.0, 1.0])

@@ -131,3 +131,26 @@ def test_scale_collective_keeps_torques_and_inverts():
     assert w_sent[0] == pytest.approx(w[0] / 0.9)
     np.testing.assert_allclose(w_sent[1:], w[1:], atol=1e-12)
     np.testing.assert_allclose(scale_collective(veh.allocation, sent, 0.9), forces, atol=1e-12)
+
+
+def test_body_state_floats_match_numpy_bit_for_bit():
+    """body_state runs in Python floats; its numpy definition (_body_state_arrays) gives the
+    same bits, with and without the model's carry, fresh and aged messages, at rest and turning."""
+    from flight.control.plan import _body_state_arrays, _body_state_floats
+    from flight.vehicle import load_vehicle
+    vehicle = load_vehicle("q820")
+    rng = np.random.default_rng(3)
+    for i in range(5000):
+        att = {"header": {"t_s": 10.0 - rng.uniform(0, 0.01) * (i % 5 != 0)},
+               "quaternion_wxyz": (rng.normal(size=4) / 2).tolist(),
+               "rate_rad_s": [0.0, 0.0, 0.0] if i % 7 == 0 else (rng.normal(size=3) * 10 ** rng.uniform(-3, 1.5)).tolist()}
+        pos = {"header": {"t_s": 10.0 - rng.uniform(0, 0.02) * (i % 4 != 0)},
+               "position_m": rng.normal(size=3).tolist(), "velocity_m_s": rng.normal(size=3).tolist()}
+        forces = rng.uniform(0, 8, 4) if i % 3 else None
+        a_age, p_age = 10.0 - att["header"]["t_s"], 10.0 - pos["header"]["t_s"]
+        for v in (vehicle, None):
+            expected = _body_state_arrays(a_age, p_age, att, pos, v, forces)
+            assert np.array(_body_state_floats(a_age, p_age, att, pos, v, forces)).tobytes() == expected.tobytes()
+    att["quaternion_wxyz"] = [0.0, 0.0, 0.0, 0.0]   # numpy's way decides: its error, not ZeroDivisionError
+    with pytest.raises(ValueError, match="zero or non-finite"):
+        body_state(10.0, att, pos, vehicle, np.full(4, 5.0))
