@@ -5,8 +5,8 @@ Tests marked `realtime` fly on the wall clock: they run one at a time, all on on
 time runs at a lower CPU priority (nice 10, where the OS lets a worker take it back), so a
 lockstep flight or a JAX compile on the other core never starves a real-time stack's
 unprioritised processes (recorder, router, the test's own client). A unit module stays on one
-worker (its module fixtures: an iLQR solver compiled once); the tests that share the
-session's lockstep hover stay together (it is flown once per worker that needs it).
+worker (its module fixtures: an iLQR solver compiled once), and so do the integration tests
+that read one module- or session-scoped flight (flown once, not once per worker).
 """
 
 import os
@@ -27,10 +27,19 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.get_closest_marker(REALTIME):
             item.add_marker(pytest.mark.xdist_group(REALTIME))
-        elif "hover_lockstep" in getattr(item, "fixturenames", ()):
-            item.add_marker(pytest.mark.xdist_group("hover_lockstep"))
         elif item.nodeid.startswith("tests/unit/"):
             item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::", 1)[0]))
+        elif shared := _shared_flight(item):
+            item.add_marker(pytest.mark.xdist_group(shared))
+
+
+def _shared_flight(item) -> str | None:
+    """The first module- or session-scoped fixture of the project's that `item` uses (a flight
+    several tests read): its tests stay on one worker, so it is flown once."""
+    for name, defs in getattr(item, "_fixtureinfo", None) and item._fixtureinfo.name2fixturedefs.items() or ():
+        if defs[-1].scope in ("module", "session") and defs[-1].baseid.startswith("tests"):
+            return f"{defs[-1].baseid}::{name}"
+    return None
 
 
 @pytest.hookimpl(tryfirst=True)   # before the item's fixtures start processes, which inherit it
