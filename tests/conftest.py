@@ -1,36 +1,36 @@
 """How the suite runs on two workers (pytest-xdist, `-n 2 --dist loadgroup` in pyproject.toml).
 
-Tests marked `realtime` fly on the wall clock: they run one at a time, all on one worker, first
-(they are the long pole), while the other worker takes everything else, the unit modules first. Everything not real
-time runs at a lower CPU priority (nice 10, where the OS lets a worker take it back), so a
-lockstep flight or a JAX compile on the other core never starves a real-time stack's
-unprioritised processes (recorder, router, the test's own client). A unit module stays on one
-worker (its module fixtures: an iLQR solver compiled once), and so do the integration tests
-that read one module- or session-scoped flight (flown once, not once per worker).
+Tests marked `realtime` fly on the wall clock: they run one at a time, all on one worker, first,
+and each has the machine to itself: it takes an exclusive lock that every other test takes
+shared, so the other worker waits while a real-time flight runs (under a lockstep flight or a
+JAX compile on the other core, a real-time stack's timing is not what the test judges). The
+rest runs on both workers, the unit modules first. A unit module stays on one worker (its
+module fixtures: an iLQR solver compiled once), and so do the integration tests that read one
+module- or session-scoped flight (flown once, not once per worker).
 """
 
+import fcntl
 import os
+import tempfile
 
 import pytest
 
 REALTIME = "realtime"
-NICE_NOT_REALTIME = 10
-# a worker can lower its niceness again only with the privilege to (root, CAP_SYS_NICE)
-_CAN_RENICE = os.environ.get("PYTEST_XDIST_WORKER") is not None and os.geteuid() == 0
 
 
-@pytest.hookimpl(tryfirst=True)   # before xdist names the groups
+def pytest_itemcollected(item):   # as collected: xdist names the groups before other hooks see the items
+    if item.get_closest_marker(REALTIME):
+        item.add_marker(pytest.mark.xdist_group(REALTIME))
+    elif item.nodeid.startswith("tests/unit/"):
+        item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::", 1)[0]))
+    elif shared := _shared_flight(item):
+        item.add_marker(pytest.mark.xdist_group(shared))
+
+
 def pytest_collection_modifyitems(config, items):
     # the longest units first, the fine-grained last to even out the end: real time (one group), then
     # the unit modules (a group each), then the other integration tests (each on its own)
     items.sort(key=lambda item: (item.get_closest_marker(REALTIME) is None, not item.nodeid.startswith("tests/unit/")))
-    for item in items:
-        if item.get_closest_marker(REALTIME):
-            item.add_marker(pytest.mark.xdist_group(REALTIME))
-        elif item.nodeid.startswith("tests/unit/"):
-            item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::", 1)[0]))
-        elif shared := _shared_flight(item):
-            item.add_marker(pytest.mark.xdist_group(shared))
 
 
 def _shared_flight(item) -> str | None:
@@ -42,7 +42,24 @@ def _shared_flight(item) -> str | None:
     return None
 
 
-@pytest.hookimpl(tryfirst=True)   # before the item's fixtures start processes, which inherit it
-def pytest_runtest_setup(item):
-    if _CAN_RENICE:
-        os.setpriority(os.PRIO_PROCESS, 0, 0 if item.get_closest_marker(REALTIME) else NICE_NOT_REALTIME)
+def _run_lock():
+    """The lock file the workers of this run share (None: not under xdist)."""
+    run = os.environ.get("PYTEST_XDIST_TESTRUNUID")
+    if run is None:
+        return None
+    return open(os.path.join(tempfile.gettempdir(), f"zenpilot-tests-{run}.lock"), "a")
+
+
+_LOCK = _run_lock()
+
+
+@pytest.hookimpl(hookwrapper=True)   # setup, call and teardown: a real-time test alone on the machine
+def pytest_runtest_protocol(item, nextitem):
+    if _LOCK is None:
+        yield
+        return
+    fcntl.flock(_LOCK, fcntl.LOCK_EX if item.get_closest_marker(REALTIME) else fcntl.LOCK_SH)
+    try:
+        yield
+    finally:
+        fcntl.flock(_LOCK, fcntl.LOCK_UN)
