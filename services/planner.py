@@ -32,7 +32,7 @@ import numpy as np
 import schemas
 from flight.control.mission import MissionError, MissionPlanner, mission_items
 from flight.control.plan import body_state, scale_collective_floats
-from flight.motor_model import decay, thrust_step, thrust_step_floats
+from flight.motor_model import decay, thrust_step_floats
 from services.params.planner import PARAMS  # every parameter: default, unit, bounds, doc
 from services.runtime import Runtime, main_guard, service_parser
 from services.stack import load_mission
@@ -147,8 +147,8 @@ class PlannerLoop:
             self.prediction_out = io.publisher(schemas.PLANNER_FLIP_PREDICTION)
             from flight.vehicle import load_vehicle
             self.vehicle = load_vehicle(io.vehicle_name)
-            self.forces = None   # the rotor forces the motor driver's commands imply (4 floats)
-            self.forces_decay = None   # their lag's decay over a tick
+            self.forces = None   # the rotor forces the motor driver's commands imply (floats)
+            self.forces_decay = decay(1.0 / io.tick_rate, self.vehicle.motor_time_constant_s)   # their lag's, per tick
             self.planner = MissionPlanner(mission, self.fly_flip)
         else:
             self.planner = MissionPlanner(mission)
@@ -179,13 +179,7 @@ class PlannerLoop:
             # as the plan's model (the airframe file's) sees them: collective times the thrust scale;
             # in floats (scale_collective's and thrust_step's own float paths: the same bits)
             f = scale_collective_floats(vehicle.allocation, [float(v) for v in m["thrust_n"]], pos["thrust_scale"])
-            if self.forces is None or len(f) != 4 or len(self.forces) != 4:
-                self.forces = f if self.forces is None else thrust_step(
-                    self.forces, f, 1.0 / self.io.tick_rate, vehicle.motor_time_constant_s).tolist()
-            else:
-                if self.forces_decay is None:
-                    self.forces_decay = decay(1.0 / self.io.tick_rate, vehicle.motor_time_constant_s)
-                self.forces = thrust_step_floats(self.forces, f, self.forces_decay)
+            self.forces = f if self.forces is None else thrust_step_floats(self.forces, f, self.forces_decay)
         att = self.attitude.latest()
         if att is None:
             return None
