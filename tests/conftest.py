@@ -36,7 +36,8 @@ def pytest_collection_modifyitems(config, items):
 def _shared_flight(item) -> str | None:
     """The first module- or session-scoped fixture of the project's that `item` uses (a flight
     several tests read): its tests stay on one worker, so it is flown once."""
-    for name, defs in getattr(item, "_fixtureinfo", None) and item._fixtureinfo.name2fixturedefs.items() or ():
+    info = getattr(item, "_fixtureinfo", None)
+    for name, defs in info.name2fixturedefs.items() if info else ():
         if defs[-1].scope in ("module", "session") and defs[-1].baseid.startswith("tests"):
             return f"{defs[-1].baseid}::{name}"
     return None
