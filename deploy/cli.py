@@ -200,20 +200,26 @@ def _read(path: Path) -> str:
 
 
 def watch_services(launcher: Launcher, names: list[str], session, real_time: bool) -> Supervisor:
-    """The supervisor of `names` (deploy/supervisor.py), told of every health message; in real time
-    it publishes its own health (supervisor/health) once a second."""
+    """The supervisor of `names` (deploy/supervisor.py), told of every health message and, in
+    real time, of every loop's beat; there it also publishes its own health (supervisor/health)
+    once a second."""
     publish = None
+    vehicle = launcher.stack.vehicle_id
     if real_time:   # in lockstep a wall-clock message would make the log depend on the machine
-        publisher = session.declare_publisher(schemas.HEALTH.key(launcher.stack.vehicle_id, "supervisor"))
+        publisher = session.declare_publisher(schemas.HEALTH.key(vehicle, "supervisor"))
         seq = iter(range(1 << 62))
 
         def publish(health: dict) -> None:
             publisher.put(schemas.HEALTH.encode(time.time(), next(seq), "supervisor", health))
     supervisor = Supervisor(launcher, names, real_time, publish=publish,
                             say=lambda text: print(text, file=sys.stderr, flush=True))
-    prefix = f"zp/{launcher.stack.vehicle_id}/"
+    prefix = f"zp/{vehicle}/"
     supervisor.subscription = session.declare_subscriber(
         f"{prefix}*/health", lambda sample: supervisor.health_seen(str(sample.key_expr)[len(prefix):-len("/health")]))
+    if real_time:
+        beats = schemas.BEAT.key(vehicle, "")
+        supervisor.beats = session.declare_subscriber(
+            f"{beats}*", lambda sample: supervisor.beat_seen(str(sample.key_expr)[len(beats):]))
     return supervisor
 
 

@@ -203,6 +203,13 @@ class Launcher:
         output is appended to its log."""
         self._start_service(name, append=True)
 
+    def kill(self, name: str) -> None:
+        """SIGKILL a service (the supervisor's answer to a hang) and reap it."""
+        proc = self.procs[name]
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
     def wait_alive(self, names: list[str], timeout_s: float = 30.0) -> set[str]:
         """Wait for every service's liveliness token; returns the ones still missing."""
         session = client_session(self.router, self.stack, self.machine)

@@ -231,6 +231,15 @@ HEALTH = Message(
     ),
 )
 
+BEAT = Message(
+    "beat", "@beat/{service}", 1,
+    "Real time only, every 0.1 s from a service's main loop: the loop runs (the supervisor "
+    "judges a hang by their absence, deploy/supervisor.py). Under a verbatim chunk: not logged.",
+    (
+        F("cycles", "int", "main-task runs since start", min=0),
+    ),
+)
+
 BATTERY = Message(
     "battery", "sim/battery", 1,
     "Flight battery (simulated: open-circuit voltage falling with the charge used, "
@@ -384,7 +393,7 @@ PARAM_SET = Message(
 
 ALL = (
     CLOCK, SYNC_DONE, IMU, BARO, MAG, CAMERA, TRUTH, VISION_POSE, PLANNER_SETPOINT,
-    POSITION_SETPOINT, POSITION_STATE, ATTITUDE_COMMAND, ATTITUDE_STATE, MOTOR_PWM, HEALTH,
+    POSITION_SETPOINT, POSITION_STATE, ATTITUDE_COMMAND, ATTITUDE_STATE, MOTOR_PWM, HEALTH, BEAT,
     BATTERY, PLANNER_COMMAND, PARAM_SET, PLANNER_PLAN, PLANNER_MISSION, PLANNER_FLIP_PREDICTION,
 )
 

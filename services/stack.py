@@ -25,6 +25,7 @@ A stack file is TOML:
     cpu = [1]                 # CPUs the process may run on (affinity); [] or absent: any
     restart = "on-failure"    # the supervisor restarts it when it dies (real time): on-failure | always | never
     restart_limit = 3         # ... at most this many times (deploy/supervisor.py)
+    hang_restart_s = 1.0      # stopped or silent this long: killed and restarted by its policy
     [services.attitude.params]
     state_source = "truth"
 
@@ -96,6 +97,7 @@ class ServiceSpec:
     cpu: tuple[int, ...] = ()  # CPU affinity the service asks for; (): any CPU
     restart: str = "on-failure"  # the supervisor's policy (deploy/supervisor.py): on-failure | always | never
     restart_limit: int = 3       # restarts at most, per run
+    hang_restart_s: float = 1.0  # stopped, or its output silent, this long: a hang, killed and restarted
 
 
 # Where a service listens unless its machine says otherwise: its own host only. A peer that
@@ -186,7 +188,8 @@ def load_stack(path: str | Path | None = None) -> Stack:
         where = f"{path}: [services.{name}]"
         if name not in SERVICE_MODULES:
             raise StackError(f"{where}: unknown service (known: {', '.join(SERVICE_MODULES)})")
-        unknown = set(s) - {"machine", "rate_hz", "params", "nice", "priority", "cpu", "restart", "restart_limit"}
+        unknown = set(s) - {"machine", "rate_hz", "params", "nice", "priority", "cpu", "restart", "restart_limit",
+                             "hang_restart_s"}
         if unknown:
             raise StackError(f"{where}: unknown key(s) {sorted(unknown)}")
         machine = _expect(s.get("machine", next(iter(machines))), str, f"{where} machine")
@@ -213,8 +216,11 @@ def load_stack(path: str | Path | None = None) -> Stack:
         restart_limit = _expect(s.get("restart_limit", DEFAULT_RESTART_LIMIT), int, f"{where} restart_limit")
         if not 0 <= restart_limit <= 100:
             raise StackError(f"{where}: restart_limit {restart_limit} must be within 0..100")
+        hang_restart_s = _expect(s.get("hang_restart_s", 1.0), float, f"{where} hang_restart_s")
+        if not 0.1 <= hang_restart_s <= 60.0:
+            raise StackError(f"{where}: hang_restart_s {hang_restart_s} must be within 0.1..60 s")
         services[name] = ServiceSpec(name, machine, rate, dict(_expect(s.get("params", {}), dict, f"{where} params")),
-                                     nice, priority, tuple(cpu), restart, restart_limit)
+                                     nice, priority, tuple(cpu), restart, restart_limit, hang_restart_s)
     for needed in ("sim", "motors", "attitude", "position", "planner"):
         if needed not in services:
             raise StackError(f"{path}: the stack needs a [services.{needed}] section")
