@@ -5,7 +5,7 @@ Per service (`[services.NAME]` in the stack file):
 
     restart = "on-failure"    # "always": also after a clean exit; "never": report only
     restart_limit = 3         # restarts at most, per flight (or per `zenpilot up`)
-    hang_restart_s = 1.0      # stopped or silent this long: a hang, killed and restarted
+    hang_restart_s = 0.5      # stopped or stuck this long: a hang, killed and restarted
 
 Detected, every POLL_S on the service's own host:
   * exited: the process ended (waitpid), with its status;
@@ -17,8 +17,10 @@ Detected, every POLL_S on the service's own host:
   * silent: before its first beat, no health message for HEALTH_SILENCE_S (a start-up stuck),
     real time only.
 A stopped, stuck or silent service that stays so for its `hang_restart_s` has hung: it is killed
-(SIGKILL) and restarted as a failure. A restart waits a back-off (BACKOFF_S, doubled per restart
-of that service, at most BACKOFF_MAX_S) and starts the same command line; its output is appended
+(SIGKILL) and restarted as a failure. A restart waits a back-off (FIRST_BACKOFF_S the first time:
+a vehicle without its motor driver tilts past 20 degrees in half a second; then BACKOFF_S, doubled
+per restart of that service, at most BACKOFF_MAX_S) and starts the same command line (about 0.5 s
+to its first output here); its output is appended
 to the service's log.
 
 Restarts happen in real time only. In lockstep a lost participant is dropped from the clock
@@ -38,10 +40,16 @@ from typing import Callable
 from services.stack import NEVER_RESTARTED
 
 POLL_S = 0.1
+FIRST_BACKOFF_S = 0.1
 BACKOFF_S = 0.5
 BACKOFF_MAX_S = 8.0
 HEALTH_SILENCE_S = 3.0
 BEAT_SILENCE_S = 0.3   # three beats missed (services/runtime.BEAT_PERIOD_S): seen within 0.4 s
+
+
+def backoff_s(restarts: int) -> float:
+    """The wait before a service's restart number `restarts` + 1."""
+    return FIRST_BACKOFF_S if restarts == 0 else min(BACKOFF_MAX_S, BACKOFF_S * 2 ** (restarts - 1))
 
 
 def process_state(pid: int) -> str | None:
@@ -183,7 +191,7 @@ class Supervisor:
         return w.last_health if w.last_health is not None else self.t0
 
     def _restart_later(self, name: str, w: Watch, now: float, why: str) -> None:
-        delay = min(BACKOFF_MAX_S, BACKOFF_S * 2 ** w.restarts)
+        delay = backoff_s(w.restarts)
         w.state, w.restart_at, w.since = "restarting", now + delay, None
         self._event(name, "hung" if why.startswith("hung") else "exited", f"{why}; restarting in {delay:.1f} s")
 

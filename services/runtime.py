@@ -156,6 +156,8 @@ def service_parser(name: str, description: str) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="random seed (simulator)")
     p.add_argument("--param", action="append", metavar="KEY=VALUE",
                    help="override a parameter of this service (repeatable)")
+    p.add_argument("--restarted", action="store_true",
+                   help="started again mid-flight by the supervisor: take control only once settled")
     add_zenoh_args(p)
     return p
 
@@ -467,6 +469,7 @@ class Runtime(ParamAccess):
         self.vehicle_id = self.stack.vehicle_id
         self.vehicle_name = args.vehicle or self.stack.vehicle
         self.lockstep = bool(args.lockstep)
+        self.restarted = bool(getattr(args, "restarted", False))   # the supervisor's restart, mid-flight
         self.real_time_scheduling = not self.lockstep   # (the recorder keeps wall time in lockstep, not the priority)
         self.rate_hz = spec.rate_hz if spec else 0.0
         self.tick_rate = self.stack.tick_rate_hz

@@ -25,7 +25,7 @@ A stack file is TOML:
     cpu = [1]                 # CPUs the process may run on (affinity); [] or absent: any
     restart = "on-failure"    # the supervisor restarts it when it dies (real time): on-failure | always | never
     restart_limit = 3         # ... at most this many times (deploy/supervisor.py)
-    hang_restart_s = 1.0      # stopped or silent this long: killed and restarted by its policy
+    hang_restart_s = 0.5      # stopped or stuck this long: killed and restarted by its policy
     [services.attitude.params]
     state_source = "truth"
 
@@ -56,6 +56,8 @@ RESTART_POLICIES = ("on-failure", "always", "never")
 DEFAULT_RESTART = {"sim": "never", "recorder": "never"}   # every other service: "on-failure"
 DEFAULT_RESTART_LIMIT = 3
 NEVER_RESTARTED = ("sim",)  # a new world mid-flight
+# a hung level is no better than a dead one: killed and restarted while the failsafes still fly
+DEFAULT_HANG_RESTART_S = 0.5
 DEFAULT_STACK = STACKS_DIR / "default.toml"
 
 # service name -> python module that runs it (console script zenpilot-<name>)
@@ -97,7 +99,7 @@ class ServiceSpec:
     cpu: tuple[int, ...] = ()  # CPU affinity the service asks for; (): any CPU
     restart: str = "on-failure"  # the supervisor's policy (deploy/supervisor.py): on-failure | always | never
     restart_limit: int = 3       # restarts at most, per run
-    hang_restart_s: float = 1.0  # stopped, or its output silent, this long: a hang, killed and restarted
+    hang_restart_s: float = DEFAULT_HANG_RESTART_S  # stopped or stuck this long: a hang, killed and restarted
 
 
 # Where a service listens unless its machine says otherwise: its own host only. A peer that
@@ -216,7 +218,7 @@ def load_stack(path: str | Path | None = None) -> Stack:
         restart_limit = _expect(s.get("restart_limit", DEFAULT_RESTART_LIMIT), int, f"{where} restart_limit")
         if not 0 <= restart_limit <= 100:
             raise StackError(f"{where}: restart_limit {restart_limit} must be within 0..100")
-        hang_restart_s = _expect(s.get("hang_restart_s", 1.0), float, f"{where} hang_restart_s")
+        hang_restart_s = _expect(s.get("hang_restart_s", DEFAULT_HANG_RESTART_S), float, f"{where} hang_restart_s")
         if not 0.1 <= hang_restart_s <= 60.0:
             raise StackError(f"{where}: hang_restart_s {hang_restart_s} must be within 0.1..60 s")
         services[name] = ServiceSpec(name, machine, rate, dict(_expect(s.get("params", {}), dict, f"{where} params")),

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 import deploy.supervisor
-from deploy.supervisor import BACKOFF_S, BEAT_SILENCE_S, HEALTH_SILENCE_S, Supervisor, process_state
+from deploy.supervisor import BEAT_SILENCE_S, HEALTH_SILENCE_S, Supervisor, backoff_s, process_state
 from services.stack import StackError, load_stack
 
 
@@ -64,7 +64,7 @@ def test_a_dead_service_is_restarted_after_a_growing_back_off_until_its_limit(tm
     for restart in range(2):
         launcher.procs["attitude"].returncode = -9
         assert sup.poll() == [] and sup.watches["attitude"].state == "restarting"
-        clock.t += BACKOFF_S * 2 ** restart - 0.01
+        clock.t += backoff_s(restart) - 0.01
         sup.poll()
         assert len(launcher.restarted) == restart, "restarted before its back-off"
         clock.t += 0.02
@@ -80,6 +80,10 @@ def test_a_dead_service_is_restarted_after_a_growing_back_off_until_its_limit(tm
     assert saved["services"]["attitude"]["restarts"] == 2 and len(saved["events"]) == 5
     health = sup.health_message()
     assert health["state"] == "degraded" and health["rejected"] == {"exited_attitude": 3, "restarted_attitude": 2}
+
+
+def test_back_off_first_short_then_doubling_to_a_bound():
+    assert [backoff_s(n) for n in range(7)] == [0.1, 0.5, 1.0, 2.0, 4.0, 8.0, 8.0]
 
 
 def test_policies_never_always_and_lockstep(tmp_path):
@@ -166,7 +170,7 @@ def test_a_stuck_loop_is_a_hang_killed_and_restarted_after_its_bound(tmp_path):
     assert launcher.killed == ["attitude"] and w.hangs == 1 and w.state == "restarting", said
     assert "hung (stuck for 1." in said[-1]
     sup.beat_seen("attitude")   # a beat of the killed process still on its way: not the new one's
-    run_for(sup, clock, BACKOFF_S + 0.1)
+    run_for(sup, clock, backoff_s(0) + 0.1)
     assert launcher.restarted == ["attitude"] and w.state == "running" and w.exits == 0
     run_for(sup, clock, 2.0)   # starting, no beat yet: judged by its health until its first beat
     assert w.state == "running" and launcher.killed == ["attitude"]
@@ -193,7 +197,7 @@ def test_a_stopped_service_past_its_bound_is_killed_unless_its_policy_says_never
     assert sup.watches["position"].state == "stopped" and sup.watches["recorder"].state == "stopped"
     run_for(sup, clock, 1.1)
     assert launcher.killed == ["position"] and sup.watches["recorder"].state == "stopped"
-    run_for(sup, clock, BACKOFF_S + 0.1)
+    run_for(sup, clock, backoff_s(0) + 0.1)
     assert launcher.restarted == ["position"]
     lock, launcher, clock, _ = supervisor(tmp_path, {"position": ("on-failure", 3)}, real_time=False)
     stopped.add(launcher.procs["position"].pid)
@@ -203,7 +207,7 @@ def test_a_stopped_service_past_its_bound_is_killed_unless_its_policy_says_never
 
 def test_stack_hang_bound_is_checked(tmp_path):
     base = (Path(__file__).resolve().parents[3] / "deploy" / "stacks" / "default.toml").read_text()
-    assert load_stack(None).service("attitude").hang_restart_s == 1.0
+    assert load_stack(None).service("attitude").hang_restart_s == 0.5
     for value in ("0.0", "nan", '"1"', "61"):
         path = tmp_path / "s.toml"
         path.write_text(base.replace("[services.attitude]", f"[services.attitude]\nhang_restart_s = {value}", 1))
