@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import signal
 import subprocess
@@ -20,6 +21,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from flight.quat import quat_tilt  # noqa: E402
+from schemas.flightlog import read_log  # noqa: E402
 SERVICES = ("attitude", "position", "motors", "planner", "vision")
 FAULTS = ("kill", "stop2", "freeze")
 
@@ -73,9 +77,22 @@ def fly_with(out: Path, service: str, fault: str, at_s: float, seed: int) -> dic
     record = json.loads((out / "supervisor.json").read_text())
     events = [e for e in record["events"] if e["service"] == service]
     metrics = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").exists() else {}
-    return {"rc": proc.returncode, "events": events,
+    return {"rc": proc.returncode, "events": events, "after": after_fault(out, injected),
             "seen_ms": (record["started_unix"] + events[0]["t_s"] - injected) * 1e3 if events else None,
             "metrics": metrics, "said": said}
+
+
+def after_fault(out: Path, injected: float, window_s: float = 5.0) -> dict:
+    """On the simulator's truth, the window_s after the fault: lowest and highest height, most tilt."""
+    try:
+        truth = read_log(out / "flight.mcap")["zp/0/sim/truth"]
+    except Exception as exc:   # a log the flight left unreadable is a result too
+        return {"error": str(exc)}
+    seen = [m for m in truth if injected <= m["header"]["t_s"] <= injected + window_s]
+    if not seen:
+        return {}
+    z = [m["position_m"][2] for m in seen]
+    return {"z_min": min(z), "z_max": max(z), "tilt_max_deg": max(math.degrees(quat_tilt(m["quaternion_wxyz"])) for m in seen)}
 
 
 def main() -> int:
@@ -99,9 +116,12 @@ def main() -> int:
             seen = f"{r['seen_ms']:.0f}" if r["seen_ms"] is not None else "-"
             rows.append((service, fault, seen, did, fs, m.get("completed"), m.get("crashed"),
                          m.get("touchdown_speed_m_s"), load))
-            print(f"{service:9} {fault:6} seen after {seen:>5} ms | {did} | failsafes: {fs} | "
-                  f"completed {m.get('completed')} crashed {m.get('crashed')} ({m.get('crash_reason') or ''}) "
-                  f"touchdown {m.get('touchdown_speed_m_s')} | load {load:.1f} | {out}", flush=True)
+            a = r["after"]
+            fig = (f"z {a['z_min']:.2f}..{a['z_max']:.2f} m, tilt <= {a['tilt_max_deg']:.0f} deg" if "z_min" in a
+                   else a.get("error", "no truth"))
+            print(f"{service:9} {fault:6} seen after {seen:>5} ms | {did} | failsafes: {fs} | 5 s after: {fig} | "
+                  f"completed {m.get('completed')} crashed {m.get('crashed')} {m.get('crash_reason') or ''} "
+                  f"| load {load:.1f} | {out}", flush=True)
     bad = [r for r in rows if r[6] is not False]
     print(f"\n{len(rows) - len(bad)} of {len(rows)} flights not crashed")
     return 1 if bad else 0

@@ -14,9 +14,10 @@ Detected, every POLL_S on the service's own host:
   * stuck: its main loop sent no beat (`@beat/<name>`, every BEAT_PERIOD_S from the loop itself,
     services/runtime.py) for BEAT_SILENCE_S: a loop stuck inside a process that still runs, real
     time only, judged from the service's first beat on;
-  * silent: before its first beat, no health message for HEALTH_SILENCE_S (a start-up stuck),
-    real time only.
-A stopped, stuck or silent service that stays so for its `hang_restart_s` has hung: it is killed
+  * silent: before its first beat, no health message for HEALTH_SILENCE_S (a slow or stuck
+    start-up: the planner's JAX compile takes seconds), real time only.
+A stopped or stuck service that stays so for its `hang_restart_s`, or a silent one for START_S,
+has hung: it is killed
 (SIGKILL) and restarted as a failure. A restart waits a back-off (FIRST_BACKOFF_S the first time:
 a vehicle without its motor driver tilts past 20 degrees in half a second; then BACKOFF_S, doubled
 per restart of that service, at most BACKOFF_MAX_S) and starts the same command line (about 0.5 s
@@ -44,6 +45,7 @@ FIRST_BACKOFF_S = 0.1
 BACKOFF_S = 0.5
 BACKOFF_MAX_S = 8.0
 HEALTH_SILENCE_S = 3.0
+START_S = 30.0   # a service silent this long before its first beat has hung in its start-up
 BEAT_SILENCE_S = 0.3   # three beats missed (services/runtime.BEAT_PERIOD_S): seen within 0.4 s
 
 
@@ -171,7 +173,8 @@ class Supervisor:
                                 else "its loop beats again" if w.state == "stuck"
                                 else "health messages again")
                 w.state, w.since = state, (now if state != "running" else None)
-            if w.since is not None and now - w.since >= w.hang_s and self._restarts(name, w, -1):
+            bound = w.hang_s if state != "silent" else START_S   # silent: not beating yet, maybe starting
+            if w.since is not None and now - w.since >= bound and self._restarts(name, w, -1):
                 self.launcher.kill(name)   # a stopped process dies of SIGKILL too
                 w.hangs += 1
                 self._restart_later(name, w, now, f"hung ({state} for {now - w.since:.1f} s): killed")

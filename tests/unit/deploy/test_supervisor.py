@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 import deploy.supervisor
-from deploy.supervisor import BEAT_SILENCE_S, HEALTH_SILENCE_S, Supervisor, backoff_s, process_state
+from deploy.supervisor import BEAT_SILENCE_S, START_S, HEALTH_SILENCE_S, Supervisor, backoff_s, process_state
 from services.stack import StackError, load_stack
 
 
@@ -172,11 +172,11 @@ def test_a_stuck_loop_is_a_hang_killed_and_restarted_after_its_bound(tmp_path):
     sup.beat_seen("attitude")   # a beat of the killed process still on its way: not the new one's
     run_for(sup, clock, backoff_s(0) + 0.1)
     assert launcher.restarted == ["attitude"] and w.state == "running" and w.exits == 0
-    run_for(sup, clock, 2.0)   # starting, no beat yet: judged by its health until its first beat
-    assert w.state == "running" and launcher.killed == ["attitude"]
+    run_for(sup, clock, HEALTH_SILENCE_S + 1.0)   # starting slowly: no beat, no health
+    assert w.state == "silent" and launcher.killed == ["attitude"], "a slow start-up is not a hang"
     run_for(sup, clock, 1.0, beating=["attitude"])
     assert w.state == "running" and sup.health_message()["rejected"] == {
-        "stuck_attitude": 1, "hung_attitude": 1, "restarted_attitude": 1}
+        "stuck_attitude": 1, "silent_attitude": 1, "hung_attitude": 1, "restarted_attitude": 1}
 
 
 def test_a_loop_that_beats_again_before_its_bound_is_left_alone(tmp_path):
@@ -213,3 +213,11 @@ def test_stack_hang_bound_is_checked(tmp_path):
         path.write_text(base.replace("[services.attitude]", f"[services.attitude]\nhang_restart_s = {value}", 1))
         with pytest.raises(StackError, match="hang_restart_s"):
             load_stack(str(path))
+
+
+def test_a_start_up_silent_past_its_bound_is_a_hang(tmp_path):
+    sup, launcher, clock, said = supervisor(tmp_path, {"planner": ("on-failure", 3)})
+    run_for(sup, clock, HEALTH_SILENCE_S + START_S - 0.5)
+    assert sup.watches["planner"].state == "silent" and launcher.killed == []
+    run_for(sup, clock, 1.0)
+    assert launcher.killed == ["planner"] and "hung (silent for 30." in said[-1]
