@@ -17,12 +17,11 @@ Detected, every POLL_S on the service's own host:
   * silent: before its first beat, no health message for HEALTH_SILENCE_S (a slow or stuck
     start-up: the planner's JAX compile takes seconds), real time only.
 A stopped or stuck service that stays so for its `hang_restart_s`, or a silent one for START_S,
-has hung: it is killed
-(SIGKILL) and restarted as a failure. A restart waits a back-off (FIRST_BACKOFF_S the first time:
-a vehicle without its motor driver tilts past 20 degrees in half a second; then BACKOFF_S, doubled
-per restart of that service, at most BACKOFF_MAX_S) and starts the same command line (about 0.5 s
-to its first output here); its output is appended
-to the service's log.
+has hung: it is killed (SIGKILL) and restarted as a failure. A restart waits a back-off
+(FIRST_BACKOFF_S the first time: a vehicle without its motor driver tilts past 20 degrees in half a
+second; then BACKOFF_S, doubled per restart of that service, at most BACKOFF_MAX_S) and starts the
+same command line with `--restarted` (the service then takes control only once settled; about
+0.5 s to its first output here); its output is appended to the service's log.
 
 Restarts happen in real time only. In lockstep a lost participant is dropped from the clock
 (services/lockstep.py) and a new process cannot rejoin a clock already running, so there the
@@ -38,7 +37,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
-from services.stack import NEVER_RESTARTED
+from services.stack import DEFAULT_HANG_RESTART_S, NEVER_RESTARTED
 
 POLL_S = 0.1
 FIRST_BACKOFF_S = 0.1
@@ -68,7 +67,7 @@ class Watch:
     """What the supervisor knows of one service."""
     policy: str
     limit: int
-    hang_s: float = 1.0
+    hang_s: float = DEFAULT_HANG_RESTART_S
     state: str = "running"     # running | stopped | stuck | silent | restarting | exited | gave-up
     exits: int = 0
     restarts: int = 0
