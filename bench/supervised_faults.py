@@ -23,7 +23,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from flight.quat import quat_tilt  # noqa: E402
-from schemas.flightlog import read_log  # noqa: E402
+from schemas.flightlog import LogError, read_log  # noqa: E402
 SERVICES = ("attitude", "position", "motors", "planner", "vision")
 FAULTS = ("kill", "stop2", "freeze")
 
@@ -86,7 +86,7 @@ def after_fault(out: Path, injected: float, window_s: float = 5.0) -> dict:
     """On the simulator's truth, the window_s after the fault: lowest and highest height, most tilt."""
     try:
         truth = read_log(out / "flight.mcap")["zp/0/sim/truth"]
-    except Exception as exc:   # a log the flight left unreadable is a result too
+    except (OSError, KeyError, LogError) as exc:   # a log the flight left unreadable is a result too
         return {"error": str(exc)}
     seen = [m for m in truth if injected <= m["header"]["t_s"] <= injected + window_s]
     if not seen:
