@@ -110,16 +110,21 @@ class Message:
 
     def __post_init__(self):
         self._by_name.update({f.name: f for f in self.fields})
-        for name, value in _compile(self).items():  # the definition is frozen: compile it once
-            object.__setattr__(self, name, value)
+
+    def __getattr__(self, name: str):
+        """The compiled functions, made on first use (the definition is frozen: once): a service
+        compiles only the messages it uses, and importing schemas stays cheap (a restart's start-up)."""
+        if name not in _COMPILED:
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        for key, value in _compile(self).items():
+            object.__setattr__(self, key, value)
+        return self.__dict__[name]
 
     def __getstate__(self):  # pickle/deepcopy: the definition, not its compiled functions
         return {k: v for k, v in self.__dict__.items() if k not in _COMPILED}
 
     def __setstate__(self, state):
         self.__dict__.update(state)
-        for name, value in _compile(self).items():
-            object.__setattr__(self, name, value)
 
     @property
     def size_limit(self) -> int:
