@@ -1,5 +1,6 @@
 """The vision service's parameters (services/vision.py): a real deployment sets the camera and
-the marker map from its calibration."""
+the marker map from its calibration. The image mode (frames from sim/@image) reads the camera
+from `camera_intrinsics`; the corner mode (sim/camera) from camera_*."""
 
 from __future__ import annotations
 
@@ -17,6 +18,14 @@ PARAMS = {
                                        doc="the marker grid spans this far from the origin in x and y"),
     "pixel_sigma_px": Param(DEFAULT_PIXEL_NOISE_PX, "px", 0.0, min_exclusive=True,
                             doc="the corners' pixel noise (std) the pose covariance assumes"),
+    "camera_intrinsics": Param("", doc="image mode: the intrinsics file (`zenpilot calibrate-camera` writes it; "
+                               "relative to the stack file); \"\": camera_* with flight.camera.DEFAULT_DISTORTION, "
+                               "as the simulator's default"),
+    "image_pixel_sigma_px": Param(0.3, "px", 0.0, min_exclusive=True,
+                                  doc="image mode: the detected corners' noise (std) the pose covariance assumes"),
+    "pnp": Param("hand", choices=("hand", "opencv"),
+                 doc="the pose solver: \"hand\" (flight/estimation/pnp.py) or \"opencv\" (cv2.solvePnP, IPPE "
+                     "then Levenberg-Marquardt; docs/vision.md compares them)"),
     "max_reprojection_px": Param(3.0, "px", 0.0, min_exclusive=True,
                                  doc="a pose whose RMS reprojection error is above this is refused"),
 }
