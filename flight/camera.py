@@ -106,6 +106,8 @@ DEFAULT_MARKERS = MarkerGridLayout(size_m=0.2, spacing_m=0.5, half_extent_m=5.0)
 # OpenCV's model, K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] and distortion (k1, k2, p1, p2, k3).
 # The corner mode stays the undistorted pinhole `Camera` above.
 DEFAULT_DISTORTION = (-0.1, 0.02, 0.0, 0.0, 0.0)   # mild barrel, as a small M12 lens of ~77 deg across
+# undoing the distortion to 1e-12 px (cv2.undistortPoints' default 5 iterations leave ~1e-3 px at the corners)
+UNDISTORT_CRITERIA = (3, 50, 1e-12)   # cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, iterations, epsilon
 INTRINSICS_KEYS = ("width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px", "distortion")
 
 

@@ -25,7 +25,7 @@ import math
 import cv2
 import numpy as np
 
-from flight.camera import R_CAM_FROM_BODY, Intrinsics, aruco_dictionary
+from flight.camera import R_CAM_FROM_BODY, UNDISTORT_CRITERIA, Intrinsics, aruco_dictionary
 
 FLOOR_GREY = 150          # a plain floor, between the markers' black and their white margin
 WHITE = 255
@@ -50,51 +50,77 @@ class FloorRenderer:
     """Renders the marker floor seen from a body pose. `ids` (M,) and `corners_world` (M, 4, 3)
     as flight.camera.marker_grid gives them (square markers on z = 0, "up" along world +x)."""
 
-    def __init__(self, intrinsics: Intrinsics, ids, corners_world, noise_grey: float = 2.0):
+    def __init__(self, intrinsics: Intrinsics, texture: np.ndarray, origin_xy, texel_m: float,
+                 noise_grey: float = 2.0, background: int = FLOOR_GREY):
+        """A floor painted with `texture` (uint8; row a along world x, column b along world y, the
+        texel (a, b) centred on origin + ((a + 0.5) t, (b + 0.5) t)); `background` beyond it."""
         self.intr = intr = intrinsics
         self.noise_grey = float(noise_grey)
-        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
-        corners = np.asarray(corners_world, dtype=np.float64).reshape(-1, 4, 3)
-        if len(ids) == 0:
-            raise ValueError("FloorRenderer: no markers to render")
-        self.dictionary = aruco_dictionary(int(ids.max()) + 1)
-        cells = self.dictionary.markerSize + 2                     # the bits and a black border
-        side = float(np.linalg.norm(corners[0, 0, :2] - corners[0, 1, :2]))
-        # a whole number of texels per cell, at most TEXEL_MAX_M each: the marker edges on texel edges
-        per_cell = max(1, math.ceil(side / cells / TEXEL_MAX_M))
-        self.texel_m = t = side / cells / per_cell
-        margin = MARGIN_CELLS * side / cells
-        lo = corners[:, :, :2].min(axis=(0, 1)) - margin - 4 * t
-        hi = corners[:, :, :2].max(axis=(0, 1)) + margin + 4 * t
-        # texture rows a go along world x, columns b along world y; a texel's centre is at
-        # x = x0 + (a + 0.5) t, the first marker's corner on a texel edge
-        c0 = corners[0, :, :2].min(axis=0)
-        self.origin = origin = c0 - np.ceil((c0 - lo) / t) * t
-        n_a, n_b = (np.ceil((hi - origin) / t).astype(int) + 1).tolist()
-        tex = np.full((n_a, n_b), FLOOR_GREY, dtype=np.uint8)
-        m_tex = cells * per_cell
-        m_margin = int(round(margin / t))
-        for marker_id, c in zip(ids.tolist(), corners):
-            img = cv2.aruco.generateImageMarker(self.dictionary, marker_id, cells)
-            img = cv2.resize(img, (m_tex, m_tex), interpolation=cv2.INTER_NEAREST)
-            # the marker image's rows go down its "up" (world -x), its columns to its right (world -y)
-            a0, b0 = np.round((c[:, :2].min(axis=0) - origin) / t).astype(int).tolist()
-            tex[a0 - m_margin:a0 + m_tex + m_margin, b0 - m_margin:b0 + m_tex + m_margin] = WHITE
-            tex[a0:a0 + m_tex, b0:b0 + m_tex] = img[::-1, ::-1]
-        self.levels = [tex]
+        self.texel_m = float(texel_m)
+        self.origin = np.asarray(origin_xy, dtype=np.float64).reshape(2)
+        self.background = int(background)
+        self.levels = [np.ascontiguousarray(texture, dtype=np.uint8)]
         while min(self.levels[-1].shape) > 64:
             self.levels.append(cv2.pyrDown(self.levels[-1]))
         # each pixel's undistorted ray (x_n, y_n, 1) in the camera frame, float32 (N, 3)
         w, h = intr.width_px, intr.height_px
         u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
         grid = np.stack([u.ravel(), v.ravel()], axis=1).reshape(-1, 1, 2)
-        norm = cv2.undistortPoints(grid, intr.matrix, intr.dist_coeffs).reshape(-1, 2)
+        norm = cv2.undistortPointsIter(grid, intr.matrix, intr.dist_coeffs, None, None, UNDISTORT_CRITERIA).reshape(-1, 2)
         self.rays = np.ascontiguousarray(np.concatenate([norm, np.ones((len(norm), 1))], axis=1), dtype=np.float32)
         self._rays2 = np.ascontiguousarray(self.rays[:, :2]).reshape(-1, 1, 2)
         edge = np.zeros((h, w), dtype=bool)
         edge[0, :] = edge[-1, :] = edge[:, 0] = edge[:, -1] = True
         self._border = self.rays[edge.ravel()].astype(np.float64)
         self._acc = np.zeros((h, w), dtype=np.float32)
+
+    @classmethod
+    def markers(cls, intrinsics: Intrinsics, ids, corners_world, noise_grey: float = 2.0) -> "FloorRenderer":
+        """The marker floor: `ids` (M,) and `corners_world` (M, 4, 3) as flight.camera.marker_grid
+        gives them (square markers on z = 0, "up" along world +x), ids of MARKER_DICTIONARY."""
+        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+        corners = np.asarray(corners_world, dtype=np.float64).reshape(-1, 4, 3)
+        if len(ids) == 0:
+            raise ValueError("FloorRenderer: no markers to render")
+        dictionary = aruco_dictionary(int(ids.max()) + 1)
+        cells = dictionary.markerSize + 2                          # the bits and a black border
+        side = float(np.linalg.norm(corners[0, 0, :2] - corners[0, 1, :2]))
+        # a whole number of texels per cell, at most TEXEL_MAX_M each: the marker edges on texel edges
+        per_cell = max(1, math.ceil(side / cells / TEXEL_MAX_M))
+        t = side / cells / per_cell
+        margin = MARGIN_CELLS * side / cells
+        lo = corners[:, :, :2].min(axis=(0, 1)) - margin - 4 * t
+        hi = corners[:, :, :2].max(axis=(0, 1)) + margin + 4 * t
+        c0 = corners[0, :, :2].min(axis=0)                         # the first marker's corner on a texel edge
+        origin = c0 - np.ceil((c0 - lo) / t) * t
+        n_a, n_b = (np.ceil((hi - origin) / t).astype(int) + 1).tolist()
+        tex = np.full((n_a, n_b), FLOOR_GREY, dtype=np.uint8)
+        m_tex = cells * per_cell
+        m_margin = int(round(margin / t))
+        for marker_id, c in zip(ids.tolist(), corners):
+            img = cv2.aruco.generateImageMarker(dictionary, marker_id, cells)
+            img = cv2.resize(img, (m_tex, m_tex), interpolation=cv2.INTER_NEAREST)
+            # the marker image's rows go down its "up" (world -x), its columns to its right (world -y)
+            a0, b0 = np.round((c[:, :2].min(axis=0) - origin) / t).astype(int).tolist()
+            tex[a0 - m_margin:a0 + m_tex + m_margin, b0 - m_margin:b0 + m_tex + m_margin] = WHITE
+            tex[a0:a0 + m_tex, b0:b0 + m_tex] = img[::-1, ::-1]
+        out = cls(intrinsics, tex, origin, t, noise_grey)
+        out.dictionary = dictionary
+        return out
+
+    @classmethod
+    def checkerboard(cls, intrinsics: Intrinsics, inner_cols: int, inner_rows: int, square_m: float,
+                     noise_grey: float = 2.0) -> "FloorRenderer":
+        """A calibration checkerboard on the floor, centred on the origin: (inner_cols + 1) squares
+        along world y, (inner_rows + 1) along world x, a white border of one square round it."""
+        per = max(1, math.ceil(square_m / TEXEL_MAX_M))
+        t = square_m / per
+        nx, ny = inner_rows + 1, inner_cols + 1
+        board = ((np.arange(nx)[:, None] + np.arange(ny)[None, :]) % 2 * WHITE).astype(np.uint8)
+        board = np.pad(board, 1, constant_values=WHITE)
+        tex = cv2.resize(board, ((ny + 2) * per, (nx + 2) * per), interpolation=cv2.INTER_NEAREST)
+        origin = -np.array([(nx + 2) * square_m, (ny + 2) * square_m]) / 2.0
+        return cls(intrinsics, tex, origin, t, noise_grey, background=WHITE)
 
     # -------------------------------------------------------------- geometry
     def _to_texture(self, position_m, r_wb: np.ndarray, level: int) -> np.ndarray:
@@ -150,7 +176,7 @@ class FloorRenderer:
             maps[bad] = -1e4
             maps = maps.reshape(intr.height_px, intr.width_px, 2)
         img = cv2.remap(self.levels[level], maps, None, cv2.INTER_LINEAR,
-                        borderMode=cv2.BORDER_CONSTANT, borderValue=FLOOR_GREY)
+                        borderMode=cv2.BORDER_CONSTANT, borderValue=self.background)
         if out is not None:
             out[:] = img
             return out

@@ -276,7 +276,7 @@ class ImageCamera:
         self.drop_rate = cfg.camera_drop_rate
         self.exposure_s = cfg.camera_exposure_s
         ids, corners = marker_grid(cfg.marker_size_m, cfg.marker_spacing_m, cfg.marker_grid_half_extent_m)
-        self.renderer = FloorRenderer(intrinsics, ids, corners, noise_grey=cfg.camera_image_noise)
+        self.renderer = FloorRenderer.markers(intrinsics, ids, corners, noise_grey=cfg.camera_image_noise)
 
     def sample(self, position_m, quaternion, velocity_m_s, rate_rad_s) -> dict | None:
         """One exposure centred now: the camera_image fields, or None when the frame is dropped."""

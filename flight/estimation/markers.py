@@ -12,7 +12,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from flight.camera import Camera, Intrinsics, aruco_dictionary
+from flight.camera import UNDISTORT_CRITERIA, Camera, Intrinsics, aruco_dictionary
 
 
 def pinhole_of(intr: Intrinsics) -> Camera:
@@ -39,5 +39,5 @@ class MarkerDetector:
         if ids is None or not len(ids):
             return [], np.zeros((0, 4, 2))
         pts = np.concatenate(corners, axis=0).reshape(-1, 1, 2).astype(np.float64)
-        und = cv2.undistortPoints(pts, self._k, self._d, P=self._p)
+        und = cv2.undistortPointsIter(pts, self._k, self._d, None, self._p, UNDISTORT_CRITERIA)
         return ids.reshape(-1).tolist(), und.reshape(-1, 4, 2)
