@@ -92,7 +92,13 @@ class VisionLoop:
         self.frame_ms.append(1e3 * (time.perf_counter() - t0))
 
     def _make_detector(self) -> None:
+        import cv2
+
         from flight.estimation.markers import MarkerDetector
+
+        # one thread, as the services' BLAS: the detector's parallel loops would take the core the
+        # control loops need, for the same CPU time (bench/vision.py)
+        cv2.setNumThreads(1)
 
         if self.intrinsics is None:
             self.intrinsics = (load_intrinsics(self.p["camera_intrinsics"]) if self.p["camera_intrinsics"]

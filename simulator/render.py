@@ -134,10 +134,11 @@ class FloorRenderer:
         floor_h = np.stack([px * (-rz) / pz + rx, py * (-rz) / pz + ry, -rz / pz])   # rows: X w, Y w, w
         s = 2.0 ** level
         t = self.texel_m * s
-        off = 0.5 * (s - 1.0) / s   # pyrDown: texel i of level L is centred on level 0's 2^L i + (2^L - 1) / 2
-        # b = (Y - y0) / t - 0.5 - off, a = (X - x0) / t - 0.5 - off
-        to_tex = np.array([[0.0, 1.0 / t, -self.origin[1] / t - 0.5 - off],
-                           [1.0 / t, 0.0, -self.origin[0] / t - 0.5 - off],
+        # pyrDown: texel i of level L is centred on level 0's texel 2^L i, so a_L = a_0 / 2^L with
+        # a_0 = (X - x0) / t_0 - 0.5: b = (Y - y0) / t - 0.5 / 2^L, a = (X - x0) / t - 0.5 / 2^L
+        half = 0.5 / s
+        to_tex = np.array([[0.0, 1.0 / t, -self.origin[1] / t - half],
+                           [1.0 / t, 0.0, -self.origin[0] / t - half],
                            [0.0, 0.0, 1.0]])
         return to_tex @ floor_h
 

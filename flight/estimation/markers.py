@@ -15,6 +15,9 @@ import numpy as np
 from flight.camera import UNDISTORT_CRITERIA, Camera, Intrinsics, aruco_dictionary
 
 
+ADAPTIVE_WINDOW_MAX_PX = 13
+
+
 def pinhole_of(intr: Intrinsics) -> Camera:
     """The undistorted camera the corners are given in: the intrinsics' size, the mean focal
     length, the principal point at the image centre (flight.camera.Camera's)."""
@@ -27,6 +30,9 @@ class MarkerDetector:
         self.camera = cam = pinhole_of(intrinsics)
         params = cv2.aruco.DetectorParameters()
         params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+        # thresholding windows of 3 and 13 px (OpenCV's default adds 23): 30 % less time for the
+        # same markers, sharp or blurred at hover; at 5 m under the flip's blur it finds 3/4 of them
+        params.adaptiveThreshWinSizeMax = ADAPTIVE_WINDOW_MAX_PX
         self.detector = cv2.aruco.ArucoDetector(aruco_dictionary(n_markers), params)
         cx, cy = cam.principal_point_px
         self._p = np.array([[cam.focal_px, 0.0, cx], [0.0, cam.focal_px, cy], [0.0, 0.0, 1.0]])
