@@ -39,3 +39,53 @@ def test_garbage_corners_give_no_pose_and_a_reason():
 def test_a_bad_camera_parameter_is_refused_naming_the_key():
     with pytest.raises(Exception, match="camera_focal_px"):
         VisionLoop(FakeIO("vision", PARAMS, {"camera_focal_px": "wide"}, rate_hz=0.0))
+
+
+def _rendered(position, quaternion, size=None):
+    from simulator.sensors import ImageCamera
+    cam = ImageCamera(SimConfig(camera_mode="image", camera_image_noise=1.0), np.random.default_rng(0))
+    frame = cam.sample(position, quaternion, np.zeros(3), np.zeros(3))
+    if size is not None:   # another camera's frame: cut to size
+        img = np.frombuffer(frame["pixels"], np.uint8).reshape(480, 640)[:size[1], :size[0]]
+        frame.update(width_px=size[0], height_px=size[1], pixels=img.tobytes())
+    return frame
+
+
+@pytest.mark.parametrize("method", ["hand", "opencv"])
+def test_image_mode_pose_from_a_rendered_frame(method):
+    """The image in, the same pose message out (exposure stamp, marker count), from either solver."""
+    io = FakeIO("vision", PARAMS, {"pnp": method}, rate_hz=0.0)
+    loop = VisionLoop(io)
+    truth, q = np.array([0.3, -0.2, 1.2]), quat_from_euler(0.05, -0.03, 0.6)
+    io.received(schemas.CAMERA_IMAGE, "sim").push(3.0, _rendered(truth, q))
+    loop.step(3.05)
+    [(t, pose)] = io.sent(schemas.VISION_POSE)
+    assert t == 3.0 and pose["markers"] >= 4
+    np.testing.assert_allclose(pose["position_m"], truth, atol=2e-3)
+    assert np.sqrt(np.diag(np.reshape(pose["position_cov_m2"], (3, 3)))).max() < 0.01
+    assert "images, markers found in 1 (100.0 %)" in loop.summary()
+
+
+def test_an_image_of_another_size_is_counted_and_dropped_and_a_blank_one_has_no_markers():
+    io = FakeIO("vision", PARAMS, {}, rate_hz=0.0)
+    loop = VisionLoop(io)
+    box = io.received(schemas.CAMERA_IMAGE, "sim")
+    box.push(1.0, _rendered([0.0, 0.0, 1.0], [1.0, 0.0, 0.0, 0.0], size=(320, 240)))
+    box.push(1.05, {"width_px": 640, "height_px": 480, "encoding": "mono8", "exposure_s": 0.004,
+                    "pixels": bytes(640 * 480)})
+    loop.step(1.1)
+    assert io.sent(schemas.VISION_POSE) == []
+    assert io.rejected == {"image_wrong_size": 1, "pose_no_markers": 1}
+    assert any("320 x 240" in p for p in io.problems)
+
+
+def test_opencv_and_hand_pnp_agree_on_the_same_corners():
+    from flight.estimation.pnp import MarkerMap, solve_pose
+    cam = MarkerCamera(SimConfig(), np.random.default_rng(1))
+    frame = cam.sample(np.array([0.1, 0.2, 1.0]), quat_from_euler(0.1, 0.0, 1.0))
+    markers = MarkerMap.grid(0.2, 0.5, 5.0)
+    hand, cv = (solve_pose(cam.camera, markers, frame["marker_ids"], frame["corners_px"], method=m)
+                for m in ("hand", "opencv"))
+    assert hand.ok and cv.ok
+    np.testing.assert_allclose(cv.position_m, hand.position_m, atol=1e-7)
+    np.testing.assert_allclose(cv.covariance, hand.covariance, rtol=1e-5, atol=1e-12)
