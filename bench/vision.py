@@ -24,7 +24,9 @@ default intrinsics with their lens distortion, 4 ms exposure, noise 2 grey level
 no motion blur), the markers detected by the vision service's detector
 (flight/estimation/markers.py) and solved both ways: detection rate (frames with a pose),
 markers found against those the corner mode sees whole, pose error, CPU ms per frame of
-detection and of each solve (the render is the simulator's, not timed here).
+detection and of each solve (the render is the simulator's, not timed here); "half": the
+detection in the image's central half only, as the vision service does after a frame with
+more than crop_above_markers (60) markers. OpenCV on one thread, as in the service.
 """
 
 from __future__ import annotations
@@ -194,7 +196,11 @@ def hand_opencv(args) -> None:
 
 
 def image_mode(args) -> None:
+    import cv2
+
     from flight.estimation.markers import MarkerDetector
+
+    cv2.setNumThreads(1)   # as the vision service
 
     cfg = SimConfig(camera_mode="image")
     rng = np.random.default_rng(args.seed)
@@ -209,7 +215,7 @@ def image_mode(args) -> None:
           "(cv2.aruco, sub-pixel corners), solved both ways: CPU ms per frame")
     header = (f"{'case':<14} {'alt m':>5} {'tilt':>5} {'found/whole':>11} {'pose %':>6} {'hand dp mm':>11} "
               f"{'cv dp mm':>11} {'hand dth deg':>12} {'cv dth deg':>12} {'detect ms':>9} {'hand ms':>8} "
-              f"{'cv ms':>7} {'frame ms':>8}")
+              f"{'cv ms':>7} {'frame ms':>8} | {'half: found':>11} {'dp mm':>8} {'detect ms':>9}")
     print(header)
     print("-" * len(header))
     for _, what, alt, tilt in CASES:
@@ -218,11 +224,15 @@ def image_mode(args) -> None:
         images = [np.frombuffer(f["pixels"], np.uint8).reshape(f["height_px"], f["width_px"]) for f in images]
         whole = [len(corner_cam.sample(pos, q)["marker_ids"]) for pos, q in poses]
         found = [detector.detect(img) for img in images]
+        half = [detector.detect(img, centre_half=True) for img in images]   # the service's crop (> 60 markers)
+        err_half = [errors(pnp.solve_pose(camera, markers, ids, c, pixel_sigma_px=0.3), pos, q)
+                    if len(ids) >= 4 else (math.nan, math.nan) for (ids, c), (pos, q) in zip(half, poses)]
         err = {m: [errors(pnp.solve_pose(camera, markers, ids, c, pixel_sigma_px=0.3, method=m), pos, q)
                    if ids else (math.nan, math.nan) for (ids, c), (pos, q) in zip(found, poses)]
                for m in pnp.METHODS}
         best = {}
         for name, fn in (("detect", lambda: [detector.detect(img) for img in images]),
+                         ("half", lambda: [detector.detect(img, centre_half=True) for img in images]),
                          *((m, lambda m=m: [pnp.solve_pose(camera, markers, ids, c, pixel_sigma_px=0.3, method=m)
                                             for ids, c in found if ids]) for m in pnp.METHODS)):
             t_best = math.inf
@@ -237,7 +247,9 @@ def image_mode(args) -> None:
               f"{summary([1e3 * e[0] for e in err['hand']]):>11} {summary([1e3 * e[0] for e in err['opencv']]):>11} "
               f"{summary([e[1] for e in err['hand']]):>12} {summary([e[1] for e in err['opencv']]):>12} "
               f"{best['detect']:>9.2f} {best['hand']:>8.3f} {best['opencv']:>7.3f} "
-              f"{best['detect'] + min(best['hand'], best['opencv']):>8.2f}")
+              f"{best['detect'] + min(best['hand'], best['opencv']):>8.2f} | "
+              f"{np.mean([len(ids) for ids, _ in half]):>11.0f} {summary([1e3 * e[0] for e in err_half]):>8} "
+              f"{best['half']:>9.2f}")
 
 
 if __name__ == "__main__":
