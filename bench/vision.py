@@ -24,9 +24,9 @@ default intrinsics with their lens distortion, 4 ms exposure, noise 2 grey level
 no motion blur), the markers detected by the vision service's detector
 (flight/estimation/markers.py) and solved both ways: detection rate (frames with a pose),
 markers found against those the corner mode sees whole, pose error, CPU ms per frame of
-detection and of each solve (the render is the simulator's, not timed here); "half": the
-detection in the image's central half only, as the vision service does after a frame with
-more than crop_above_markers (60) markers. OpenCV on one thread, as in the service.
+detection and of each solve (the render is the simulator's, not timed here); "crop": the
+detection in the image's central 2/3 (of width and height) only, as the vision service does
+after a frame with more than crop_above_markers (60) markers. OpenCV on one thread, as in the service.
 """
 
 from __future__ import annotations
@@ -51,6 +51,8 @@ from flight.estimation import pnp  # noqa: E402
 from flight.quat import quat_conjugate, quat_from_euler, quat_multiply  # noqa: E402
 from simulator.config import SimConfig  # noqa: E402
 from simulator.sensors import ImageCamera, MarkerCamera  # noqa: E402
+
+CROP = 0.67   # the vision service's crop_window
 
 CASES = [  # (vehicle, what, altitude m, tilt deg)
     ("x250", "hover", 1.0, 0.0),
@@ -215,7 +217,7 @@ def image_mode(args) -> None:
           "(cv2.aruco, sub-pixel corners), solved both ways: CPU ms per frame")
     header = (f"{'case':<14} {'alt m':>5} {'tilt':>5} {'found/whole':>11} {'pose %':>6} {'hand dp mm':>11} "
               f"{'cv dp mm':>11} {'hand dth deg':>12} {'cv dth deg':>12} {'detect ms':>9} {'hand ms':>8} "
-              f"{'cv ms':>7} {'frame ms':>8} | {'half: found':>11} {'dp mm':>8} {'detect ms':>9}")
+              f"{'cv ms':>7} {'frame ms':>8} | {'crop: found':>11} {'dp mm':>8} {'detect ms':>9}")
     print(header)
     print("-" * len(header))
     for _, what, alt, tilt in CASES:
@@ -224,7 +226,7 @@ def image_mode(args) -> None:
         images = [np.frombuffer(f["pixels"], np.uint8).reshape(f["height_px"], f["width_px"]) for f in images]
         whole = [len(corner_cam.sample(pos, q)["marker_ids"]) for pos, q in poses]
         found = [detector.detect(img) for img in images]
-        half = [detector.detect(img, centre_half=True) for img in images]   # the service's crop (> 60 markers)
+        half = [detector.detect(img, window=CROP) for img in images]   # the service's crop (> 60 markers)
         err_half = [errors(pnp.solve_pose(camera, markers, ids, c, pixel_sigma_px=0.3), pos, q)
                     if len(ids) >= 4 else (math.nan, math.nan) for (ids, c), (pos, q) in zip(half, poses)]
         err = {m: [errors(pnp.solve_pose(camera, markers, ids, c, pixel_sigma_px=0.3, method=m), pos, q)
@@ -232,7 +234,7 @@ def image_mode(args) -> None:
                for m in pnp.METHODS}
         best = {}
         for name, fn in (("detect", lambda: [detector.detect(img) for img in images]),
-                         ("half", lambda: [detector.detect(img, centre_half=True) for img in images]),
+                         ("half", lambda: [detector.detect(img, window=CROP) for img in images]),
                          *((m, lambda m=m: [pnp.solve_pose(camera, markers, ids, c, pixel_sigma_px=0.3, method=m)
                                             for ids, c in found if ids]) for m in pnp.METHODS)):
             t_best = math.inf

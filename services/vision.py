@@ -49,7 +49,7 @@ class VisionLoop:
         self.frame_cpu_ms: list[float] = []
         self.detect_ms: list[float] = []
         self.images_seen = self.images_detected = 0
-        self.last_found = 0     # markers found in the previous image
+        self.in_view = 0.0      # markers about in the whole of the previous image
 
     def count(self, reason: str) -> None:
         rejected = self.io.rejected
@@ -84,13 +84,14 @@ class VisionLoop:
             return
         self.images_seen += 1
         img = np.frombuffer(msg["pixels"], dtype=np.uint8).reshape(msg["height_px"], msg["width_px"])
-        # many markers in view (a high floor): the central half holds enough of them for a quarter of
-        # the time (bench/vision.py); too few there, the whole image after all
-        crop = 0 < self.p["crop_above_markers"] < self.last_found
-        ids, corners = self.detector.detect(img, centre_half=crop)
-        if crop and len(ids) < self.p["crop_min_markers"]:
+        # many markers in view (a high floor): the image's central part holds enough of them for less
+        # time (bench/vision.py); too few there, the whole image after all
+        window = self.p["crop_window"] if 0 < self.p["crop_above_markers"] < self.in_view else 1.0
+        ids, corners = self.detector.detect(img, window=window)
+        if window < 1.0 and len(ids) < self.p["crop_min_markers"]:
             ids, corners = self.detector.detect(img)
-        self.last_found = len(ids)
+            window = 1.0
+        self.in_view = len(ids) / (window * window)   # about as many in the whole image
         t1 = time.perf_counter()
         self.detect_ms.append(1e3 * (t1 - t0))
         if not ids:

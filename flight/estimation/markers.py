@@ -39,14 +39,15 @@ class MarkerDetector:
         self._k = intrinsics.matrix
         self._d = intrinsics.dist_coeffs
 
-    def detect(self, image: np.ndarray, centre_half: bool = False) -> tuple[list[int], np.ndarray]:
+    def detect(self, image: np.ndarray, window: float = 1.0) -> tuple[list[int], np.ndarray]:
         """(ids, corners (M, 4, 2) in the pinhole camera's pixels) of the markers found in `image`;
-        `centre_half`: only in its central half (half the width and height, a quarter of the area)."""
+        `window` < 1: only in the central part of that fraction of its width and height."""
         x0 = y0 = 0
-        if centre_half:
+        if window < 1.0:
             h, w = image.shape
-            x0, y0 = w // 4, h // 4
-            image = image[y0:y0 + h // 2, x0:x0 + w // 2]
+            cw, ch = max(1, int(round(w * window))), max(1, int(round(h * window)))
+            x0, y0 = (w - cw) // 2, (h - ch) // 2
+            image = image[y0:y0 + ch, x0:x0 + cw]
         corners, ids, _ = self.detector.detectMarkers(image)
         if ids is None or not len(ids):
             return [], np.zeros((0, 4, 2))

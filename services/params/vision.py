@@ -23,11 +23,13 @@ PARAMS = {
                                "as the simulator's default"),
     "image_pixel_sigma_px": Param(0.3, "px", 0.0, min_exclusive=True,
                                   doc="image mode: the detected corners' noise (std) the pose covariance assumes"),
-    "crop_above_markers": Param(60, "", 0, doc="image mode: after a frame with more markers than this, look "
-                                "in the image's central half only (a quarter of the detection's time; the whole "
-                                "image again when it holds fewer than crop_min_markers); 0: always the whole image"),
-    "crop_min_markers": Param(12, "", 1, doc="image mode: a central-half search that finds fewer markers than "
-                              "this is done again on the whole image"),
+    "crop_above_markers": Param(60, "", 0, doc="image mode: when the previous frame had more markers in view "
+                                "than this, look in the image's central crop_window only (less detection time for "
+                                "enough markers); 0: always the whole image"),
+    "crop_window": Param(0.67, "", 0.2, 1.0, doc="image mode: the central part searched then, as a fraction of the "
+                         "image's width and height"),
+    "crop_min_markers": Param(12, "", 1, doc="image mode: a search of the central part that finds fewer markers "
+                              "than this is done again on the whole image"),
     "pnp": Param("hand", choices=("hand", "opencv"),
                  doc="the pose solver: \"hand\" (flight/estimation/pnp.py) or \"opencv\" (cv2.solvePnP, IPPE "
                      "then Levenberg-Marquardt; docs/vision.md compares them)"),
