@@ -71,7 +71,7 @@ def calibrate_folder(folder: str | Path, pattern: tuple[int, int] = (9, 6), squa
             raise CalibrationError(f"{path}: {img.shape[1]} x {img.shape[0]}, the others are {size[0]} x {size[1]}: "
                                    "one camera, one image size")
         # the sector-based detector: ~0.07 px RMS on the simulator's boards, where the classic one
-        # with cornerSubPix gave 1 px (two views of fourteen 2 px off: tests/unit/deploy/test_calibrate.py)
+        # with cornerSubPix gave 1 px (three views of fourteen 1.5-2.2 px off: tests/unit/deploy/test_calibrate.py)
         found, corners = cv2.findChessboardCornersSB(img, (cols, rows),
                                                      flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
         if not found:
