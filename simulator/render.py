@@ -47,8 +47,8 @@ def _rot_exp(w) -> np.ndarray:
 
 
 class FloorRenderer:
-    """Renders the marker floor seen from a body pose. `ids` (M,) and `corners_world` (M, 4, 3)
-    as flight.camera.marker_grid gives them (square markers on z = 0, "up" along world +x)."""
+    """Renders a textured floor (z = 0) seen from a body pose: the marker layout (`markers`) or a
+    calibration checkerboard (`checkerboard`)."""
 
     def __init__(self, intrinsics: Intrinsics, texture: np.ndarray, origin_xy, texel_m: float,
                  noise_grey: float = 2.0, background: int = FLOOR_GREY):
