@@ -659,8 +659,8 @@ def cmd_calibrate_camera(args) -> int:
           f"distortion {[round(x, 5) for x in i.distortion]} -> {args.out}")
     for skipped in cal.skipped:
         print(f"zenpilot: skipped {skipped}", file=sys.stderr)
-    print(f"zenpilot: fly with it: --set sim.camera_intrinsics={args.out} --set vision.camera_intrinsics={args.out} "
-          "(a stack file's paths are relative to it)")
+    out = Path(args.out).resolve()   # a relative path in a stack's parameters is the stack file's
+    print(f"zenpilot: fly with it: --set sim.camera_intrinsics={out} --set vision.camera_intrinsics={out}")
     return 0
 
 
