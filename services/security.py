@@ -39,7 +39,8 @@ if TYPE_CHECKING:
 # publishes: its health, in lockstep its sync, in real time its beat. tests/unit/services/test_security.py checks this
 # against the services' code (every rt.publisher(schemas.X) call).
 PUBLISHES: dict[str, tuple[str, ...]] = {
-    "sim": ("sim/imu", "sim/baro", "sim/mag", "sim/camera", "sim/truth", "sim/battery", "@lockstep/clock/*"),
+    "sim": ("sim/imu", "sim/baro", "sim/mag", "sim/camera", "sim/@image", "sim/truth", "sim/battery",
+            "@lockstep/clock/*"),
     "motors": ("motors/pwm",),
     "attitude": ("att/command", "att/state"),
     "position": ("pos/setpoint", "pos/state"),
@@ -175,8 +176,10 @@ def router_acl(stack: "Stack", machine: str) -> dict:
     # `**` never matches a verbatim chunk: the lockstep handshake's keys are named apart
     every_key = ["**", f"{prefix}/@lockstep/**", f"{prefix}/@beat/**"]
     rules: list[dict] = [
+        # the camera's images (sim/@image) pass only between the router's own machine's sessions:
+        # they never cross the link to another host (the vision service runs beside the camera)
         {"id": "everything", "messages": ALL_MESSAGES, "flows": ["ingress", "egress"],
-         "permission": "allow", "key_exprs": every_key},
+         "permission": "allow", "key_exprs": every_key + [f"{prefix}/sim/@image"]},
         {"id": "declarations", "messages": DECLARATIONS, "flows": ["ingress", "egress"],
          "permission": "allow", "key_exprs": every_key},
         {"id": "receive", "messages": ["put", "delete", "liveliness_token"], "flows": ["egress"],

@@ -339,6 +339,12 @@ def _is_number(x: Any) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool)
 
 
+def intrinsics_path(stack_path: str | Path, name: str) -> Path:
+    """A camera intrinsics file named in a stack's parameters: relative to the stack file's folder."""
+    p = Path(name).expanduser()
+    return p if p.is_absolute() else Path(stack_path).resolve().parent / p
+
+
 def mission_path(name_or_path: str) -> Path:
     """A shipped mission's file by name (deploy/missions/NAME.toml), or a .toml path as given."""
     p = Path(name_or_path)
