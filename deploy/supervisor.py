@@ -32,6 +32,7 @@ supervisor reports and the flight stops as it did without it. The simulator is n
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -104,6 +105,7 @@ class Supervisor:
         self.watches = {n: Watch(stack.service(n).restart, stack.service(n).restart_limit,
                                  stack.service(n).hang_restart_s) for n in names}
         self.events: list[dict] = []
+        self._write_failed = False
         self.path = Path(launcher.run_dir) / "supervisor.json"
         self._write()
 
@@ -225,9 +227,14 @@ class Supervisor:
     def _write(self) -> None:
         """supervisor.json beside the flight log, rewritten whole on every change (metrics.json
         and `zenpilot status` read it)."""
-        tmp = self.path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(self.summary(), indent=1) + "\n")
-        tmp.replace(self.path)
+        tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")   # two machines' supervisors may share a folder
+        try:
+            tmp.write_text(json.dumps(self.summary(), indent=1) + "\n")
+            tmp.replace(self.path)
+        except OSError as exc:   # the record is lost, not the supervision
+            if not self._write_failed:
+                self._write_failed = True
+                self.say(f"zenpilot: supervisor: cannot write {self.path}: {exc}")
 
     def health_message(self) -> dict:
         """The supervisor's own planner-independent health (HEALTH fields): 'degraded' while a

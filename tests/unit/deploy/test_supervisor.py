@@ -221,3 +221,13 @@ def test_a_start_up_silent_past_its_bound_is_a_hang(tmp_path):
     assert sup.watches["planner"].state == "silent" and launcher.killed == []
     run_for(sup, clock, 1.0)
     assert launcher.killed == ["planner"] and any("hung (silent for 30." in line for line in said), said
+
+
+def test_a_record_that_cannot_be_written_is_said_once_and_supervision_goes_on(tmp_path):
+    sup, launcher, clock, said = supervisor(tmp_path, {"attitude": ("on-failure", 3)})
+    sup.path = tmp_path / "gone" / "supervisor.json"   # its folder removed under it
+    launcher.procs["attitude"].returncode = -9
+    sup.poll()
+    run_for(sup, clock, 1.0)
+    assert launcher.restarted == ["attitude"]
+    assert sum("cannot write" in line for line in said) == 1, said
