@@ -218,6 +218,7 @@ def watch_services(launcher: Launcher, names: list[str], session, real_time: boo
     supervisor.subscription = session.declare_subscriber(
         f"{prefix}*/health", lambda sample: supervisor.health_seen(str(sample.key_expr)[len(prefix):-len("/health")]))
     if real_time:
+        launcher.start_spare()   # the next restart's process, its imports done
         beats = schemas.BEAT.key(vehicle, "")
         supervisor.beats = session.declare_subscriber(
             f"{beats}*", lambda sample: supervisor.beat_seen(str(sample.key_expr)[len(beats):]))

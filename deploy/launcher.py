@@ -119,6 +119,7 @@ class Launcher:
     params: dict[str, list[str]] = field(default_factory=dict)  # service -> ["k=v", ...]
     procs: dict[str, subprocess.Popen] = field(default_factory=dict)
     machine: str | None = None  # the stack's machine whose router this starts (None: a bare router)
+    spare: subprocess.Popen | None = None   # the supervisor's warm spare (start_spare), real time
 
     def __post_init__(self):
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
@@ -128,14 +129,18 @@ class Launcher:
         if append:
             log.write(f"--- zenpilot: {name} restarted at {time.strftime('%H:%M:%S')} ---\n")
             log.flush()
+        proc = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, env=self._service_env(),
+                                start_new_session=True)  # Ctrl-C in a terminal reaches us only
+        self.procs[name] = proc
+        return proc
+
+    @staticmethod
+    def _service_env() -> dict[str, str]:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         env.setdefault("ZENOH_RUNTIME", ZENOH_RUNTIME)
         for key, value in SERVICE_THREADS.items():
             env.setdefault(key, value)
-        proc = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, env=env,
-                                start_new_session=True)  # Ctrl-C in a terminal reaches us only
-        self.procs[name] = proc
-        return proc
+        return env
 
     def _check_machine_by_machine(self) -> None:
         if self.stack.security is not None and self.machine is None:
@@ -192,16 +197,51 @@ class Launcher:
 
     def _start_service(self, name: str, append: bool = False, restarted: bool = False) -> None:
         proc = self._spawn(name, self.service_argv(name) + (["--restarted"] if restarted else []), append)
+        self._set_nice(name, proc.pid)
+
+    def _set_nice(self, name: str, pid: int) -> None:
         if nice := self.stack.service(name).nice:
             try:
-                os.setpriority(os.PRIO_PROCESS, proc.pid, nice)
+                os.setpriority(os.PRIO_PROCESS, pid, nice)
             except OSError as exc:  # it still runs, at the default priority: say so
                 print(f"zenpilot: {name}: could not set nice {nice}: {exc}", file=sys.stderr)
 
     def restart(self, name: str) -> None:
-        """Start a service again with the same command line (the supervisor's restart); its
-        output is appended to its log."""
-        self._start_service(name, append=True, restarted=True)
+        """Start a service again with the same command line and `--restarted` (the supervisor's
+        restart), in the warm spare when one waits (deploy/spare.py); its output is appended to
+        its log. A new spare is started for the next restart."""
+        argv = self.service_argv(name) + ["--restarted"]
+        spare, self.spare = self.spare, None
+        if spare is None or spare.poll() is not None:
+            self._start_service(name, append=True, restarted=True)
+            return
+        log = self.run_dir / "logs" / f"{name}.log"
+        with open(log, "a") as fh:
+            fh.write(f"--- zenpilot: {name} restarted at {time.strftime('%H:%M:%S')} (warm spare) ---\n")
+        try:
+            spare.stdin.write(json.dumps({"module": argv[2], "argv": argv[3:], "log": str(log)}) + "\n")
+            spare.stdin.close()
+        except OSError:   # the spare died meanwhile: a cold start
+            self._start_service(name, append=True, restarted=True)
+            return
+        self.procs[name] = spare
+        self._set_nice(name, spare.pid)
+        self.start_spare()
+
+    def start_spare(self) -> None:
+        """A process with the services' imports done, waiting to become the next one restarted."""
+        if self.spare is None or self.spare.poll() is not None:
+            log = open(self.run_dir / "logs" / "spare.log", "a")
+            self.spare = subprocess.Popen([sys.executable, "-m", "deploy.spare"], stdin=subprocess.PIPE,
+                                          stdout=log, stderr=subprocess.STDOUT, env=self._service_env(),
+                                          text=True, start_new_session=True)
+            log.close()
+
+    def stop_spare(self) -> None:
+        if self.spare is not None and self.spare.poll() is None:
+            self.spare.kill()
+            self.spare.wait()
+        self.spare = None
 
     def kill(self, name: str) -> None:
         """SIGKILL a service (the supervisor's answer to a hang) and reap it."""
@@ -257,6 +297,7 @@ class Launcher:
         main = threading.current_thread() is threading.main_thread()   # only it may set handlers
         previous = {sig: signal.signal(sig, still_stopping) for sig in (signal.SIGINT, signal.SIGTERM)} if main else {}
         try:
+            self.stop_spare()
             for group, grace_s in stop_groups(list(self.procs), [self.run_dir / LOG_NAME]):
                 if group == ["recorder"]:
                     time.sleep(DELIVERY_S)

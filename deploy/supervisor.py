@@ -18,10 +18,11 @@ Detected, every POLL_S on the service's own host:
     start-up: the planner's JAX compile takes seconds), real time only.
 A stopped or stuck service that stays so for its `hang_restart_s`, or a silent one for START_S,
 has hung: it is killed (SIGKILL) and restarted as a failure. A restart waits a back-off
-(FIRST_BACKOFF_S the first time: a vehicle without its motor driver tilts past 20 degrees in half a
-second; then BACKOFF_S, doubled per restart of that service, at most BACKOFF_MAX_S) and starts the
-same command line with `--restarted` (the service then takes control only once settled; about
-0.5 s to its first output here); its output is appended to the service's log.
+(none the first time: a vehicle without its motor driver tilts past 20 degrees in half a second;
+then BACKOFF_S, doubled per restart of that service, at most BACKOFF_MAX_S) and starts the same
+command line with `--restarted` (the service then takes control only once settled), in real time
+in the launcher's warm spare (deploy/spare.py: its imports done, ~0.2 s to a first output instead
+of ~0.5 s); its output is appended to the service's log.
 
 Restarts happen in real time only. In lockstep a lost participant is dropped from the clock
 (services/lockstep.py) and a new process cannot rejoin a clock already running, so there the
@@ -41,7 +42,7 @@ from typing import Callable
 from services.stack import DEFAULT_HANG_RESTART_S, NEVER_RESTARTED
 
 POLL_S = 0.1
-FIRST_BACKOFF_S = 0.1
+FIRST_BACKOFF_S = 0.0   # the warm spare (deploy/spare.py) is ready: at once
 BACKOFF_S = 0.5
 BACKOFF_MAX_S = 8.0
 HEALTH_SILENCE_S = 3.0

@@ -83,7 +83,7 @@ def test_a_dead_service_is_restarted_after_a_growing_back_off_until_its_limit(tm
 
 
 def test_back_off_first_short_then_doubling_to_a_bound():
-    assert [backoff_s(n) for n in range(7)] == [0.1, 0.5, 1.0, 2.0, 4.0, 8.0, 8.0]
+    assert [backoff_s(n) for n in range(7)] == [0.0, 0.5, 1.0, 2.0, 4.0, 8.0, 8.0]
 
 
 def test_policies_never_always_and_lockstep(tmp_path):
