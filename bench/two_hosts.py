@@ -49,12 +49,54 @@ sys.path.insert(0, str(ROOT))
 from deploy.metrics import compute_metrics  # noqa: E402
 from flight.control.mission import MissionError  # noqa: E402
 from schemas.flightlog import LOG_NAME, read_log  # noqa: E402
+from services.security import PUBLISHES  # noqa: E402
 from services.stack import load_mission, load_stack  # noqa: E402
 
-STACK = ROOT / "tests" / "integration" / "stacks" / "two-hosts.toml"
+STACKS = {   # --placement: the stack file that places the services
+    "vehicle": ROOT / "tests" / "integration" / "stacks" / "two-hosts.toml",          # ground: the recorder
+    "ground": ROOT / "tests" / "integration" / "stacks" / "two-hosts-ground.toml",    # ground: planner, recorder, mavlink
+}
+STACK = STACKS["vehicle"]
 TEST_MISSIONS = ROOT / "tests" / "integration" / "missions"
 VEHICLE_IP, GROUND_IP = "10.77.0.1", "10.77.0.2"
-ROUTER = f"tcp/{VEHICLE_IP}:7447"
+ROUTER = f"tcp/{VEHICLE_IP}:7447"     # the vehicle placement's one router, on the vehicle's link address
+LOCAL_ROUTER = "tcp/127.0.0.1:7447"   # the ground placement's router on each host (linked: two-hosts-ground.toml)
+
+
+@dataclasses.dataclass(frozen=True)
+class LinkProfile:
+    """One way of the link: delay drawn uniformly in delay +- jitter per packet, loss at random."""
+    name: str
+    delay_ms: float = 0.0
+    jitter_ms: float = 0.0
+    loss_pct: float = 0.0
+
+    @property
+    def impaired(self) -> bool:
+        return bool(self.delay_ms or self.jitter_ms or self.loss_pct)
+
+    def __str__(self) -> str:
+        if not self.impaired:
+            return f"{self.name} (a plain veth pair)"
+        return f"{self.name} ({self.delay_ms:g} +- {self.jitter_ms:g} ms, {self.loss_pct:g} % loss each way)"
+
+
+PROFILES = {"none": LinkProfile("none"), "lan": LinkProfile("lan", 20.0, 5.0, 1.0),
+            "bad": LinkProfile("bad", 50.0, 20.0, 5.0)}
+
+
+def parse_profile(text: str) -> LinkProfile:
+    """A profile's name, or DELAY/JITTER/LOSS (ms, ms, %)."""
+    if text in PROFILES:
+        return PROFILES[text]
+    try:
+        d, j, loss = (float(x) for x in text.split("/"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected {', '.join(PROFILES)} or DELAY_MS/JITTER_MS/LOSS_PCT "
+                                         f"(e.g. 20/5/1)") from None
+    if d < 0 or j < 0 or not 0 <= loss <= 100 or j > d:
+        raise argparse.ArgumentTypeError(f"{text!r}: delay >= jitter >= 0 and loss within 0..100")
+    return LinkProfile(text, d, j, loss)
 SCOUTING_GROUP = "224.0.0.224"  # Zenoh's multicast scouting group (port 7446)
 SERVICES = ("sim", "motors", "attitude", "position", "vision", "planner", "mavlink")
 
@@ -81,14 +123,25 @@ def run(argv: list[str], check: bool = True, **kw) -> subprocess.CompletedProces
 
 # ---------------------------------------------------------------- the two hosts
 class TwoHosts:
-    """Two network namespaces joined by a veth pair; `close` removes them and what runs in them."""
+    """Two network namespaces joined by a link; `close` removes them and what runs in them.
 
-    def __init__(self, tag: str, delay_ms: float, loss_pct: float):
+    An unimpaired profile: one veth pair. Otherwise `tc netem` on both ends of that pair where the
+    kernel has it, else (or with emulator="forwarder") a third namespace "link" between them, two
+    veth pairs, and bench/support/linkemu.py forwarding the frames with the profile's delay and
+    loss. Either way both hosts keep their addresses on one /24 and nothing leaves the namespaces."""
+
+    def __init__(self, tag: str, profile: LinkProfile, emulator: str = "auto", link_seed: int = 0,
+                 out: Path | None = None):
         self.ns = {"vehicle": f"zp{tag}-vehicle", "ground": f"zp{tag}-ground"}
         self.dev = {"vehicle": f"zp{tag}v", "ground": f"zp{tag}g"}  # interface names: 15 characters at most
+        self.link_dev = {"vehicle": f"zp{tag}lv", "ground": f"zp{tag}lg"}   # the forwarder's ends
         self.ip = {"vehicle": VEHICLE_IP, "ground": GROUND_IP}
-        self.delay_ms, self.loss_pct = delay_ms, loss_pct
+        self.profile, self.emulator, self.link_seed = profile, emulator, link_seed
+        self.out = out or Path(".")
         self.created: list[str] = []
+        self.method = "veth"            # what impairs the link: veth (nothing), netem, forwarder
+        self.forwarder: subprocess.Popen | None = None
+        self.forwarder_stats: dict | None = None
 
     def open(self) -> None:
         for host in ("vehicle", "ground"):
@@ -97,21 +150,88 @@ class TwoHosts:
             except BenchError as exc:
                 raise BenchError(f"cannot create the two hosts (needs root and `ip netns`): {exc}") from None
             self.created.append(self.ns[host])
-        v, g = self.ns["vehicle"], self.ns["ground"]
-        run(["ip", "link", "add", self.dev["vehicle"], "netns", v, "type", "veth",
-             "peer", "name", self.dev["ground"], "netns", g])
+        for host in ("vehicle", "ground"):
+            run(["ip", "-n", self.ns[host], "link", "set", "lo", "up"])
+        if self.profile.impaired and self.emulator in ("auto", "netem") and self._netem():
+            self.method = "netem"
+        elif self.profile.impaired:
+            self._forwarder()
+            self.method = "forwarder"
+        else:
+            self._veth(self.dev["vehicle"], self.ns["vehicle"], self.dev["ground"], self.ns["ground"])
         for host in ("vehicle", "ground"):
             ns, dev = self.ns[host], self.dev[host]
-            run(["ip", "-n", ns, "link", "set", "lo", "up"])
             run(["ip", "-n", ns, "addr", "add", f"{self.ip[host]}/24", "dev", dev])
             run(["ip", "-n", ns, "link", "set", dev, "up"])
-            if self.delay_ms or self.loss_pct:
-                netem = ["netem"] + (["delay", f"{self.delay_ms}ms"] if self.delay_ms else []) \
-                    + (["loss", f"{self.loss_pct}%"] if self.loss_pct else [])
-                proc = run(["tc", "-n", ns, "qdisc", "add", "dev", dev, "root", *netem], check=False)
-                if proc.returncode != 0:
-                    raise BenchError(f"tc netem on {dev}: {proc.stderr.strip()} (this kernel has no "
-                                     f"sch_netem? run without --delay-ms/--loss-pct)")
+
+    def _veth(self, a: str, ns_a: str, b: str, ns_b: str) -> None:
+        run(["ip", "link", "add", a, "netns", ns_a, "type", "veth", "peer", "name", b, "netns", ns_b])
+
+    def _netem(self) -> bool:
+        """netem on both ends of a veth pair; False (the pair removed) where the kernel has no netem
+        and the emulator may be the forwarder. `rate` keeps each direction in order: netem then
+        times a packet from the one before it (sch_netem.c), as the forwarder does; without it a
+        jitter reorders. Not run here: this kernel has no sch_netem."""
+        p = self.profile
+        self._veth(self.dev["vehicle"], self.ns["vehicle"], self.dev["ground"], self.ns["ground"])
+        for host in ("vehicle", "ground"):
+            netem = ["netem", "delay", f"{p.delay_ms:g}ms", f"{p.jitter_ms:g}ms", "loss", f"{p.loss_pct:g}%",
+                     "rate", "10gbit"]
+            proc = run(["tc", "-n", self.ns[host], "qdisc", "add", "dev", self.dev[host], "root", *netem], check=False)
+            if proc.returncode != 0:
+                if self.emulator == "netem":
+                    raise BenchError(f"tc netem on {self.dev[host]}: {proc.stderr.strip()} (this kernel has no "
+                                     f"sch_netem? --emulator forwarder)")
+                run(["ip", "-n", self.ns["vehicle"], "link", "del", self.dev["vehicle"]], check=False)
+                return False
+        self._one_frame_per_segment()
+        return True
+
+    def _one_frame_per_segment(self) -> None:
+        # no TCP super-frames (GSO, up to 64 KB) on the link: a loss is one packet's, not 44's
+        for host in ("vehicle", "ground"):
+            run(["ip", "-n", self.ns[host], "link", "set", "dev", self.dev[host], "gso_max_segs", "1"])
+
+    def _forwarder(self) -> None:
+        """vehicle <-veth-> link namespace <-veth-> ground, linkemu forwarding between the two."""
+        link = self.ns["link"] = self.ns["vehicle"].rsplit("-", 1)[0] + "-link"
+        run(["ip", "netns", "add", link])
+        self.created.append(link)
+        run(["ip", "-n", link, "link", "set", "lo", "up"])
+        for host in ("vehicle", "ground"):
+            self._veth(self.dev[host], self.ns[host], self.link_dev[host], link)
+            run(["ip", "-n", link, "link", "set", self.link_dev[host], "up"])
+        self._one_frame_per_segment()
+        p = self.profile
+        (self.out / "link").mkdir(parents=True, exist_ok=True)
+        log = open(self.out / "link" / "linkemu.log", "w")
+        self.forwarder = subprocess.Popen(
+            self.argv("link", [sys.executable, "-m", "bench.support.linkemu", self.link_dev["vehicle"],
+                               self.link_dev["ground"], "--delay-ms", str(p.delay_ms), "--jitter-ms", str(p.jitter_ms),
+                               "--loss-pct", str(p.loss_pct), "--seed", str(self.link_seed),
+                               "--stats", str(self.out / "link" / "linkemu.json")]),
+            cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + 10.0
+        while "linkemu:" not in (self.out / "link" / "linkemu.log").read_text():
+            if self.forwarder.poll() is not None or time.monotonic() > deadline:
+                raise BenchError(f"the link forwarder did not start: "
+                                 f"{(self.out / 'link' / 'linkemu.log').read_text().strip()}")
+            time.sleep(0.05)
+
+    def stop_forwarder(self) -> dict | None:
+        """Stop the forwarder (it writes what it did: frames, losses, the delays it gave, its CPU)."""
+        if self.forwarder is not None and self.forwarder.poll() is None:
+            self.forwarder.send_signal(signal.SIGTERM)
+            try:
+                self.forwarder.wait(10)
+            except subprocess.TimeoutExpired:
+                self.forwarder.kill()
+                self.forwarder.wait()
+            try:
+                self.forwarder_stats = json.loads((self.out / "link" / "linkemu.json").read_text())
+            except (OSError, ValueError):
+                self.forwarder_stats = None
+        return self.forwarder_stats
 
     def argv(self, host: str, cmd: list[str]) -> list[str]:
         return ["ip", "netns", "exec", self.ns[host], *cmd]
@@ -151,7 +271,8 @@ class TwoHosts:
 
     def close(self) -> list[str]:
         """Stop whatever still runs in the namespaces (SIGINT, then SIGKILL), delete them (the
-        veth pair goes with them). Returns what was left over (should be nothing)."""
+        veth pairs go with them). Returns what was left over (should be nothing)."""
+        self.stop_forwarder()
         for sig, wait_s in ((signal.SIGINT, 10.0), (signal.SIGKILL, 5.0)):
             pids = [p for h in self.ns for p in self.pids(h)] if self.created else []
             if not pids:
@@ -168,7 +289,7 @@ class TwoHosts:
             run(["ip", "netns", "del", ns], check=False)
         left = [ns for ns in self.created if ns in run(["ip", "netns", "list"], check=False).stdout.split()]
         links = run(["ip", "-o", "link", "show"], check=False).stdout
-        left += [d for d in self.dev.values() if f" {d}@" in links or f" {d}:" in links]
+        left += [d for d in [*self.dev.values(), *self.link_dev.values()] if f" {d}@" in links or f" {d}:" in links]
         return left
 
 
@@ -182,19 +303,21 @@ def _running(pid: int) -> bool:
 
 
 # ---------------------------------------------------------------- the flights
-def flight_metrics(log_path: Path, info: dict, vehicle_id: int) -> tuple[dict, int]:
+def flight_metrics(log_path: Path, info: dict, vehicle_id: int, full: bool = False):
     """deploy.metrics on the log up to the simulator's last IMU sample. What the services publish
     after it is the stack winding down, not the flight: the motors re-sending their last command
     (the output age grows by seconds), the EKF predicting without IMU (its error grows by metres);
-    one `zenpilot down` stops them one by one. Returns the metrics and how many messages were left out."""
+    one `zenpilot down` stops them one by one. Returns the metrics and how many messages were left
+    out (full: also the log and the simulator's first and last IMU sample time)."""
     log = read_log(log_path)
     imu = log.get(f"zp/{vehicle_id}/sim/imu") or []
     t_end = max((x["header"]["t_s"] for x in imu), default=float("inf"))
+    t_start = min((x["header"]["t_s"] for x in imu), default=-float("inf"))
     trimmed = {k: [x for x in v if x["header"]["t_s"] <= t_end] for k, v in log.items()}
     left_out = sum(len(v) for v in log.values()) - sum(len(v) for v in trimmed.values())
     m = compute_metrics(trimmed, info, vehicle_id)
     m["left_out_after_sim"] = left_out
-    return m, left_out
+    return (m, left_out, log, (t_start, t_end)) if full else (m, left_out)
 
 
 def zenpilot(hosts: TwoHosts, host: str, out: Path, *args: str, timeout: float = 120) -> tuple[str, float]:
@@ -209,29 +332,138 @@ def zenpilot(hosts: TwoHosts, host: str, out: Path, *args: str, timeout: float =
     return proc.stdout.strip(), took
 
 
+def incoming_keys(stack, host_machines: set[str]) -> list[str]:
+    """Key expressions of what the services *not* on `host_machines` publish (their topics and
+    health): what crosses the link towards the host."""
+    v = stack.vehicle_id
+    names = [n for n, s in stack.services.items() if s.machine not in host_machines]
+    keys = {f"zp/{v}/{t}" for n in names for t in PUBLISHES.get(n, ()) if not t.startswith("@")}
+    return sorted(keys | {f"zp/{v}/{n}/health" for n in names})
+
+
+class Probes:
+    """bench/support/linkprobe.py on each host that receives keys from the other: arrival times."""
+
+    def __init__(self, hosts: TwoHosts, out: Path):
+        self.hosts, self.out, self.procs = hosts, out, {}
+
+    def start(self, host: str, endpoint: str, keys: list[str]) -> None:
+        if not keys:
+            return
+        path = self.out / host / "linkprobe.json"
+        path.unlink(missing_ok=True)
+        log = open(self.out / host / "linkprobe.log", "w")
+        self.procs[host] = subprocess.Popen(
+            self.hosts.argv(host, [sys.executable, "-m", "bench.support.linkprobe", "-e", endpoint,
+                                   "--out", str(path), *keys]), cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + 20.0
+        while "linkprobe: listening" not in (self.out / host / "linkprobe.log").read_text():
+            if self.procs[host].poll() is not None or time.monotonic() > deadline:
+                raise BenchError(f"{host}: the link probe did not start: "
+                                 f"{(self.out / host / 'linkprobe.log').read_text().strip()}")
+            time.sleep(0.05)
+
+    def stop(self) -> dict[str, dict]:
+        """{host: {key: [[arrival, t_s, seq, source], ...]}}"""
+        got = {}
+        for host, proc in self.procs.items():
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(30)
+                got[host] = json.loads((self.out / host / "linkprobe.json").read_text())
+            except (subprocess.TimeoutExpired, OSError, ValueError) as exc:
+                print(f"two_hosts: the {host} link probe gave nothing: {exc}", file=sys.stderr)
+                proc.kill()
+                proc.wait()
+        self.procs = {}
+        return got
+
+
+def _q(xs: list[float], f: float) -> float | None:
+    return xs[min(len(xs) - 1, int(f * len(xs)))] if xs else None
+
+
+def seq_loss(seqs) -> tuple[int, int]:
+    """(lost, expected) from one sender's sequence numbers: the gaps between the first and the last."""
+    u = sorted(set(seqs))
+    if not u:
+        return 0, 0
+    expected = u[-1] - u[0] + 1
+    return expected - len(u), expected
+
+
+def link_keys(log: dict, probes: dict, stack, t_window: tuple[float, float] | None) -> dict:
+    """Per key that crossed the link: latency (arrival - header time, ms, real time only) from the
+    receiving host's probe, and the messages lost (sequence gaps per sender) from the ground's flight
+    log for the vehicle's keys and from the vehicle's probe for the ground's (the vehicle has no log)."""
+    ground = {n for n, s in stack.services.items() if s.machine == "ground"}
+    out: dict[str, dict] = {}
+    lo, hi = t_window or (-float("inf"), float("inf"))
+    for host, records in probes.items():
+        for key, rows in records.items():
+            rows = [r for r in rows if lo <= r[1] <= hi]
+            lat = sorted(1e3 * (r[0] - r[1]) for r in rows)
+            by_source: dict[str, list[int]] = {}
+            for r in rows:
+                by_source.setdefault(r[3], []).append(r[2])
+            lost = [seq_loss(v) for v in by_source.values()]
+            out[key] = {"to": host, "n": len(rows), "latency_ms": {"p50": _q(lat, 0.5), "p99": _q(lat, 0.99),
+                                                                    "max": lat[-1] if lat else None},
+                        "lost_probe": sum(x[0] for x in lost), "expected_probe": sum(x[1] for x in lost)}
+    for key, msgs in log.items():
+        sources = {m["header"]["source"] for m in msgs}
+        if not sources or sources <= ground:   # written by the ground's own services: not across the link
+            continue
+        by_source = {}
+        for m in msgs:
+            if lo <= m["header"]["t_s"] <= hi:
+                by_source.setdefault(m["header"]["source"], []).append(m["header"]["seq"])
+        lost = [seq_loss(v) for v in by_source.values()]
+        row = out.setdefault(key, {"to": "ground"})
+        row["lost"], row["expected"] = sum(x[0] for x in lost), sum(x[1] for x in lost)
+    for row in out.values():   # the vehicle's incoming keys: no log there, the probe's count stands
+        if "lost" not in row:
+            row["lost"], row["expected"] = row.get("lost_probe", 0), row.get("expected_probe", 0)
+    return out
+
+
 def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
-    timing, stack = {}, str(STACK)
+    timing, stack_path = {}, STACKS[args.placement]
+    stack = str(stack_path)
+    split = load_stack(stack_path)
+    lockstep = ["--lockstep"] if args.lockstep else []
     for host in ("vehicle", "ground"):
         (out / host).mkdir(parents=True, exist_ok=True)
         # a previous run's results and `up -d` state (its pids) must not be taken for this run's
         shutil.rmtree(out / host / "state", ignore_errors=True)
-        for name in (LOG_NAME, "metrics.json"):
+        for name in (LOG_NAME, "metrics.json", "linkprobe.json"):
             (out / host / name).unlink(missing_ok=True)
+    # the vehicle placement: one router on the vehicle's link address, everyone its client; the
+    # ground placement: each host's services on its own router (the stack's), the routers linked
+    router = {"vehicle": ROUTER, "ground": LOCAL_ROUTER}[args.placement]
     _, timing["up vehicle-router s"] = zenpilot(hosts, "vehicle", out, "up", "-d", "--stack", stack,
-                                                "--machine", "vehicle-router", "--router", ROUTER,
+                                                "--machine", "vehicle-router", "--router", router,
                                                 "--out", str(out / "vehicle"))
+    # the mission: the ground's planner flies it (ground placement), the recorder draws its airframe
+    ground_args = ["--mission", str(mission.path), "--seed", str(args.seed), *lockstep]
     _, timing["up ground s"] = zenpilot(hosts, "ground", out, "up", "-d", "--stack", stack, "--machine", "ground",
-                                        "--router", ROUTER, "--out", str(out / "ground"))
+                                        "--router", router, "--out", str(out / "ground"), *ground_args, timeout=300)
+    probes = Probes(hosts, out)
+    if not args.lockstep:   # arrival - header time is a latency only when headers are wall-clock times
+        probes.start("ground", router, incoming_keys(split, {"ground"}))
+        probes.start("vehicle", router, incoming_keys(split, {"vehicle", "vehicle-router"}))
     t_fly = time.monotonic()
     _, timing["up vehicle s"] = zenpilot(hosts, "vehicle", out, "up", "-d", "--stack", stack, "--machine", "vehicle",
-                                         "--router", ROUTER, "--out", str(out / "vehicle"), "--seed", str(args.seed),
+                                         "--router", router, "--out", str(out / "vehicle"), "--seed", str(args.seed),
                                          "--mission", str(mission.path), "--set", "sim.stop_after_mission=true",
-                                         timeout=300)
+                                         *lockstep, timeout=300)
     pids = {}
     for host, machine in (("vehicle", "vehicle"), ("ground", "ground")):
         state, = (out / host / "state").glob(f"*/up-{machine}.json")   # one folder per stack (its router)
         pids.update(json.loads(state.read_text())["pids"])
-    limit = mission.timeout_s * 1.5 + 60.0
+    pids.pop("router", None)   # the ground placement's ground router: not a service
+    limit = mission.timeout_s * (20.0 if args.lockstep else 1.5) + 60.0
     deadline, sampled, status = time.monotonic() + limit, None, ""
     while _running(pids["sim"]):
         dead = [n for n in pids if n != "sim" and not _running(pids[n])]
@@ -252,23 +484,31 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
     if sampled is None:
         sampled = hosts.sockets()
     time.sleep(0.3)
+    arrivals = probes.stop()
     # as `zenpilot fly` stops them: the vehicle's services first (stopped later, the recorder would
     # log the motors re-sending their last command after the simulator ended), then the ground,
     # whose recorder writes the flight log when stopped
     _, timing["down vehicle s"] = zenpilot(hosts, "vehicle", out, "down", timeout=120)
     _, timing["down ground s"] = zenpilot(hosts, "ground", out, "down", timeout=120)
     link = hosts.link_stats()
+    forwarder = hosts.stop_forwarder()
     log_path = out / "ground" / LOG_NAME
     if not log_path.exists():
         raise BenchError(f"no flight log on the ground side ({log_path}); see {out / 'ground' / 'logs' / 'recorder.log'}")
     t0 = time.monotonic()
-    metrics, _ = flight_metrics(log_path, {"mission": mission.name, "mode": "realtime", "seed": args.seed,
-                                           "vehicle": mission.vehicle}, load_stack(STACK).vehicle_id)
+    info = {"mission": mission.name, "mode": "lockstep" if args.lockstep else "realtime", "seed": args.seed,
+            "vehicle": mission.vehicle}
+    metrics, _, log, window = flight_metrics(log_path, info, split.vehicle_id, full=True)
     timing["metrics s"] = time.monotonic() - t0
+    p = hosts.profile
     metrics["two_hosts"] = {"link": link, "sockets": sampled, "timing": timing, "status": status,
-                            "netem": {"delay_ms": args.delay_ms, "loss_pct": args.loss_pct},
+                            "placement": args.placement, "stack": stack_path.name, "lockstep": args.lockstep,
+                            "profile": dataclasses.asdict(p), "emulator": hosts.method, "forwarder": forwarder,
+                            "keys": link_keys(log, arrivals, split, window),
                             "log_on_vehicle_side": (out / "vehicle" / LOG_NAME).exists(),
                             "log_bytes": log_path.stat().st_size}
+    if metrics.get("duration_s"):
+        metrics["two_hosts"]["wall_per_sim_s"] = timing["flight wall s"] / metrics["duration_s"]
     (out / "ground" / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
     return metrics
 
@@ -277,13 +517,14 @@ def fly_one_host(mission, args, out: Path) -> tuple[dict | None, float]:
     out.mkdir(parents=True, exist_ok=True)
     for name in (LOG_NAME, "metrics.json"):
         (out / name).unlink(missing_ok=True)
-    argv = [sys.executable, "-m", "deploy.cli", "fly", "--stack", str(STACK), "--mission", str(mission.path),
-            "--seed", str(args.seed), "--out", str(out)]
+    argv = [sys.executable, "-m", "deploy.cli", "fly", "--stack", str(STACKS[args.placement]), "--mission",
+            str(mission.path), "--seed", str(args.seed), "--out", str(out), "--no-plots",
+            *(["--lockstep"] if args.lockstep else [])]
     t0 = time.monotonic()
     with open(out / "fly.out", "w") as f:
         proc = subprocess.Popen(argv, cwd=ROOT, stdout=f, stderr=subprocess.STDOUT)
         try:
-            proc.wait(timeout=mission.timeout_s * 1.5 + 180)
+            proc.wait(timeout=mission.timeout_s * (20.0 if args.lockstep else 1.5) + 180)
         except BaseException:  # Ctrl-C reaches it too; SIGTERM or a timeout: tell it, it stops its services
             proc.send_signal(signal.SIGTERM)
             proc.wait(60)
@@ -294,8 +535,19 @@ def fly_one_host(mission, args, out: Path) -> tuple[dict | None, float]:
               file=sys.stderr)
         return None, took
     # as the two-host flight's: up to the simulator's end (metrics.json is `zenpilot fly`'s own, whole log)
-    info = {"mission": mission.name, "mode": "realtime", "seed": args.seed, "vehicle": mission.vehicle}
-    return flight_metrics(out / LOG_NAME, info, load_stack(STACK).vehicle_id)[0], took
+    info = {"mission": mission.name, "mode": "lockstep" if args.lockstep else "realtime", "seed": args.seed,
+            "vehicle": mission.vehicle}
+    return flight_metrics(out / LOG_NAME, info, load_stack(STACKS[args.placement]).vehicle_id)[0], took
+
+
+def same_flight(a: Path, b: Path) -> dict:
+    """Two lockstep logs, message for message, on every key but health (wall-clock rates) and what
+    the MAVLink bridge sends (it lives on the wall clock, and `zenpilot fly --lockstep` leaves it out)."""
+    la, lb = read_log(a), read_log(b)
+    skip = ("/health", "/mavlink/", "planner/command", "planner/mission", "param/set")
+    keys = sorted(k for k in set(la) | set(lb) if not any(x in k for x in skip))
+    differ = [k for k in keys if la.get(k) != lb.get(k)]
+    return {"keys": len(keys), "messages": sum(len(la.get(k, [])) for k in keys), "differ": differ}
 
 
 # ---------------------------------------------------------------- report
@@ -348,49 +600,78 @@ def table(two: dict, one: dict | None) -> str:
     return "\n".join(lines)
 
 
-def main(argv=None) -> int:
+def key_table(keys: dict) -> str:
+    """Per key that crossed the link: where to, messages, latency (arrival - header time), lost."""
+    lines = [f"{'key':<26} {'to':<8} {'msgs':>6} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8} {'lost':>6} {'lost %':>7}"]
+    for key in sorted(keys, key=lambda k: (keys[k]["to"], k)):
+        r, lat = keys[key], keys[key].get("latency_ms", {})
+        pct = 100.0 * r["lost"] / r["expected"] if r.get("expected") else None
+        lines.append(f"{key.split('/', 2)[-1]:<26} {r['to']:<8} {r.get('n', r.get('expected', 0)):>6} "
+                     f"{_fmt(lat.get('p50')):>8} {_fmt(lat.get('p99')):>8} {_fmt(lat.get('max')):>8} "
+                     f"{r['lost']:>6} {_fmt(pct):>7}")
+    return "\n".join(lines)
+
+
+def resolve_mission(name: str):
+    if not name.endswith(".toml") and not (ROOT / "deploy" / "missions" / f"{name}.toml").exists() \
+            and (TEST_MISSIONS / f"{name}.toml").exists():
+        name = str(TEST_MISSIONS / f"{name}.toml")
+    mission = load_mission(name)
+    return dataclasses.replace(mission, path=str(Path(mission.path).resolve()))
+
+
+def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--mission", default="hover",
                    help="mission name (deploy/missions, then tests/integration/missions) or file (default hover)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--delay-ms", type=float, default=0.0, help="tc netem delay on each direction of the link")
-    p.add_argument("--loss-pct", type=float, default=0.0, help="tc netem loss on each direction of the link")
-    p.add_argument("--out", help="output directory (default runs/two-hosts-<mission>-seed<N>)")
+    p.add_argument("--link", type=parse_profile, default=PROFILES["none"],
+                   help="the link: none (a plain veth pair), lan (20 +- 5 ms, 1 %% loss each way), "
+                        "bad (50 +- 20 ms, 5 %%), or DELAY_MS/JITTER_MS/LOSS_PCT")
+    p.add_argument("--emulator", choices=("auto", "netem", "forwarder"), default="auto",
+                   help="what impairs the link: tc netem where the kernel has it (auto), else the forwarder "
+                        "(bench/support/linkemu.py in a third namespace)")
+    p.add_argument("--link-seed", type=int, default=0, help="the forwarder's random seed (delays, losses)")
+    p.add_argument("--placement", choices=tuple(STACKS), default="vehicle",
+                   help="vehicle: one router on the vehicle, only the recorder on the ground (two-hosts.toml); "
+                        "ground: a router per host, planner, recorder and MAVLink on the ground (two-hosts-ground.toml)")
+    p.add_argument("--lockstep", action="store_true", help="lockstep instead of real time")
+    p.add_argument("--out", help="output directory (default runs/two-hosts-<mission>-<placement>-<link>-<mode>-seed<N>)")
     p.add_argument("--no-one-host", action="store_true", help="skip the one-host comparison flight")
-    args = p.parse_args(argv)
-    print("two_hosts: " + shlex.join([sys.executable, *sys.argv]), flush=True)
+    return p
 
-    name = args.mission
-    if not name.endswith(".toml") and not (ROOT / "deploy" / "missions" / f"{name}.toml").exists() \
-            and (TEST_MISSIONS / f"{name}.toml").exists():
-        name = str(TEST_MISSIONS / f"{name}.toml")
+
+def main(argv=None) -> int:
+    args = parser().parse_args(argv)
+    print("two_hosts: " + shlex.join([sys.executable, *sys.argv]), flush=True)
     try:
-        mission = load_mission(name)
+        mission = resolve_mission(args.mission)
     except MissionError as exc:
         print(f"two_hosts: error: {exc}", file=sys.stderr)
         return 2
-    mission = dataclasses.replace(mission, path=str(Path(mission.path).resolve()))
-    out = Path(args.out or ROOT / "runs" / f"two-hosts-{mission.name}-seed{args.seed}").resolve()
+    mode = "lockstep" if args.lockstep else "realtime"
+    profile = args.link
+    out = Path(args.out or ROOT / "runs" / f"two-hosts-{mission.name}-{args.placement}-"
+               f"{profile.name.replace('/', '_')}-{mode}-seed{args.seed}").resolve()
     out.mkdir(parents=True, exist_ok=True)
-    default, split = load_stack(), load_stack(STACK)
+    stack_path = STACKS[args.placement]
+    default, split = load_stack(), load_stack(stack_path)
     drift = [n for n in set(default.services) | set(split.services)
              if n not in default.services or n not in split.services
              or dataclasses.replace(default.services[n], machine="") != dataclasses.replace(split.services[n], machine="")]
     if drift:
-        print(f"two_hosts: warning: {STACK.name} no longer matches the default stack for: {', '.join(sorted(drift))}",
-              file=sys.stderr)
+        print(f"two_hosts: warning: {stack_path.name} no longer matches the default stack for: "
+              f"{', '.join(sorted(drift))}", file=sys.stderr)
 
-    hosts = TwoHosts(str(os.getpid()), args.delay_ms, args.loss_pct)
+    hosts = TwoHosts(str(os.getpid()), profile, args.emulator, args.link_seed, out)
     signal.signal(signal.SIGTERM, _stop)
     two = one = None
     code = 0
     try:
         hosts.open()
-        netem = (f"netem delay {args.delay_ms:g} ms, loss {args.loss_pct:g} % each way"
-                 if args.delay_ms or args.loss_pct else "no netem")
-        print(f"two_hosts: {mission.name} ({mission.vehicle}, real time, seed {args.seed}); vehicle netns "
-              f"{hosts.ns['vehicle']} {VEHICLE_IP} <-veth-> ground netns {hosts.ns['ground']} {GROUND_IP}; {netem}; "
-              f"router {ROUTER} -> {out}; load average {os.getloadavg()[0]:.1f} "
+        print(f"two_hosts: {mission.name} ({mission.vehicle}, {mode}, seed {args.seed}); placement {args.placement} "
+              f"({stack_path.name}); vehicle netns {hosts.ns['vehicle']} {VEHICLE_IP} <-{hosts.method}-> ground netns "
+              f"{hosts.ns['ground']} {GROUND_IP}; link {profile}; -> {out}; load average {os.getloadavg()[0]:.1f} "
               f"(other work on these {os.cpu_count()} CPUs skews a real-time flight)", flush=True)
         two = fly_two_hosts(hosts, mission, args, out)
     except (BenchError, subprocess.TimeoutExpired) as exc:
@@ -416,7 +697,7 @@ def main(argv=None) -> int:
             print(f"two_hosts: error: left behind: {', '.join(left)}", file=sys.stderr)
             code = 2
         elif hosts.created:
-            print(f"two_hosts: removed {', '.join(hosts.created)} (and the veth pair); no process left in them",
+            print(f"two_hosts: removed {', '.join(hosts.created)} (and their veth pairs); no process left in them",
                   flush=True)
     if two is None:
         return code or 2
@@ -429,24 +710,42 @@ def main(argv=None) -> int:
             one, one_took = fly_one_host(mission, args, out / "one-host")
         except (KeyboardInterrupt, Stop, subprocess.TimeoutExpired):
             print("two_hosts: one-host flight interrupted", file=sys.stderr)
-    two["planner_build_s"] = planner_build_s(out / "vehicle" / "logs")
+    two["planner_build_s"] = planner_build_s(out / "vehicle" / "logs") or planner_build_s(out / "ground" / "logs")
     if one is not None:
         one["planner_build_s"] = planner_build_s(out / "one-host" / "logs")
     th = two["two_hosts"]
+    if args.lockstep and one is not None:
+        th["same_as_one_host"] = same_flight(out / "ground" / LOG_NAME, out / "one-host" / LOG_NAME)
+        (out / "ground" / "metrics.json").write_text(json.dumps(two, indent=2, sort_keys=True) + "\n")
     print()
     print(table(two, one))
+    print()
+    print(f"across the link ({profile}, {th['emulator']}; latency = arrival - header time, real time only; "
+          f"lost = sequence gaps up to the simulator's end):")
+    print(key_table(th["keys"]))
     print()
     t = th["timing"]
     if th["status"]:
         print("`zenpilot status` on the ground, mid-flight (the recorder does not log its own health):")
         print("  " + th["status"].replace("\n", "\n  "))
     print("two hosts, wall s: " + ", ".join(f"{k[:-2]} {v:.1f}" for k, v in t.items())
-          + (f"; one host: `zenpilot fly` {one_took:.1f}" if one_took else ""))
+          + (f"; one host: `zenpilot fly` {one_took:.1f}" if one_took else "")
+          + (f"; {th['wall_per_sim_s']:.2f} s of wall time per simulated s" if th.get("wall_per_sim_s") else ""))
+    if "same_as_one_host" in th:
+        same = th["same_as_one_host"]
+        print(f"lockstep: {same['messages']} messages on {same['keys']} keys (health and MAVLink aside) "
+              + ("identical to the one-host flight's" if not same["differ"] else
+                 f"DIFFER from the one-host flight's on {', '.join(same['differ'])}"))
     link, flight_s = th["link"], t["flight wall s"]
     if link:
         print(f"link (ground end): received {link['rx_bytes'] / 1e6:.1f} MB in {link['rx_packets']} packets, "
               f"sent {link['tx_bytes'] / 1e6:.1f} MB in {link['tx_packets']} packets "
               f"(~{8 * link['rx_bytes'] / 1e6 / max(flight_s, 1e-9):.1f} Mbit/s to the ground over the flight)")
+    if th["forwarder"]:
+        f = th["forwarder"]
+        print(f"forwarder: {f['cpu_s']:.1f} CPU s over {f['wall_s']:.0f} s, {f['cpu_us_per_frame']} us per frame; " +
+              "; ".join(f"{k}: {d['received']} frames, {d['dropped']} dropped, delay given p50 {d['delay_ms']['p50']} "
+                        f"p99 {d['delay_ms']['p99']} ms" for k, d in f["directions"].items()))
     for host, s in th["sockets"].items():
         print(f"{host}: {s['tcp_across_link']} TCP connections across the link, {s['tcp_local']} on its loopback; "
               f"UDP sockets {s['udp'] or 'none'}; on port 7446: {s['udp_7446']}; "
