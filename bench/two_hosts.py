@@ -411,17 +411,13 @@ def link_keys(log: dict, probes: dict, stack, t_window: tuple[float, float] | No
             out[key] = {"to": host, "n": len(rows), "latency_ms": {"p50": _q(lat, 0.5), "p99": _q(lat, 0.99),
                                                                     "max": lat[-1] if lat else None},
                         "lost_probe": sum(x[0] for x in lost), "expected_probe": sum(x[1] for x in lost)}
+    lost = log_loss(log, (lo, hi))
     for key, msgs in log.items():
         sources = {m["header"]["source"] for m in msgs}
-        if not sources or sources <= ground:   # written by the ground's own services: not across the link
+        if not sources or sources <= ground or not lost[key][1]:   # the ground's own, or nothing in the flight
             continue
-        by_source = {}
-        for m in msgs:
-            if lo <= m["header"]["t_s"] <= hi:
-                by_source.setdefault(m["header"]["source"], []).append(m["header"]["seq"])
-        lost = [seq_loss(v) for v in by_source.values()]
         row = out.setdefault(key, {"to": "ground"})
-        row["lost"], row["expected"] = sum(x[0] for x in lost), sum(x[1] for x in lost)
+        row["lost"], row["expected"] = lost[key]
     for row in out.values():   # the vehicle's incoming keys: no log there, the probe's count stands
         if "lost" not in row:
             row["lost"], row["expected"] = row.get("lost_probe", 0), row.get("expected_probe", 0)
@@ -537,7 +533,23 @@ def fly_one_host(mission, args, out: Path) -> tuple[dict | None, float]:
     # as the two-host flight's: up to the simulator's end (metrics.json is `zenpilot fly`'s own, whole log)
     info = {"mission": mission.name, "mode": "lockstep" if args.lockstep else "realtime", "seed": args.seed,
             "vehicle": mission.vehicle}
-    return flight_metrics(out / LOG_NAME, info, load_stack(STACKS[args.placement]).vehicle_id)[0], took
+    m, _, log, window = flight_metrics(out / LOG_NAME, info, load_stack(STACKS[args.placement]).vehicle_id, full=True)
+    m["lost_per_key"] = {k: r for k, r in log_loss(log, window).items() if r[1]}
+    return m, took
+
+
+def log_loss(log: dict, window: tuple[float, float]) -> dict[str, tuple[int, int]]:
+    """{key: (lost, expected)} from a flight log's sequence gaps, per sender, within the window."""
+    lo, hi = window
+    out = {}
+    for key, msgs in log.items():
+        by_source: dict[str, list[int]] = {}
+        for m in msgs:
+            if lo <= m["header"]["t_s"] <= hi:
+                by_source.setdefault(m["header"]["source"], []).append(m["header"]["seq"])
+        lost = [seq_loss(v) for v in by_source.values()]
+        out[key] = (sum(x[0] for x in lost), sum(x[1] for x in lost))
+    return out
 
 
 def same_flight(a: Path, b: Path) -> dict:
@@ -600,15 +612,21 @@ def table(two: dict, one: dict | None) -> str:
     return "\n".join(lines)
 
 
-def key_table(keys: dict) -> str:
-    """Per key that crossed the link: where to, messages, latency (arrival - header time), lost."""
-    lines = [f"{'key':<26} {'to':<8} {'msgs':>6} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8} {'lost':>6} {'lost %':>7}"]
+def key_table(keys: dict, one: dict | None = None) -> str:
+    """Per key that crossed the link: where to, messages, latency (arrival - header time), lost;
+    and lost in the one-host flight's log."""
+    one = (one or {}).get("lost_per_key", {})
+    lines = [f"{'key':<26} {'to':<8} {'msgs':>6} {'p50 ms':>8} {'p99 ms':>8} {'max ms':>8} {'lost':>6} {'lost %':>7}"
+             f" {'1 host %':>8}"]
     for key in sorted(keys, key=lambda k: (keys[k]["to"], k)):
         r, lat = keys[key], keys[key].get("latency_ms", {})
+        if not r.get("expected") and not r.get("n"):
+            continue
         pct = 100.0 * r["lost"] / r["expected"] if r.get("expected") else None
+        one_pct = 100.0 * one[key][0] / one[key][1] if key in one else None
         lines.append(f"{key.split('/', 2)[-1]:<26} {r['to']:<8} {r.get('n', r.get('expected', 0)):>6} "
                      f"{_fmt(lat.get('p50')):>8} {_fmt(lat.get('p99')):>8} {_fmt(lat.get('max')):>8} "
-                     f"{r['lost']:>6} {_fmt(pct):>7}")
+                     f"{r['lost']:>6} {_fmt(pct):>7} {_fmt(one_pct):>8}")
     return "\n".join(lines)
 
 
@@ -716,13 +734,16 @@ def main(argv=None) -> int:
     th = two["two_hosts"]
     if args.lockstep and one is not None:
         th["same_as_one_host"] = same_flight(out / "ground" / LOG_NAME, out / "one-host" / LOG_NAME)
+    if one is not None:
+        th["one_host"] = {k: one.get(k) for k in ("completed", "crashed", "position_rms_m", "max_position_error_m",
+                                                    "duration_s", "flip", "lost_per_key", "latency_ms")}
         (out / "ground" / "metrics.json").write_text(json.dumps(two, indent=2, sort_keys=True) + "\n")
     print()
     print(table(two, one))
     print()
     print(f"across the link ({profile}, {th['emulator']}; latency = arrival - header time, real time only; "
           f"lost = sequence gaps up to the simulator's end):")
-    print(key_table(th["keys"]))
+    print(key_table(th["keys"], one))
     print()
     t = th["timing"]
     if th["status"]:
