@@ -1,31 +1,53 @@
-"""Fly a mission in real time over two hosts, and the same mission on one host, and compare.
+"""Fly a mission over two hosts, across an emulated link, and the same mission on one host, and compare.
 
-    python bench/two_hosts.py [--mission hover|flip-short|FILE] [--seed N]
-                              [--delay-ms D] [--loss-pct P] [--out DIR] [--no-one-host]
+    python bench/two_hosts.py [--mission hover|flip-short|FILE] [--seed N] [--lockstep]
+                              [--placement vehicle|ground] [--link none|lan|bad|D/J/L]
+                              [--emulator auto|netem|forwarder] [--out DIR] [--no-one-host]
 
 Two hosts are two network namespaces that this bench creates (root, `ip netns`): "vehicle"
-and "ground", joined by a veth pair (vehicle 10.77.0.1/24, ground 10.77.0.2/24), loopback up
-in each, nothing else: no route out, so nothing of the run can leave them. `--delay-ms` and
-`--loss-pct` put `tc netem` on both ends of the link (each direction is delayed by D ms and
-loses P % of its packets). The stack is tests/integration/stacks/two-hosts.toml (the default
-stack's services; the vehicle's router as its own machine so that it starts first), run with
-`zenpilot up -d` in each namespace, as on two computers:
+(10.77.0.1/24) and "ground" (10.77.0.2/24), loopback up in each, nothing else: no route out, so
+nothing of the run can leave them. The link between them (`--link`, each direction alike):
+`none` a veth pair; `lan` 20 +- 5 ms, 1 % loss; `bad` 50 +- 20 ms, 5 % loss; or
+DELAY_MS/JITTER_MS/LOSS_PCT. An impaired link is `tc netem` on both ends of the veth pair where
+the kernel has it, else (this VM) a third namespace "link" joined to each host by a veth pair,
+bench/support/linkemu.py forwarding the frames between them with the delay drawn per frame and
+the loss seeded (`--link-seed`); either way a direction keeps its packets in order.
 
+Placements (`--placement`, each a stack file; services, rates and parameters the default stack's):
+  vehicle  tests/integration/stacks/two-hosts.toml: one router, on the vehicle's link address;
+           the vehicle's services, and the ground's recorder, connect to it:
     vehicle:  zenpilot up -d --machine vehicle-router --router tcp/10.77.0.1:7447
     ground:   zenpilot up -d --machine ground --router tcp/10.77.0.1:7447      (the recorder)
     vehicle:  zenpilot up -d --machine vehicle --router tcp/10.77.0.1:7447 --mission M
               --set sim.stop_after_mission=true                                 (the flight)
+  ground   tests/integration/stacks/two-hosts-ground.toml (issue 22): sim, motors, attitude,
+           position, vision on the vehicle; planner, recorder, MAVLink bridge on the ground; a
+           router per host, each host's services on its own router, the routers linked:
+    vehicle:  zenpilot up -d --machine vehicle-router                          (listens on the link)
+    ground:   zenpilot up -d --machine ground --mission M                      (its router connects)
+    vehicle:  zenpilot up -d --machine vehicle --mission M --set sim.stop_after_mission=true
+`--lockstep` is given to every `up`.
 
 The simulator ends the run when the mission ends; the vehicle's `zenpilot down` then stops its
-services and router, the ground's stops the recorder, which writes flight.mcap on the ground
+services and router, the ground's stops its own, whose recorder writes flight.mcap on the ground
 side (<out>/ground/); the metrics (deploy.metrics, on the log up to the simulator's last
 sample: the services still running while `down` stops them one by one are the stack winding
 down, not the flight) go to <out>/ground/metrics.json (`zenpilot report <out>/ground` redraws
-the plots, on the whole log). Both flights are measured the same way. Each host has its own run directory and
-`zenpilot` state directory (the filesystem is shared, the hosts do not share it). The same
-mission is then flown on one host with `zenpilot fly` (same stack, seed, real time) into
-<out>/one-host/. Namespaces, the link and every process in them are removed at the end,
-also on an error or Ctrl-C.
+the plots, on the whole log). Each host has its own run directory and `zenpilot` state directory.
+
+What crossed the link, per key (in metrics.json under two_hosts.keys, and printed): in real time
+its latency, arrival minus header time, noted by bench/support/linkprobe.py, a client of the
+receiving host's router subscribed to the keys the other host's services publish (the header
+time is the sample time: a camera frame's includes its 50 ms exposure-to-publish latency, hence
+the `none` link as the baseline); and the messages lost, from the sequence numbers' gaps per
+sender up to the simulator's end: in the ground's flight log for the vehicle's keys, in the
+vehicle's probe for the ground's (the vehicle keeps no log). The forwarder's own account (frames,
+drops, the delay it gave, its CPU) is in <out>/link/.
+
+The same mission is then flown on one host with `zenpilot fly` (same stack, seed and mode) into
+<out>/one-host/, its per-key losses beside; in lockstep the two logs are compared message for
+message. Namespaces, the link and every process in them are removed at the end, also on an error
+or Ctrl-C.
 """
 
 from __future__ import annotations

@@ -1,10 +1,17 @@
-"""A real-time hover split over two hosts (bench/two_hosts.py): the vehicle's router and services
-in one network namespace, the ground station's recorder in another, joined by a veth pair; the
-flight log is written on the ground side and nothing is left behind. About 50 s; needs root."""
+"""Real-time flights split over two hosts (bench/two_hosts.py), each host a network namespace:
+
+- a hover with the vehicle's router and services in one, the ground station's recorder in the
+  other, joined by a veth pair; the flight log is written on the ground side (about 50 s);
+- a short hover across an emulated `lan` link (20 +- 5 ms, 1 % loss each way: tc netem, or
+  bench/support/linkemu.py in a third namespace where the kernel has no netem) with the issue's
+  placement: planner, recorder and MAVLink bridge on the ground, a router per host (about 40 s).
+
+Nothing is left behind; needs root."""
 
 import json
 import os
 import re
+import time
 import shutil
 import signal
 import subprocess
@@ -66,3 +73,49 @@ def test_hover_over_two_hosts(tmp_path):
     assert link["sockets"]["ground"]["tcp_across_link"] >= 1, out
     for host in ("vehicle", "ground"):
         assert link["sockets"][host]["udp_7446"] == 0 and not link["sockets"][host]["scouting_group_joined"], out
+
+
+def test_short_hover_across_a_lossy_link_with_the_planner_on_the_ground(tmp_path):
+    refused = _netns_refused()
+    if refused:
+        pytest.skip(refused)
+    t0 = time.monotonic()
+    bench = subprocess.Popen([sys.executable, str(ROOT / "bench" / "two_hosts.py"), "--mission", "hover-short",
+                              "--placement", "ground", "--link", "lan", "--no-one-host", "--out", str(tmp_path)],
+                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        out, _ = bench.communicate(timeout=240)
+    except subprocess.TimeoutExpired:
+        bench.send_signal(signal.SIGTERM)  # the bench removes its namespaces and processes
+        out, _ = bench.communicate(timeout=120)
+        pytest.fail("the flight across the link did not finish in 240 s:\n" + out)
+    took = time.monotonic() - t0
+    assert bench.returncode == 0, out
+    namespaces = re.findall(r"removed (zp\d+-vehicle), (zp\d+-ground)(?:, (zp\d+-link))?", out)
+    assert namespaces, out
+    assert not {n for n in namespaces[0] if n} & set(subprocess.run(["ip", "netns", "list"], capture_output=True,
+                                                                     text=True).stdout.split()), "left behind"
+
+    metrics = json.loads((tmp_path / "ground" / "metrics.json").read_text())
+    assert metrics["completed"] and not metrics["crashed"], out
+    link = metrics["two_hosts"]
+    assert link["emulator"] in ("netem", "forwarder") and link["placement"] == "ground", out
+    # the issue's placement: planner, recorder, bridge ran on the ground, the control path on the vehicle
+    assert {p.stem for p in (tmp_path / "ground" / "logs").glob("*.log")} >= {"planner", "recorder", "mavlink", "router"}
+    assert not {"planner", "recorder", "mavlink"} & {p.stem for p in (tmp_path / "vehicle" / "logs").glob("*.log")}
+    # only the two routers' link crosses: every service talks to its own host's router
+    for host in ("vehicle", "ground"):
+        assert link["sockets"][host]["tcp_across_link"] == 1, link["sockets"]
+        assert link["sockets"][host]["udp_7446"] == 0 and not link["sockets"][host]["scouting_group_joined"], out
+    # the delay was really there, both ways: the ground's inputs and the vehicle's setpoints came
+    # late by at least the link's 15 ms minimum (on loopback they take ~1-2 ms)
+    keys = link["keys"]
+    assert keys["zp/0/pos/state"]["to"] == "ground" and keys["zp/0/planner/setpoint"]["to"] == "vehicle"
+    for key in ("zp/0/pos/state", "zp/0/sim/imu", "zp/0/planner/setpoint"):
+        assert keys[key]["n"] > 100 and keys[key]["latency_ms"]["p50"] >= 15.0, (key, keys[key])
+    if link["emulator"] == "forwarder":   # and the losses: frames dropped each way
+        assert all(d["dropped"] > 0 and 15.0 <= d["delay_ms"]["p50"] <= 40.0
+                   for d in link["forwarder"]["directions"].values()), link["forwarder"]
+    print(f"across lan in {took:.0f} s: " + ", ".join(
+        f"{k.split('/', 2)[-1]} p50 {keys[k]['latency_ms']['p50']:.0f} ms, lost {keys[k]['lost']}/{keys[k]['expected']}"
+        for k in ("zp/0/pos/state", "zp/0/planner/setpoint")))
