@@ -455,7 +455,7 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
         (out / host).mkdir(parents=True, exist_ok=True)
         # a previous run's results and `up -d` state (its pids) must not be taken for this run's
         shutil.rmtree(out / host / "state", ignore_errors=True)
-        for name in (LOG_NAME, "metrics.json", "linkprobe.json"):
+        for name in (LOG_NAME, "metrics.json", "linkprobe.json", "supervisor.json"):
             (out / host / name).unlink(missing_ok=True)
     # the vehicle placement: one router on the vehicle's link address, everyone its client; the
     # ground placement: each host's services on its own router (the stack's), the routers linked
@@ -476,15 +476,27 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
                                          "--router", router, "--out", str(out / "vehicle"), "--seed", str(args.seed),
                                          "--mission", str(mission.path), "--set", "sim.stop_after_mission=true",
                                          *lockstep, timeout=300)
-    pids = {}
-    for host, machine in (("vehicle", "vehicle"), ("ground", "ground")):
-        state, = (out / host / "state").glob(f"*/up-{machine}.json")   # one folder per stack (its router)
-        pids.update(json.loads(state.read_text())["pids"])
-    pids.pop("router", None)   # the ground placement's ground router: not a service
+    def service_pids() -> dict[str, int]:
+        """As each host's `up -d` keeps them: a service its supervisor restarted has a new pid."""
+        pids = {}
+        for host, machine in (("vehicle", "vehicle"), ("ground", "ground")):
+            state, = (out / host / "state").glob(f"*/up-{machine}.json")   # one folder per stack (its router)
+            try:
+                pids.update(json.loads(state.read_text())["pids"])
+            except ValueError:   # being rewritten (atomically, but read between two checks): next time
+                pass
+        pids.pop("router", None)   # the ground placement's ground router: not a service
+        return pids
+
+    pids = service_pids()
     limit = mission.timeout_s * (20.0 if args.lockstep else 1.5) + 60.0
     deadline, sampled, status = time.monotonic() + limit, None, ""
     while _running(pids["sim"]):
         dead = [n for n in pids if n != "sim" and not _running(pids[n])]
+        if dead:   # dead, or restarted by its supervisor since the last look
+            time.sleep(0.5)
+            pids = service_pids()
+            dead = [n for n in pids if n != "sim" and not _running(pids[n])]
         if dead:
             raise BenchError(f"service(s) stopped during the flight: {', '.join(dead)} "
                              f"(logs in {out / 'vehicle' / 'logs'} and {out / 'ground' / 'logs'})")
@@ -519,7 +531,16 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
     metrics, _, log, window = flight_metrics(log_path, info, split.vehicle_id, full=True)
     timing["metrics s"] = time.monotonic() - t0
     p = hosts.profile
+    supervised = {}
+    for host in ("vehicle", "ground"):   # what each host's supervisor did: restarts, hangs
+        try:
+            for name, w in json.loads((out / host / "supervisor.json").read_text())["services"].items():
+                if w["restarts"] or w["hangs"] or w["exits"]:
+                    supervised[name] = {k: w[k] for k in ("restarts", "hangs", "silences", "stucks", "exits")}
+        except (OSError, ValueError, KeyError):
+            pass
     metrics["two_hosts"] = {"link": link, "sockets": sampled, "timing": timing, "status": status,
+                            "supervisor": supervised,
                             "placement": args.placement, "stack": stack_path.name, "lockstep": args.lockstep,
                             "profile": dataclasses.asdict(p), "emulator": hosts.method, "forwarder": forwarder,
                             "keys": link_keys(log, arrivals, split, window),
@@ -774,6 +795,8 @@ def main(argv=None) -> int:
     print("two hosts, wall s: " + ", ".join(f"{k[:-2]} {v:.1f}" for k, v in t.items())
           + (f"; one host: `zenpilot fly` {one_took:.1f}" if one_took else "")
           + (f"; {th['wall_per_sim_s']:.2f} s of wall time per simulated s" if th.get("wall_per_sim_s") else ""))
+    if th.get("supervisor"):
+        print("supervisors: " + "; ".join(f"{n} {w}" for n, w in th["supervisor"].items()))
     if "same_as_one_host" in th:
         same = th["same_as_one_host"]
         print(f"lockstep: {same['messages']} messages on {same['keys']} keys (health and MAVLink aside) "
