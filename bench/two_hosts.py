@@ -119,6 +119,7 @@ def parse_profile(text: str) -> LinkProfile:
     if d < 0 or j < 0 or not 0 <= loss <= 100 or j > d:
         raise argparse.ArgumentTypeError(f"{text!r}: delay >= jitter >= 0 and loss within 0..100")
     return LinkProfile(text, d, j, loss)
+RESTART_GRACE_S = 10.0   # a supervisor's back-off (at most 8 s, deploy/supervisor.py) and a start
 WALL_CLOCK_FIELDS = ("solve_ms", "overrun_solves")   # the wall clock's, even in lockstep (planner/plan)
 SCOUTING_GROUP = "224.0.0.224"  # Zenoh's multicast scouting group (port 7446)
 SERVICES = ("sim", "motors", "attitude", "position", "vision", "planner", "mavlink")
@@ -492,12 +493,19 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
     pids = service_pids()
     limit = mission.timeout_s * (20.0 if args.lockstep else 1.5) + 60.0
     deadline, sampled, status = time.monotonic() + limit, None, ""
+    down_since: dict[str, float] = {}
     while _running(pids["sim"]):
-        dead = [n for n in pids if n != "sim" and not _running(pids[n])]
-        if dead:   # dead, or restarted by its supervisor since the last look
-            time.sleep(0.5)
+        # a service not running for RESTART_GRACE_S on end: its supervisor did not bring it back
+        # (a kill and restart takes it a back-off and a start; the state file then has the new pid)
+        now = time.monotonic()
+        if any(not _running(p) for p in pids.values()):
             pids = service_pids()
-            dead = [n for n in pids if n != "sim" and not _running(pids[n])]
+        for n, pid in pids.items():
+            if n == "sim" or _running(pid):
+                down_since.pop(n, None)
+            else:
+                down_since.setdefault(n, now)
+        dead = [n for n, t in down_since.items() if now - t > RESTART_GRACE_S]
         if dead:
             raise BenchError(f"service(s) stopped during the flight: {', '.join(dead)} "
                              f"(logs in {out / 'vehicle' / 'logs'} and {out / 'ground' / 'logs'})")
