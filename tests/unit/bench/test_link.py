@@ -1,0 +1,95 @@
+"""The link emulator's rules (bench/support/linkemu.py: delay drawn per frame, loss, order) on fake
+sockets, and the bench's link profiles and loss count (bench/two_hosts.py)."""
+
+import argparse
+
+import pytest
+
+from bench.support.linkemu import PACKET_OUTGOING, Direction
+from bench.two_hosts import PROFILES, parse_profile, seq_loss
+
+HOST = 0   # sll_pkttype of a frame for this host
+
+
+class FakeSocket:
+    def __init__(self):
+        self.waiting, self.sent = [], []
+
+    def recvfrom(self, _n):
+        if not self.waiting:
+            raise BlockingIOError
+        return self.waiting.pop(0)
+
+    def send(self, frame):
+        self.sent.append(frame)
+
+
+def run(direction: Direction, n: int, gap_s: float, src: FakeSocket, kind: int = HOST) -> list[tuple[float, bytes]]:
+    """n frames, one every gap_s; returns (departure, frame) as the forwarder sends them."""
+    out, t = [], 0.0
+    for i in range(n):
+        src.waiting.append((i.to_bytes(4, "big"), ("veth", 3, kind, 1, b"")))
+        direction.take(t)
+        t += gap_s
+        before = len(direction.dst.sent)
+        direction.send_due(t)
+        out += [(t, f) for f in direction.dst.sent[before:]]
+    for _ in range(1000):   # the frames still in flight, as time goes on
+        t += gap_s
+        before = len(direction.dst.sent)
+        direction.send_due(t)
+        out += [(t, f) for f in direction.dst.sent[before:]]
+    return out
+
+
+def make(loss=0.0, seed=0, reorder=False, delay_s=0.020, jitter_s=0.005):
+    src, dst = FakeSocket(), FakeSocket()
+    return Direction("a->b", src, dst, delay_s, jitter_s, loss, seed, reorder), src
+
+
+def test_frames_keep_their_order_and_get_the_drawn_delay():
+    d, src = make()
+    sent = run(d, 2000, 0.002, src)   # frames 2 ms apart, jitter +-5 ms: a draw may be shorter than the one before
+    order = [int.from_bytes(f, "big") for _, f in sent]
+    assert order == sorted(order) and len(order) == 2000
+    delays = sorted(d.delays)
+    assert 0.015 <= delays[0] and delays[-1] <= 0.025 + 0.002 + 1e-9   # within the draw, and the 2 ms step of the test
+    assert delays[len(delays) // 2] > 0.020   # kept in order, a frame waits for the slower one before it
+
+
+def test_reorder_lets_a_shorter_draw_overtake():
+    d, src = make(reorder=True)
+    order = [int.from_bytes(f, "big") for _, f in run(d, 2000, 0.002, src)]
+    assert sorted(order) == list(range(2000)) and order != sorted(order)
+
+
+def test_loss_is_seeded_and_near_its_rate():
+    lost = []
+    for seed in (1, 1, 2):
+        d, src = make(loss=0.05, seed=seed)
+        kept = {int.from_bytes(f, "big") for _, f in run(d, 20000, 0.001, src)}
+        assert d.dropped == 20000 - len(kept)
+        lost.append(set(range(20000)) - kept)
+    assert lost[0] == lost[1] != lost[2]
+    assert 0.04 < len(lost[0]) / 20000 < 0.06
+
+
+def test_frames_the_host_sent_itself_are_not_forwarded():
+    d, src = make(jitter_s=0.0)
+    assert run(d, 10, 0.001, src, kind=PACKET_OUTGOING) == [] and d.received == 0
+
+
+def test_profiles():
+    assert (PROFILES["lan"].delay_ms, PROFILES["lan"].jitter_ms, PROFILES["lan"].loss_pct) == (20.0, 5.0, 1.0)
+    assert (PROFILES["bad"].delay_ms, PROFILES["bad"].jitter_ms, PROFILES["bad"].loss_pct) == (50.0, 20.0, 5.0)
+    assert not PROFILES["none"].impaired and parse_profile("none") is PROFILES["none"]
+    assert parse_profile("30/10/2").delay_ms == 30.0
+    for bad in ("fast", "30/10", "5/10/1", "30/10/101", "-1/0/0"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            parse_profile(bad)
+
+
+def test_seq_loss_counts_the_gaps():
+    assert seq_loss([]) == (0, 0)
+    assert seq_loss([5, 6, 7]) == (0, 3)
+    assert seq_loss([5, 7, 7, 10]) == (3, 6)   # 6, 8, 9 missing; a repeat is not a message more
