@@ -464,7 +464,8 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
     router = {"vehicle": ROUTER, "ground": LOCAL_ROUTER}[args.placement]
     _, timing["up vehicle-router s"] = zenpilot(hosts, "vehicle", out, "up", "-d", "--stack", stack,
                                                 "--machine", "vehicle-router", "--router", router,
-                                                "--out", str(out / "vehicle"))
+                                                # its own run folder: two `up`s in one race on its supervisor.json
+                                                "--out", str(out / "vehicle" / "router"))
     # the mission: the ground's planner flies it (ground placement), the recorder draws its airframe
     ground_args = ["--mission", str(mission.path), "--seed", str(args.seed), *lockstep]
     _, timing["up ground s"] = zenpilot(hosts, "ground", out, "up", "-d", "--stack", stack, "--machine", "ground",
