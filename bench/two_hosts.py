@@ -448,6 +448,19 @@ def link_keys(log: dict, probes: dict, stack, t_window: tuple[float, float] | No
     return out
 
 
+def wait_beating(supervisor_json: Path, name: str, timeout_s: float) -> float:
+    """Until the service's loop beats (its supervisor counts the beats: deploy/supervisor.py)."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout_s:
+        try:
+            if json.loads(supervisor_json.read_text())["services"][name]["beats"] > 0:
+                return time.monotonic() - t0
+        except (OSError, ValueError, KeyError):
+            pass
+        time.sleep(0.2)
+    raise BenchError(f"{name} did not start its loop within {timeout_s:.0f} s (see {supervisor_json.parent / 'logs'})")
+
+
 def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
     timing, stack_path = {}, STACKS[args.placement]
     stack = str(stack_path)
@@ -470,6 +483,11 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
     ground_args = ["--mission", str(mission.path), "--seed", str(args.seed), *lockstep]
     _, timing["up ground s"] = zenpilot(hosts, "ground", out, "up", "-d", "--stack", stack, "--machine", "ground",
                                         "--router", router, "--out", str(out / "ground"), *ground_args, timeout=300)
+    if not args.lockstep and "planner" in split.services and split.services["planner"].machine == "ground":
+        # real time: the vehicle's simulator starts flying at once; the ground's planner must be
+        # flying-ready first (its JAX build and flip prediction take 5-30 s on a loaded machine),
+        # as an operator waits for `zenpilot status` to show it running
+        timing["ground planner ready s"] = wait_beating(out / "ground" / "supervisor.json", "planner", 180.0)
     probes = Probes(hosts, out)
     if not args.lockstep:   # arrival - header time is a latency only when headers are wall-clock times
         probes.start("ground", router, incoming_keys(split, {"ground"}))
