@@ -563,7 +563,7 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
     for host in ("vehicle", "ground"):   # what each host's supervisor did: restarts, hangs
         try:
             for name, w in json.loads((out / host / "supervisor.json").read_text())["services"].items():
-                if w["restarts"] or w["hangs"] or w["exits"]:
+                if w["restarts"] or w["hangs"]:   # (an exit alone: the simulator ending the flight)
                     supervised[name] = {k: w[k] for k in ("restarts", "hangs", "silences", "stucks", "exits")}
         except (OSError, ValueError, KeyError):
             pass
