@@ -26,6 +26,8 @@ Placements (`--placement`, each a stack file; services, rates and parameters the
     vehicle:  zenpilot up -d --machine vehicle-router                          (listens on the link)
     ground:   zenpilot up -d --machine ground --mission M                      (its router connects)
     vehicle:  zenpilot up -d --machine vehicle --mission M --set sim.stop_after_mission=true
+  telemetry  tests/integration/stacks/two-hosts-telemetry.toml: as ground, with the planner on the
+           vehicle (the ground: recorder and MAVLink bridge only); started the same way.
 `--lockstep` is given to every `up`.
 
 The simulator ends the run when the mission ends; the vehicle's `zenpilot down` then stops its
@@ -77,6 +79,7 @@ from services.stack import load_mission, load_stack  # noqa: E402
 STACKS = {   # --placement: the stack file that places the services
     "vehicle": ROOT / "tests" / "integration" / "stacks" / "two-hosts.toml",          # ground: the recorder
     "ground": ROOT / "tests" / "integration" / "stacks" / "two-hosts-ground.toml",    # ground: planner, recorder, mavlink
+    "telemetry": ROOT / "tests" / "integration" / "stacks" / "two-hosts-telemetry.toml",  # ground: recorder, mavlink
 }
 STACK = STACKS["vehicle"]
 TEST_MISSIONS = ROOT / "tests" / "integration" / "missions"
@@ -474,7 +477,7 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
             (out / host / name).unlink(missing_ok=True)
     # the vehicle placement: one router on the vehicle's link address, everyone its client; the
     # ground placement: each host's services on its own router (the stack's), the routers linked
-    router = {"vehicle": ROUTER, "ground": LOCAL_ROUTER}[args.placement]
+    router = ROUTER if args.placement == "vehicle" else LOCAL_ROUTER
     _, timing["up vehicle-router s"] = zenpilot(hosts, "vehicle", out, "up", "-d", "--stack", stack,
                                                 "--machine", "vehicle-router", "--router", router,
                                                 # its own run folder: two `up`s in one race on its supervisor.json
@@ -728,7 +731,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--link-seed", type=int, default=0, help="the forwarder's random seed (delays, losses)")
     p.add_argument("--placement", choices=tuple(STACKS), default="vehicle",
                    help="vehicle: one router on the vehicle, only the recorder on the ground (two-hosts.toml); "
-                        "ground: a router per host, planner, recorder and MAVLink on the ground (two-hosts-ground.toml)")
+                        "ground: a router per host, planner, recorder and MAVLink on the ground (two-hosts-ground.toml); "
+                        "telemetry: the same with the planner on the vehicle (two-hosts-telemetry.toml)")
     p.add_argument("--lockstep", action="store_true", help="lockstep instead of real time")
     p.add_argument("--out", help="output directory (default runs/two-hosts-<mission>-<placement>-<link>-<mode>-seed<N>)")
     p.add_argument("--no-one-host", action="store_true", help="skip the one-host comparison flight")
