@@ -480,7 +480,7 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
     router = ROUTER if args.placement == "vehicle" else LOCAL_ROUTER
     _, timing["up vehicle-router s"] = zenpilot(hosts, "vehicle", out, "up", "-d", "--stack", stack,
                                                 "--machine", "vehicle-router", "--router", router,
-                                                # its own run folder: two `up`s in one race on its supervisor.json
+                                                # its own run folder: one supervisor record (supervisor.json) per machine
                                                 "--out", str(out / "vehicle" / "router"))
     # the mission: the ground's planner flies it (ground placement), the recorder draws its airframe
     ground_args = ["--mission", str(mission.path), "--seed", str(args.seed), *lockstep]
