@@ -162,7 +162,8 @@ class Simulator:
     def _queue_frame(self, tick: int, t: float, frame: dict) -> None:
         """A frame exposed at t, published camera_latency_s later (or camera_latency_step_s from
         camera_latency_step_at_s on, stamped as configured). Frames leave in the order taken,
-        as a camera's do: a shorter delay after a longer one waits for the frames before it."""
+        as a camera's do: a shorter delay after a longer one waits for the frames before it
+        (outputs() releases the queue from its head)."""
         cfg = self.config
         stamp = t
         publish = tick + self._camera_delay_ticks
@@ -170,10 +171,7 @@ class Simulator:
             publish = tick + self._camera_step_delay_ticks
             if not cfg.camera_latency_step_stamped:   # stamped as if the old delay held
                 stamp = (publish - self._camera_delay_ticks) / cfg.tick_rate_hz
-        pending = self._pending_frames
-        if pending and pending[-1][0] > publish:
-            publish = pending[-1][0]
-        pending.append((publish, stamp, frame))
+        self._pending_frames.append((publish, stamp, frame))
 
     def step(self, pwm_us, armed: bool) -> None:
         """Advance one tick with the PWM held constant (zero thrust when disarmed)."""

@@ -16,17 +16,28 @@ regressor is the innovation's sensitivity to d through the filter, as a recursiv
 prediction-error method takes it: phi = -(v + E_p), with E = d(p_hat, v_hat)/dd carried along
 the fixes (E_p += E_v dt between fixes; E += K phi at a fused fix, K the EKF's gain of that fix;
 a gated fix leaves E alone). At a constant velocity E_p -> -v and phi -> 0: what informs d is
-a change of velocity, as it should be. d is the least-squares fit of y + phi c = phi d over the
-fixes (c: the correction the fix was fused with, so the fit sees the whole offset however much
-of it is corrected already), with exponential forgetting (time constant `forget_s`), and its
-standard error is the fit's: std_d^2 = s_r^2 / sum(phi.phi), s_r^2 the residuals' mean square.
-Both come from five running sums: O(1) per fix, plain floats.
+a change of velocity, as it should be (a 1 m step of the missions: a few ms of std).
 
-The correction: once the estimate is confident (std_d below `confident_std_s`) and away from the
-correction applied by more than max(`deadband_s`, `detect_sigmas` std_d) (a detection, counted),
-the correction heads for it at `slew_s_s` at most, within +-`max_correction_s`; the position level
-fuses each fix at its stamp less the correction. With the vehicle at rest nothing is learnt, and
-nothing needs correcting: a wrong delay costs only where the vehicle moves.
+The v in phi is the filter's velocity less the sum of the camera fixes' corrections to it
+(K_v y): the velocity of the model alone (attitude and thrust), which drifts only slowly, and the
+sensitivity recursion high-passes it anyway. With the filter's own velocity the fit is biased:
+that velocity's error comes from the same fixes as the position error in y, correlated with it
+wherever the filter's process noise is above the truth's (in the unit tests' synthetic flight
++11 ms with no offset at all, and 70 ms read as 55; in the missions +5..18 ms).
+
+d is the least-squares fit of y + phi c = phi d over the fixes (c: the correction the fix was
+fused with, so the fit sees the whole offset however much of it is corrected already), with
+exponential forgetting (time constant `forget_s`), and its standard error is the fit's:
+std_d^2 = s_r^2 / sum(phi.phi), s_r^2 the residuals' mean square. Both come from four running
+sums: O(1) per fix, plain floats.
+
+The correction: an estimate confident (std_d below `confident_std_s`, `min_fixes` fitted) and
+away from the correction applied by more than max(`deadband_s`, `detect_sigmas` std_d) is a
+detection (counted). From the first one on, the correction follows the estimate whenever it is
+confident (the fit is first order in d - c: it understates a large offset and is exact near it),
+at `slew_s_s` at most, within +-`max_correction_s`; the position level fuses each fix at its
+stamp less the correction. With the vehicle at rest nothing is learnt, and nothing needs
+correcting: a wrong delay costs only where the vehicle moves.
 Pure algorithm, no I/O.
 """
 from __future__ import annotations
@@ -64,8 +75,8 @@ class CameraDelayParams(Declared):
     confident_std_s: float = declared(0.01, "s", 0.0, min_exclusive=True,
                                       doc="the offset estimate is confident when its std is below this")
     detect_sigmas: float = declared(3.0, "", 0.0, doc="an offset this many std from the correction is detected ...")
-    # the timing errors the model has anyway (its thrust and attitude against the plant's) stay
-    # inside it: up to 15 ms in the attitude-steps mission, seen as an offset the camera has not
+    # what the fit reads with no offset at all (the model's own timing errors, noise) stays inside
+    # it: up to 8 ms in the shipped missions (attitude-steps), 5 ms in the unit tests' flights
     deadband_s: float = declared(0.025, "s", 0.0, doc="... and at least this far")
     max_correction_s: float = declared(0.15, "s", 0.0, doc="the correction's bound (either sign)")
     slew_s_s: float = declared(0.1, "s/s", 0.0, min_exclusive=True, doc="the correction's rate limit")
@@ -94,11 +105,13 @@ class CameraDelayEstimator:
         # (b): E = (E_p, E_v) per axis, the sums of the fit, the correction
         self._ep = [0.0, 0.0, 0.0]
         self._ev = [0.0, 0.0, 0.0]
+        self._vcam = [0.0, 0.0, 0.0]
         self._t: float | None = None    # the last fix's fusion time
         self._a = self._b = self._c = self._n = 0.0   # sum phi.phi, phi.y~, y~.y~, scalar observations
         self.correction_s = 0.0
         self._target = 0.0
-        self._discrepant = False
+        self._discrepant = False   # the estimate is outside the detection threshold
+        self._engaged = False      # an offset was detected: the correction follows the estimate when confident
         self.detections = 0
         self.fitted = 0
 
@@ -162,13 +175,15 @@ class CameraDelayEstimator:
             self._b *= lam
             self._c *= lam
             self._n *= lam
-        f0, f1, f2 = -(v0 + ep[0]), -(v1 + ep[1]), -(v2 + ep[2])   # phi = dy/dd
+        vc = self._vcam   # the velocity less the camera's corrections: the model's own (see the module doc)
+        f0, f1, f2 = -(v0 - vc[0] + ep[0]), -(v1 - vc[1] + ep[1]), -(v2 - vc[2] + ep[2])   # phi = dy/dd
         if gain is not None:   # the correction K y moved the state by K phi per unit of d
             k = gain[0:6].tolist() if hasattr(gain, "tolist") else gain
             for i in range(3):
                 r, s = k[i], k[3 + i]
                 ep[i] += r[0] * f0 + r[1] * f1 + r[2] * f2
                 ev[i] += s[0] * f0 + s[1] * f1 + s[2] * f2
+                vc[i] += s[0] * y0 + s[1] * y1 + s[2] * y2
         if fit and max(abs(y0), abs(y1), abs(y2)) <= p.max_innovation_m:
             c = self.correction_s   # y = phi (d - c): fit y + phi c = phi d
             w0, w1, w2 = y0 + f0 * c, y1 + f1 * c, y2 + f2 * c
@@ -186,11 +201,13 @@ class CameraDelayEstimator:
         detected = False
         if self.confident:
             discrepant = abs(d - self.correction_s) > max(p.deadband_s, p.detect_sigmas * std)
-            if discrepant:
-                detected = not self._discrepant
-                self.detections += detected
-                self._target = min(p.max_correction_s, max(-p.max_correction_s, d))
+            if discrepant and not self._discrepant:
+                detected = self._engaged = True
+                self.detections += 1
             self._discrepant = discrepant
+            if self._engaged:   # once an offset was found, the correction follows the estimate
+                # (the fit is first order in d - correction: exact only near it)
+                self._target = min(p.max_correction_s, max(-p.max_correction_s, d))
         if p.correct and self._target != self.correction_s:
             step = p.slew_s_s * min(h, 0.2)   # a gap in the fixes is no licence to jump
             c = self.correction_s
