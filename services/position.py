@@ -47,9 +47,10 @@ LANDED_SPEED_M_S = 0.2
 LANDED_FOR_S = 1.0
 VISION_MIN_HEIGHT_M = 0.3   # below this the camera's silence is not a loss (too close to the markers)
 EKF_HEALTH_PERIOD_S = 1.0   # pos/ekf_health, beside the service's own health
-# after the attitude was pinned (a flip) the EKF has coasted: its first fixes' innovations are
-# the coasting's error, not the camera's timing, and stay out of the delay's fit this long
-DELAY_FIT_AFTER_PIN_S = 1.0
+# after the attitude was pinned (a flip) the EKF has coasted, after a position reset it starts
+# again: its first fixes' innovations are that error, not the camera's timing, and stay out of
+# the delay's fit this long
+DELAY_FIT_AFTER_S = 1.0
 
 
 class PositionLoop:
@@ -73,7 +74,7 @@ class PositionLoop:
             self.ekf_health_out.tracked = False   # as the service's health: nobody on the clock reads it
             self.next_ekf_health = 0.0
             self.delay_step_t = self.offset_detected_t = -1.0   # when (a) last saw a step, (b) an offset
-            self.pinned_t = -math.inf     # when the attitude was last pinned
+            self.unsettled_t = -math.inf     # when the attitude was last pinned or the position reset
         else:
             self.truth = io.inbox(schemas.TRUTH, "sim")
         self.ekf_started = False
@@ -126,7 +127,7 @@ class PositionLoop:
                 and quat_tilt(att["quaternion_wxyz"]) > math.radians(p["attitude_pin_tilt_deg"]):
             ekf.pin_attitude(att["header"]["t_s"], att["euler_rad"], att["rate_rad_s"])
             count("attitude_pinned_tilted")
-            self.pinned_t = t
+            self.unsettled_t = t
         elif att is not None and att["state_source"] == "estimate":
             if not ekf.update_attitude(att["header"]["t_s"], att["euler_rad"], att["rate_rad_s"],
                                        [max(v, f) for v, f in zip(att["euler_var_rad2"], p["attitude_var_floor"])],
@@ -151,7 +152,7 @@ class PositionLoop:
                     t_fix = max(stamp, ekf.t)
             accepted, _nis = ekf.update_position(t_fix, np.asarray(pose["position_m"]), cov)
             fix = ekf.camera_fix
-            if fix is not None and delay.innovation(t_fix, *fix, fit=t - self.pinned_t > DELAY_FIT_AFTER_PIN_S):
+            if fix is not None and delay.innovation(t_fix, *fix, fit=t - self.unsettled_t > DELAY_FIT_AFTER_S):
                 count("camera_offset_detected")
                 self.offset_detected_t = t
                 self.io.problem(f"camera fixes {1e3 * delay.offset_s:.0f} ms older than stamped "
@@ -166,6 +167,7 @@ class PositionLoop:
             if self.refused >= p["position_reset_after"]:
                 ekf.reset_position(pose["position_m"], cov)
                 delay.reset()
+                self.unsettled_t = t
                 count("fusion_position_reset")
                 self.refused = 0
         if t >= self.next_ekf_health:
