@@ -46,6 +46,8 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
+import numpy as np
+
 from flight.param import Declared, declared
 
 __all__ = ["CameraDelayError", "CameraDelayParams", "CameraDelayEstimator", "STD_CAP_S"]
@@ -158,12 +160,13 @@ class CameraDelayEstimator:
         fit=False: the sensitivities follow the fix, the fit leaves it out (the filter coasted
         meanwhile, e.g. through a flip: its error then is not a matter of timing)."""
         p = self.params
-        y0, y1, y2 = (float(a) for a in y)
-        v0, v1, v2 = (float(a) for a in v)
+        # plain floats: at this size numpy's per-call overhead, not the arithmetic, is the cost
+        y0, y1, y2 = y.tolist() if isinstance(y, np.ndarray) else map(float, y)
+        v0, v1, v2 = v.tolist() if isinstance(v, np.ndarray) else map(float, v)
         t = float(t_fuse_s)
-        if not all(map(math.isfinite, (t, y0, y1, y2, v0, v1, v2))):
+        if not math.isfinite(t + y0 + y1 + y2 + v0 + v1 + v2):   # a sum is finite only if every term is
             raise CameraDelayError("innovation: inputs must be finite")
-        ep, ev = self._ep, self._ev
+        ep, ev, vc = self._ep, self._ev, self._vcam
         h = 0.0 if self._t is None else max(0.0, t - self._t)
         self._t = t
         if h:   # E_p += E_v h: the velocity's sensitivity carries the position's on
@@ -175,16 +178,21 @@ class CameraDelayEstimator:
             self._b *= lam
             self._c *= lam
             self._n *= lam
-        vc = self._vcam   # the velocity less the camera's corrections: the model's own (see the module doc)
-        f0, f1, f2 = -(v0 - vc[0] + ep[0]), -(v1 - vc[1] + ep[1]), -(v2 - vc[2] + ep[2])   # phi = dy/dd
+        # phi = dy/dd, on the velocity less the camera's corrections: the model's own (module doc)
+        f0, f1, f2 = -(v0 - vc[0] + ep[0]), -(v1 - vc[1] + ep[1]), -(v2 - vc[2] + ep[2])
         if gain is not None:   # the correction K y moved the state by K phi per unit of d
-            k = gain[0:6].tolist() if hasattr(gain, "tolist") else gain
-            for i in range(3):
-                r, s = k[i], k[3 + i]
-                ep[i] += r[0] * f0 + r[1] * f1 + r[2] * f2
-                ev[i] += s[0] * f0 + s[1] * f1 + s[2] * f2
-                vc[i] += s[0] * y0 + s[1] * y1 + s[2] * y2
-        if fit and max(abs(y0), abs(y1), abs(y2)) <= p.max_innovation_m:
+            k0, k1, k2, k3, k4, k5 = gain[0:6].tolist() if isinstance(gain, np.ndarray) else gain[0:6]
+            ep[0] += k0[0] * f0 + k0[1] * f1 + k0[2] * f2
+            ep[1] += k1[0] * f0 + k1[1] * f1 + k1[2] * f2
+            ep[2] += k2[0] * f0 + k2[1] * f1 + k2[2] * f2
+            ev[0] += k3[0] * f0 + k3[1] * f1 + k3[2] * f2
+            ev[1] += k4[0] * f0 + k4[1] * f1 + k4[2] * f2
+            ev[2] += k5[0] * f0 + k5[1] * f1 + k5[2] * f2
+            vc[0] += k3[0] * y0 + k3[1] * y1 + k3[2] * y2
+            vc[1] += k4[0] * y0 + k4[1] * y1 + k4[2] * y2
+            vc[2] += k5[0] * y0 + k5[1] * y1 + k5[2] * y2
+        m = p.max_innovation_m
+        if fit and -m <= y0 <= m and -m <= y1 <= m and -m <= y2 <= m:
             c = self.correction_s   # y = phi (d - c): fit y + phi c = phi d
             w0, w1, w2 = y0 + f0 * c, y1 + f1 * c, y2 + f2 * c
             self._a += f0 * f0 + f1 * f1 + f2 * f2
@@ -192,22 +200,23 @@ class CameraDelayEstimator:
             self._c += w0 * w0 + w1 * w1 + w2 * w2
             self._n += 3.0
             self.fitted += 1
-        detected = self._decide(h)
-        return detected
+        return self._decide(h)
 
     def _decide(self, h: float) -> bool:
         p = self.params
-        d, std = self.offset_s, self.offset_std_s
         detected = False
-        if self.confident:
-            discrepant = abs(d - self.correction_s) > max(p.deadband_s, p.detect_sigmas * std)
-            if discrepant and not self._discrepant:
-                detected = self._engaged = True
-                self.detections += 1
-            self._discrepant = discrepant
-            if self._engaged:   # once an offset was found, the correction follows the estimate
-                # (the fit is first order in d - correction: exact only near it)
-                self._target = min(p.max_correction_s, max(-p.max_correction_s, d))
+        if self._n >= 3.0 * p.min_fixes:
+            std = self.offset_std_s
+            if std < p.confident_std_s:   # confident
+                d = self._b / self._a
+                discrepant = abs(d - self.correction_s) > max(p.deadband_s, p.detect_sigmas * std)
+                if discrepant and not self._discrepant:
+                    detected = self._engaged = True
+                    self.detections += 1
+                self._discrepant = discrepant
+                if self._engaged:   # once an offset was found, the correction follows the estimate
+                    # (the fit is first order in d - correction: exact only near it)
+                    self._target = min(p.max_correction_s, max(-p.max_correction_s, d))
         if p.correct and self._target != self.correction_s:
             step = p.slew_s_s * min(h, 0.2)   # a gap in the fixes is no licence to jump
             c = self.correction_s
