@@ -99,6 +99,11 @@ results.  In flight the attitude state arrives 5 ms after the position level's r
 fused at the node before, and a camera fix six nodes back: run at once, the new prediction
 ran twice a step, three times with a fix.
 
+The stamps are trusted as they come. Whether they should be is watched outside the filter
+(flight/estimation/camera_delay.py): each camera fix leaves its innovation, the velocity at
+its time and its gain in ``camera_fix``, from which the position level fits the offset of the
+fixes' real time from their stamps, and fuses them at their stamp less it once it is sure.
+
 Cost: at this size numpy's per-call overhead, not the flops, is the price, so the
 mean, f and the Jacobian run in plain floats (:func:`_step`, term for term the
 expressions of :func:`f`, :func:`rk4_step` and :func:`jacobian_f`), products with an
