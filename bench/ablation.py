@@ -12,12 +12,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from bench.support import flying  # noqa: E402
 
 from flight.estimation.attitude_filter import FILTER_000  # noqa: E402
 
@@ -67,9 +67,8 @@ def main() -> None:
     results = []
     for i, (name, extra) in enumerate(ROWS):
         out = Path(args.out) / f"{i}"
-        argv = [sys.executable, "-m", "deploy.cli", "fly", "--lockstep", "--mission", args.mission,
-                "--out", str(out), *COMMON, *extra]
-        proc = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True)
+        proc = flying.fly(["--lockstep", "--mission", args.mission, "--out", str(out), *COMMON, *extra],
+                          f"row {i + 1}/{len(ROWS)} {name}")
         m = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").exists() else {}
         est = m.get("estimation") or {}
         results.append((name, m.get("completed", False), m.get("position_rms_m"), m.get("max_position_error_m"),

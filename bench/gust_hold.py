@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from bench.support import flying  # noqa: E402
 TARGET_RMS_M = 0.03
 
 
@@ -34,11 +35,11 @@ def main() -> None:
     for ki in args.ki:
         for seed in args.seeds:
             out = Path(args.out) / f"ki{ki:g}-seed{seed}"
-            proc = subprocess.run(
-                [sys.executable, "-m", "deploy.cli", "fly", "--lockstep", "--mission", "hover", "--seed", str(seed),
+            proc = flying.fly(
+                ["--lockstep", "--mission", "hover", "--seed", str(seed),
                  "--out", str(out), "--no-plots", "--set", f"sim.wind_m_s={list(args.wind)}",
                  "--set", f"sim.gust_std_m_s={args.gust_std}", "--set", f"position.hold_ki={ki}"],
-                cwd=ROOT, capture_output=True, text=True)
+                f"hold_ki {ki:g} seed {seed}")
             if proc.returncode:
                 print(f"| {ki:g} | {seed} | flight failed (status {proc.returncode}) | | |")
                 continue

@@ -16,12 +16,13 @@ from __future__ import annotations
 import argparse
 import os
 import re
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from bench.support import flying  # noqa: E402
 
 TARGETS = {"steps": 5.0, "hover": 5.0, "flip-short": 3.0, "flip": 3.0}
 FLIP_SHORT = "tests/integration/missions/flip-short.toml"
@@ -29,13 +30,12 @@ MODES = {"one process": [], "processes": ["--processes"]}   # `fly --lockstep` a
 
 
 def fly(mission: str, seed: int, out: Path, extra: list[str]) -> float:
-    argv = [sys.executable, "-m", "deploy.cli", "fly", "--lockstep", "--mission", mission, "--seed", str(seed),
-            "--out", str(out), *extra]
     t0 = time.monotonic()
-    proc = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True)
+    proc = flying.fly(["--lockstep", "--mission", mission, "--seed", str(seed), "--out", str(out), *extra],
+                      f"{mission} seed {seed}")
     if proc.returncode:
         print(f"bench: {mission}: the flight ended with status {proc.returncode}: "
-              f"{proc.stderr.strip().splitlines()[-1:]}")
+              f"{proc.stdout.strip().splitlines()[-1:]}")
     return time.monotonic() - t0
 
 

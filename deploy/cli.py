@@ -13,6 +13,7 @@
   zenpilot missions                      list the shipped missions
   zenpilot certs DIR [--stack FILE]      make the TLS certificates and logins of a stack's machines
   zenpilot train-gyrovertical [--seed N] train the adaptive gyro-vertical (004) on simulator flights
+  zenpilot calibrate-camera DIR --out F  camera intrinsics from checkerboard images (OpenCV)
 """
 
 from __future__ import annotations
@@ -200,20 +201,26 @@ def _read(path: Path) -> str:
 
 
 def watch_services(launcher: Launcher, names: list[str], session, real_time: bool) -> Supervisor:
-    """The supervisor of `names` (deploy/supervisor.py), told of every health message; in real time
-    it publishes its own health (supervisor/health) once a second."""
+    """The supervisor of `names` (deploy/supervisor.py), told of every health message and, in
+    real time, of every loop's beat; there it also publishes its own health (supervisor/health)
+    once a second."""
     publish = None
+    vehicle = launcher.stack.vehicle_id
     if real_time:   # in lockstep a wall-clock message would make the log depend on the machine
-        publisher = session.declare_publisher(schemas.HEALTH.key(launcher.stack.vehicle_id, "supervisor"))
+        publisher = session.declare_publisher(schemas.HEALTH.key(vehicle, "supervisor"))
         seq = iter(range(1 << 62))
 
         def publish(health: dict) -> None:
             publisher.put(schemas.HEALTH.encode(time.time(), next(seq), "supervisor", health))
     supervisor = Supervisor(launcher, names, real_time, publish=publish,
                             say=lambda text: print(text, file=sys.stderr, flush=True))
-    prefix = f"zp/{launcher.stack.vehicle_id}/"
+    prefix = f"zp/{vehicle}/"
     supervisor.subscription = session.declare_subscriber(
         f"{prefix}*/health", lambda sample: supervisor.health_seen(str(sample.key_expr)[len(prefix):-len("/health")]))
+    if real_time:
+        beats = schemas.BEAT.key(vehicle, "")
+        supervisor.beats = session.declare_subscriber(
+            f"{beats}*", lambda sample: supervisor.beat_seen(str(sample.key_expr)[len(beats):]))
     return supervisor
 
 
@@ -641,6 +648,22 @@ def cmd_missions(args) -> int:
     return 0
 
 
+def cmd_calibrate_camera(args) -> int:
+    from deploy.calibrate import calibrate_folder, parse_pattern, write_calibration
+
+    cal = calibrate_folder(args.folder, parse_pattern(args.pattern), args.square)
+    write_calibration(cal, args.out, args.folder)
+    i = cal.intrinsics
+    print(f"zenpilot: {len(cal.used)} of {len(cal.used) + len(cal.skipped)} images used, RMS reprojection error "
+          f"{cal.rms_px:.3f} px: fx {i.fx_px:.2f}, fy {i.fy_px:.2f}, cx {i.cx_px:.2f}, cy {i.cy_px:.2f} px, "
+          f"distortion {[round(x, 5) for x in i.distortion]} -> {args.out}")
+    for skipped in cal.skipped:
+        print(f"zenpilot: skipped {skipped}", file=sys.stderr)
+    out = Path(args.out).resolve()   # a relative path in a stack's parameters is the stack file's
+    print(f"zenpilot: fly with it: --set sim.camera_intrinsics={out} --set vision.camera_intrinsics={out}")
+    return 0
+
+
 # ---------------------------------------------------------------- main
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="zenpilot", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -718,6 +741,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     mis = sub.add_parser("missions", help="list the shipped missions")
     mis.set_defaults(func=cmd_missions)
+
+    cal = sub.add_parser("calibrate-camera", help="camera intrinsics from checkerboard images (OpenCV)")
+    cal.add_argument("folder", help="folder of images of a checkerboard (10 or more views, tilted, all over the image)")
+    cal.add_argument("--out", required=True, help="intrinsics file to write (TOML; the vision service's "
+                                                  "and the simulator's camera_intrinsics)")
+    cal.add_argument("--pattern", default="9x6", help="inner corners per row x per column (default 9x6)")
+    cal.add_argument("--square", type=float, default=0.025, help="a square's side in metres (default 0.025)")
+    cal.set_defaults(func=cmd_calibrate_camera)
 
     sweep.add_parser(sub)
     gyrovertical_training.add_parser(sub)

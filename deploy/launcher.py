@@ -190,8 +190,8 @@ class Launcher:
                                          str(self.run_dir / "logs"), "--vehicle-id", str(self.stack.vehicle_id),
                                          json.dumps(services)])
 
-    def _start_service(self, name: str, append: bool = False) -> None:
-        proc = self._spawn(name, self.service_argv(name), append)
+    def _start_service(self, name: str, append: bool = False, restarted: bool = False) -> None:
+        proc = self._spawn(name, self.service_argv(name) + (["--restarted"] if restarted else []), append)
         if nice := self.stack.service(name).nice:
             try:
                 os.setpriority(os.PRIO_PROCESS, proc.pid, nice)
@@ -201,7 +201,14 @@ class Launcher:
     def restart(self, name: str) -> None:
         """Start a service again with the same command line (the supervisor's restart); its
         output is appended to its log."""
-        self._start_service(name, append=True)
+        self._start_service(name, append=True, restarted=True)
+
+    def kill(self, name: str) -> None:
+        """SIGKILL a service (the supervisor's answer to a hang) and reap it."""
+        proc = self.procs[name]
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
 
     def wait_alive(self, names: list[str], timeout_s: float = 30.0) -> set[str]:
         """Wait for every service's liveliness token; returns the ones still missing."""

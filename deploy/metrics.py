@@ -344,7 +344,53 @@ def compute_metrics(log: dict[str, list[dict]], info: dict, vehicle_id: int = 0)
     m["position_step_overshoot_pct_max"] = _max_or_none(s["overshoot_pct"] for s in ps)
     m["position_steps_unsettled"] = sum(1 for s in ps if s["settle_s"] is None)
     m["estimation"] = _estimation(log, p, truth_t, pos, euler, landed)
+    m["vision"] = vision_accuracy(log, p, truth)
     return m
+
+
+CAMERA_PERIOD_S = 0.05   # the simulator's camera_rate_hz (20 Hz): the frames' exposure instants
+AIRBORNE_M = 0.3         # the camera sees whole markers from about here up (0.2 m markers, f = 400 px)
+
+
+def vision_accuracy(log, p, truth) -> dict | None:
+    """Each vision pose against the truth at its exposure time (the truth's 100 Hz samples hold
+    every 20 Hz exposure instant): position and attitude error per frame (median, p95, max), and
+    the fraction of the exposures above AIRBORNE_M that gave a pose (detected, solved, accepted)."""
+    poses = log.get(p + "vision/pose", [])
+    if not poses or not truth:
+        return None
+    t_truth = np.array([m["header"]["t_s"] for m in truth])
+    order = np.argsort(t_truth)
+    t_truth = t_truth[order]
+    pos = np.array([truth[i]["position_m"] for i in order])
+    quat = np.array([truth[i]["quaternion_wxyz"] for i in order])
+    dp, dth, t_pose = [], [], []
+    for m in poses:
+        t = m["header"]["t_s"]
+        k = int(np.searchsorted(t_truth, t))
+        k = min(max(k, 0), len(t_truth) - 1)
+        if k > 0 and abs(t_truth[k - 1] - t) < abs(t_truth[k] - t):
+            k -= 1
+        if abs(t_truth[k] - t) > 1e-3:
+            continue
+        q1, q2 = quat[k], np.asarray(m["quaternion_wxyz"], dtype=float)
+        dot = abs(float(q1 @ q2) / (np.linalg.norm(q1) * np.linalg.norm(q2)))
+        dp.append(float(np.linalg.norm(np.asarray(m["position_m"]) - pos[k])))
+        dth.append(math.degrees(2.0 * math.acos(min(1.0, dot))))
+        t_pose.append(t)
+    if not dp:
+        return None
+    dp_a, dth_a = np.array(dp), np.array(dth)
+    # exposures in the air: the truth samples on the camera's instants, above AIRBORNE_M
+    on_frame = np.abs(t_truth / CAMERA_PERIOD_S - np.round(t_truth / CAMERA_PERIOD_S)) < 1e-6
+    airborne = on_frame & (pos[:, 2] > AIRBORNE_M)
+    air_t = set(np.round(t_truth[airborne] / CAMERA_PERIOD_S).astype(int).tolist())
+    posed = set(int(round(t / CAMERA_PERIOD_S)) for t in t_pose)
+    return {"poses": len(dp), "position_err_mm_p50": 1e3 * float(np.median(dp_a)),
+            "position_err_mm_p95": 1e3 * float(np.percentile(dp_a, 95)), "position_err_mm_max": 1e3 * float(dp_a.max()),
+            "attitude_err_deg_p50": float(np.median(dth_a)), "attitude_err_deg_p95": float(np.percentile(dth_a, 95)),
+            "attitude_err_deg_max": float(dth_a.max()),
+            "pose_rate_airborne": len(air_t & posed) / len(air_t) if air_t else None}
 
 
 GROUND_Z_M = 0.05  # truth altitude below this during a flip item: it hit the ground
@@ -542,6 +588,8 @@ def format_table(metrics: dict) -> str:
                                                  f"flown {_fmt(b['flown'])} ({'inside' if b['inside'] else 'OUTSIDE'})"))
     for k, v in (metrics.get("estimation") or {}).items():
         rows.append((f"estimation.{k}", _fmt(v) if not isinstance(v, list) else str(v)))
+    for k, v in (metrics.get("vision") or {}).items():
+        rows.append((f"vision.{k}", _fmt(v)))
     rej = metrics.get("rejected_messages", {})
     for svc in sorted(set(metrics.get("rates_hz", {})) | set(rej)):
         r = rej.get(svc) or {}

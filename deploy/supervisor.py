@@ -5,15 +5,23 @@ Per service (`[services.NAME]` in the stack file):
 
     restart = "on-failure"    # "always": also after a clean exit; "never": report only
     restart_limit = 3         # restarts at most, per flight (or per `zenpilot up`)
+    hang_restart_s = 0.5      # stopped or stuck this long: a hang, killed and restarted
 
 Detected, every POLL_S on the service's own host:
   * exited: the process ended (waitpid), with its status;
   * stopped: the process is stopped (SIGSTOP, a debugger: /proc state T), reported once per
     episode and again when it runs on;
-  * silent: no health message for HEALTH_SILENCE_S (a loop stuck inside a service that still
-    runs; health is sent at 1 Hz), real time only.
-A restart waits a back-off (BACKOFF_S, doubled per restart of that service, at most
-BACKOFF_MAX_S) and starts the same command line; its output is appended to the service's log.
+  * stuck: its main loop sent no beat (`@beat/<name>`, every BEAT_PERIOD_S from the loop itself,
+    services/runtime.py) for BEAT_SILENCE_S: a loop stuck inside a process that still runs, real
+    time only, judged from the service's first beat on;
+  * silent: before its first beat, no health message for HEALTH_SILENCE_S (a slow or stuck
+    start-up: the planner's JAX compile takes seconds), real time only.
+A stopped or stuck service that stays so for its `hang_restart_s`, or a silent one for START_S,
+has hung: it is killed (SIGKILL) and restarted as a failure. A restart waits a back-off
+(FIRST_BACKOFF_S the first time: a vehicle without its motor driver tilts past 20 degrees in half a
+second; then BACKOFF_S, doubled per restart of that service, at most BACKOFF_MAX_S) and starts the
+same command line with `--restarted` (the service then takes control only once settled; about
+0.5 s to its first output here); its output is appended to the service's log.
 
 Restarts happen in real time only. In lockstep a lost participant is dropped from the clock
 (services/lockstep.py) and a new process cannot rejoin a clock already running, so there the
@@ -24,17 +32,26 @@ supervisor reports and the flight stops as it did without it. The simulator is n
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
-from services.stack import NEVER_RESTARTED
+from services.stack import DEFAULT_HANG_RESTART_S, NEVER_RESTARTED
 
 POLL_S = 0.1
+FIRST_BACKOFF_S = 0.1
 BACKOFF_S = 0.5
 BACKOFF_MAX_S = 8.0
 HEALTH_SILENCE_S = 3.0
+START_S = 30.0   # a service silent this long before its first beat has hung in its start-up
+BEAT_SILENCE_S = 0.3   # three beats missed (services/runtime.BEAT_PERIOD_S): seen within 0.4 s
+
+
+def backoff_s(restarts: int) -> float:
+    """The wait before a service's restart number `restarts` + 1."""
+    return FIRST_BACKOFF_S if restarts == 0 else min(BACKOFF_MAX_S, BACKOFF_S * 2 ** (restarts - 1))
 
 
 def process_state(pid: int) -> str | None:
@@ -51,15 +68,21 @@ class Watch:
     """What the supervisor knows of one service."""
     policy: str
     limit: int
-    state: str = "running"     # running | stopped | silent | restarting | exited | gave-up
+    hang_s: float = DEFAULT_HANG_RESTART_S
+    state: str = "running"     # running | stopped | stuck | silent | restarting | exited | gave-up
     exits: int = 0
     restarts: int = 0
     stops: int = 0
     silences: int = 0
+    stucks: int = 0
+    beats: int = 0
+    hangs: int = 0
     last_status: int | None = None
     detail: str = ""
     restart_at: float | None = None
     last_health: float | None = None
+    last_beat: float | None = None   # None: no beat since its (re)start
+    since: float | None = None     # when the present stop or silence began
 
 
 class Supervisor:
@@ -77,9 +100,12 @@ class Supervisor:
         self.say = say
         self.clock = clock
         self.t0 = clock()
+        self.started_unix = time.time()   # events' t_s count from here (to match other logs)
         stack = launcher.stack
-        self.watches = {n: Watch(stack.service(n).restart, stack.service(n).restart_limit) for n in names}
+        self.watches = {n: Watch(stack.service(n).restart, stack.service(n).restart_limit,
+                                 stack.service(n).hang_restart_s) for n in names}
         self.events: list[dict] = []
+        self._write_failed = False
         self.path = Path(launcher.run_dir) / "supervisor.json"
         self._write()
 
@@ -90,6 +116,13 @@ class Supervisor:
         if w is not None:
             w.last_health = self.clock()
 
+    def beat_seen(self, service: str) -> None:
+        """A beat of `service`'s main loop arrived (a Zenoh callback: one store)."""
+        w = self.watches.get(service)
+        if w is not None and w.state != "restarting":   # a late beat of the killed process is not the new one's
+            w.last_beat = self.clock()
+            w.beats += 1
+
     # -- the pass ---------------------------------------------------------------------
     def poll(self) -> list[str]:
         now = self.clock()
@@ -97,6 +130,7 @@ class Supervisor:
         if self.publish is not None and (self._published is None or now - self._published >= 1.0):
             self._published = now
             self.publish(self.health_message())
+            self._write()   # the beats counted so far
         for name, w in self.watches.items():
             if w.state in ("gave-up", "exited"):   # reported once, when it happened
                 continue
@@ -105,6 +139,7 @@ class Supervisor:
                     self.launcher.restart(name)
                     w.restarts += 1
                     w.state, w.restart_at, w.last_health = "running", None, now   # silence counts from here
+                    w.last_beat = None   # judged by its beats again from its first one
                     self._event(name, "restarted", f"restart {w.restarts} of {w.limit}")
                 continue
             proc = self.launcher.procs[name]
@@ -114,37 +149,60 @@ class Supervisor:
                 w.last_status = status
                 why = f"exited with status {status}" if status >= 0 else f"killed by signal {-status}"
                 if self._restarts(name, w, status):
-                    delay = min(BACKOFF_MAX_S, BACKOFF_S * 2 ** w.restarts)
-                    w.state, w.restart_at = "restarting", now + delay
-                    self._event(name, "exited", f"{why}; restarting in {delay:.1f} s")
+                    self._restart_later(name, w, now, why)
                 elif status == 0 and w.policy != "always":
                     w.state = "gave-up"
                     self._event(name, "exited", f"{why} (a clean exit: not restarted)")
                 else:
                     w.state = "exited"
-                    reason = ("lockstep: a new process cannot rejoin the clock" if not self.real_time
-                              else f"policy {w.policy}" if w.policy == "never" or name in NEVER_RESTARTED
-                              else f"restart limit {w.limit} reached")
-                    self._event(name, "exited", f"{why}; not restarted ({reason})")
+                    self._event(name, "exited", f"{why}; not restarted ({self._why_not(name, w)})")
                     lost.append(name)
                 continue
-            stopped = process_state(proc.pid) in ("T", "t")
-            if stopped and w.state != "stopped":
-                w.state, w.stops = "stopped", w.stops + 1
-                self._event(name, "stopped", "the process is stopped (SIGSTOP or a debugger)")
-            elif not stopped and w.state == "stopped":
-                w.state = "running"
-                self._event(name, "running", "the process runs again")
-            if self.real_time and not stopped:
-                since = w.last_health if w.last_health is not None else self.t0
-                silent = now - since > HEALTH_SILENCE_S
-                if silent and w.state == "running":
-                    w.state, w.silences = "silent", w.silences + 1
-                    self._event(name, "silent", f"no health message for {now - since:.1f} s")
-                elif not silent and w.state == "silent":
-                    w.state = "running"
-                    self._event(name, "running", "health messages again")
+            state = self._state(w, now, proc.pid)
+            if state != w.state:
+                if state == "stopped":
+                    w.stops += 1
+                    self._event(name, "stopped", "the process is stopped (SIGSTOP or a debugger)")
+                elif state == "stuck":
+                    w.stucks += 1
+                    self._event(name, "stuck", f"its loop sent no beat for {now - w.last_beat:.2f} s")
+                elif state == "silent":
+                    w.silences += 1
+                    self._event(name, "silent", f"no health message for {now - self._health_since(w):.1f} s")
+                else:
+                    self._event(name, "running", "the process runs again" if w.state == "stopped"
+                                else "its loop beats again" if w.state == "stuck"
+                                else "health messages again")
+                w.state, w.since = state, (now if state != "running" else None)
+            bound = w.hang_s if state != "silent" else START_S   # silent: not beating yet, maybe starting
+            if w.since is not None and now - w.since >= bound and self._restarts(name, w, -1):
+                self.launcher.kill(name)   # a stopped process dies of SIGKILL too
+                w.hangs += 1
+                self._restart_later(name, w, now, f"hung ({state} for {now - w.since:.1f} s): killed")
         return lost
+
+    def _state(self, w: Watch, now: float, pid: int) -> str:
+        """running, stopped, stuck or silent, as seen now."""
+        if process_state(pid) in ("T", "t"):
+            return "stopped"
+        if not self.real_time:
+            return "running"
+        if w.last_beat is not None:
+            return "stuck" if now - w.last_beat > BEAT_SILENCE_S else "running"
+        return "silent" if now - self._health_since(w) > HEALTH_SILENCE_S else "running"
+
+    def _health_since(self, w: Watch) -> float:
+        return w.last_health if w.last_health is not None else self.t0
+
+    def _restart_later(self, name: str, w: Watch, now: float, why: str) -> None:
+        delay = backoff_s(w.restarts)
+        w.state, w.restart_at, w.since = "restarting", now + delay, None
+        self._event(name, "hung" if why.startswith("hung") else "exited", f"{why}; restarting in {delay:.1f} s")
+
+    def _why_not(self, name: str, w: Watch) -> str:
+        return ("lockstep: a new process cannot rejoin the clock" if not self.real_time
+                else f"policy {w.policy}" if w.policy == "never" or name in NEVER_RESTARTED
+                else f"restart limit {w.limit} reached")
 
     def _restarts(self, name: str, w: Watch, status: int) -> bool:
         if not self.real_time or name in NEVER_RESTARTED or w.policy == "never" or w.restarts >= w.limit:
@@ -161,17 +219,22 @@ class Supervisor:
         self._write()
 
     def summary(self) -> dict:
-        return {"real_time": self.real_time,
-                "services": {n: {k: v for k, v in asdict(w).items() if k not in ("restart_at", "last_health")}
+        return {"real_time": self.real_time, "started_unix": self.started_unix,
+                "services": {n: {k: v for k, v in asdict(w).items() if k not in ("restart_at", "last_health", "last_beat", "since")}
                              for n, w in self.watches.items()},
                 "events": self.events}
 
     def _write(self) -> None:
         """supervisor.json beside the flight log, rewritten whole on every change (metrics.json
         and `zenpilot status` read it)."""
-        tmp = self.path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(self.summary(), indent=1) + "\n")
-        tmp.replace(self.path)
+        tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")   # two machines' supervisors may share a folder
+        try:
+            tmp.write_text(json.dumps(self.summary(), indent=1) + "\n")
+            tmp.replace(self.path)
+        except OSError as exc:   # the record is lost, not the supervision
+            if not self._write_failed:
+                self._write_failed = True
+                self.say(f"zenpilot: supervisor: cannot write {self.path}: {exc}")
 
     def health_message(self) -> dict:
         """The supervisor's own planner-independent health (HEALTH fields): 'degraded' while a
@@ -179,7 +242,7 @@ class Supervisor:
         counts = {}
         for n, w in self.watches.items():
             for kind, value in (("exited", w.exits), ("restarted", w.restarts), ("stopped", w.stops),
-                                ("silent", w.silences)):
+                                ("stuck", w.stucks), ("silent", w.silences), ("hung", w.hangs)):
                 if value:
                     counts[f"{kind}_{n}"] = value
         bad = [f"{n} {w.state}" for n, w in self.watches.items() if w.state != "running"]

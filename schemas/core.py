@@ -68,7 +68,8 @@ STR_MAX_BYTES = 256
 DEFAULT_MAX_BYTES = 64 * 1024
 
 # Field kinds. Arrays are MessagePack arrays; "counts" is a map str -> int >= 0.
-KINDS = ("float", "int", "bool", "str", "float[]", "int[]", "str[]", "counts")  # counts: map str -> int >= min (0)
+KINDS = ("float", "int", "bool", "str", "float[]", "int[]", "str[]", "counts",  # counts: map str -> int >= min (0)
+         "bytes")   # bytes: MessagePack bin (an image's pixels), of `length` bytes when given
 
 
 class SchemaError(ValueError):
@@ -95,6 +96,7 @@ class Field:
 
     def __post_init__(self):
         assert self.kind in KINDS, self.kind
+        assert self.kind != "bytes" or (self.min is None and self.max is None and self.choices is None), self.name
 
 
 @dataclass(frozen=True)
@@ -110,16 +112,21 @@ class Message:
 
     def __post_init__(self):
         self._by_name.update({f.name: f for f in self.fields})
-        for name, value in _compile(self).items():  # the definition is frozen: compile it once
-            object.__setattr__(self, name, value)
+
+    def __getattr__(self, name: str):
+        """The compiled functions, made on first use (the definition is frozen: once): a service
+        compiles only the messages it uses, and importing schemas stays cheap (a restart's start-up)."""
+        if name not in _COMPILED:
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        for key, value in _compile(self).items():
+            object.__setattr__(self, key, value)
+        return self.__dict__[name]
 
     def __getstate__(self):  # pickle/deepcopy: the definition, not its compiled functions
         return {k: v for k, v in self.__dict__.items() if k not in _COMPILED}
 
     def __setstate__(self, state):
         self.__dict__.update(state)
-        for name, value in _compile(self).items():
-            object.__setattr__(self, name, value)
 
     @property
     def size_limit(self) -> int:
@@ -230,6 +237,12 @@ def _check_scalar(message: str, f: Field, v: Any, where: str) -> None:
     elif kind == "bool":
         if not isinstance(v, bool):
             raise SchemaError("wrong_type", message, f"{where} must be a boolean, got {type(v).__name__}")
+    elif kind == "bytes":
+        if not isinstance(v, bytes):
+            raise SchemaError("wrong_type", message, f"{where} must be bytes (MessagePack bin), got {type(v).__name__}")
+        if f.length is not None and len(v) != f.length:
+            raise SchemaError("wrong_length", message, f"{where} has {len(v)} bytes, expected {f.length}")
+        return
     elif kind == "str":
         if not isinstance(v, str):
             raise SchemaError("wrong_type", message, f"{where} must be a string, got {type(v).__name__}")
@@ -268,6 +281,8 @@ def _plain(v: Any) -> Any:
     t = type(v)
     if t is float or t is int or t is str or t is bool:  # none of them has tolist/item
         return v
+    if t is bytearray or t is memoryview:   # a memoryview's tolist would make a list of ints
+        return bytes(v)
     if t is list:
         for x in v:
             if type(x) is not float and type(x) is not int:
@@ -297,7 +312,9 @@ def _item_bytes(f: Field) -> int | None:
         return 1
     if kind == "str":
         return 5 + (max(len(c.encode()) for c in f.choices) if f.choices else STR_MAX_BYTES)
-    return None   # counts
+    if kind == "bytes" and f.length is not None:
+        return 5 + f.length
+    return None   # counts, bytes of any length
 
 
 def _size_bound(m: Message) -> int:
@@ -357,6 +374,8 @@ def _scalar_test(f: Field, x: str, consts: dict) -> str:
         return f"{test} and {lo}{x}{hi}"
     if kind == "bool":
         return f"type({x}) is bool"
+    if kind == "bytes":
+        return f"type({x}) is bytes" + ("" if f.length is None else f" and len({x}) == {int(f.length)!r}")
     test = f"type({x}) is str"  # str
     if f.choices is not None:
         if not all(type(c) is str for c in f.choices):
@@ -397,7 +416,8 @@ def _field_checks(f: Field, v: str, consts: dict, indent: str) -> list[str]:
 
 
 # what `encode` leaves as it is (anything else goes through _plain first)
-_AS_IS = {"float": ("float", "int"), "int": ("int",), "bool": ("bool",), "str": ("str",), "counts": ("dict",)}
+_AS_IS = {"float": ("float", "int"), "int": ("int",), "bool": ("bool",), "str": ("str",), "counts": ("dict",),
+          "bytes": ("bytes",)}
 
 
 def _compile(m: Message) -> dict:

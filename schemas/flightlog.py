@@ -58,6 +58,8 @@ def json_schema(message: schemas.Message) -> dict:
     def prop(f: schemas.Field) -> dict:
         if f.kind == "counts":
             p = {"type": "object", "additionalProperties": {"type": "integer"}}
+        elif f.kind == "bytes":   # not logged (camera_image's key is outside zp/<vehicle>/**); JSON has no bytes
+            p = {"type": "string", "contentEncoding": "base64"}
         elif f.kind.endswith("[]"):
             p = {"type": "array", "items": {"type": _JSON_TYPES[f.kind[:-2]]}}
         else:

@@ -29,6 +29,8 @@ def _value(f: Field) -> object:
         v = False
     elif kind == "str":
         v = f.choices[0] if f.choices else "x"
+    elif kind == "bytes":
+        return bytes(f.length or 0)
     else:   # counts
         return {}
     if f.kind.endswith("[]"):
@@ -45,6 +47,8 @@ def valid_doc(m: Message, source: str = "fuzz") -> dict:
         h, n = doc["horizon"], doc["state_dim"]
         doc.update(states=[0.0] * ((h + 1) * n), controls_rad_s=[0.0] * (4 * h), gains=[0.0] * (4 * h * n),
                    target_roll_rad=[0.0] * h)
+    elif m.name == "camera_image":
+        doc.update(width_px=2, height_px=1, pixels=b"\x00\xff")
     elif m.name == "planner_mission":
         doc.update(types=[doc["types"][0] if doc["types"] else "takeoff"], position_m=[0.0, 0.0, 1.0],
                    yaw_rad=[0.0], hold_s=[0.0], acceptance_m=[0.5])
@@ -53,7 +57,7 @@ def valid_doc(m: Message, source: str = "fuzz") -> dict:
 
 def _wrong(f: Field, rng: random.Random) -> object:
     """A value of the wrong type for `f`."""
-    if f.kind.endswith("[]") or f.kind == "counts":
+    if f.kind.endswith("[]") or f.kind == "counts" or f.kind == "bytes":
         return rng.choice(["a string", 1.5, True])
     if f.kind == "str":
         return rng.choice([1, 2.5, [1, 2], {"a": 1}])

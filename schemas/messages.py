@@ -93,6 +93,32 @@ CAMERA = Message(
     max_bytes=1 << 20,   # ~13,000 markers in view
 )
 
+def _image_size(doc: dict) -> str | None:
+    if len(doc["pixels"]) != doc["width_px"] * doc["height_px"]:
+        return (f"pixels has {len(doc['pixels'])} bytes for a {doc['width_px']} x {doc['height_px']} mono8 image "
+                f"({doc['width_px'] * doc['height_px']})")
+    return None
+
+
+CAMERA_IMAGE = Message(
+    "camera_image", "sim/@image", 1,
+    "What the downward camera sees (the simulator's image mode): one mono8 frame, row "
+    "major. header.t_s is the middle of the exposure; the message arrives about "
+    "camera_latency_s later. The key sits under a verbatim chunk (`@image`) that "
+    "`zp/<vehicle>/**` never matches: the recorder and the ground tools are not sent "
+    "the ~6 MB/s of pixels, and a secured stack's router does not let them leave the "
+    "vehicle (services/security.py).",
+    (
+        F("width_px", "int", "image width", "px", min=1, max=4096),
+        F("height_px", "int", "image height", "px", min=1, max=4096),
+        F("encoding", "str", "pixel format: one byte per pixel, 0 black .. 255 white", choices=("mono8",)),
+        F("exposure_s", "float", "exposure time (motion blur spans it)", "s", min=0.0, max=1.0),
+        F("pixels", "bytes", "width_px x height_px bytes, row by row from the image's top left"),
+    ),
+    check=_image_size,
+    max_bytes=4096 * 4096 + 1024,
+)
+
 TRUTH = Message(
     "truth", "sim/truth", 1,
     "Simulator ground truth, for the recorder and metrics only: no flight "
@@ -259,6 +285,15 @@ HEALTH = Message(
     ),
 )
 
+BEAT = Message(
+    "beat", "@beat/{service}", 1,
+    "Real time only, every 0.1 s from a service's main loop: the loop runs (the supervisor "
+    "judges a hang by their absence, deploy/supervisor.py). Under a verbatim chunk: not logged.",
+    (
+        F("cycles", "int", "main-task runs since start", min=0),
+    ),
+)
+
 BATTERY = Message(
     "battery", "sim/battery", 1,
     "Flight battery (simulated: open-circuit voltage falling with the charge used, "
@@ -411,15 +446,16 @@ PARAM_SET = Message(
 )
 
 ALL = (
-    CLOCK, SYNC_DONE, IMU, BARO, MAG, CAMERA, TRUTH, VISION_POSE, PLANNER_SETPOINT,
-    POSITION_SETPOINT, POSITION_STATE, POSITION_EKF_HEALTH, ATTITUDE_COMMAND, ATTITUDE_STATE, MOTOR_PWM, HEALTH,
+    CLOCK, SYNC_DONE, IMU, BARO, MAG, CAMERA, CAMERA_IMAGE, TRUTH, VISION_POSE, PLANNER_SETPOINT,
+    POSITION_SETPOINT, POSITION_STATE, POSITION_EKF_HEALTH, ATTITUDE_COMMAND, ATTITUDE_STATE, MOTOR_PWM, HEALTH, BEAT,
     BATTERY, PLANNER_COMMAND, PARAM_SET, PLANNER_PLAN, PLANNER_MISSION, PLANNER_FLIP_PREDICTION,
 )
 
 BY_NAME = {m.name: m for m in ALL}
 
 # Simulator topics as named in CLOCK.published and SYNC_DONE.triggers.
-SIM_TOPICS = {"imu": IMU, "baro": BARO, "mag": MAG, "camera": CAMERA, "truth": TRUTH, "battery": BATTERY}
+SIM_TOPICS = {"imu": IMU, "baro": BARO, "mag": MAG, "camera": CAMERA, "camera_image": CAMERA_IMAGE, "truth": TRUTH,
+              "battery": BATTERY}
 
 # Lockstep: the message a service publishes last in a run, stamped with the run's time. When a
 # run ends with it, it stands for the run's SYNC_DONE (no sync is sent: one message less to every

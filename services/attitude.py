@@ -20,6 +20,8 @@ old samples; the motor driver's failsafe covers the gap). A position setpoint ol
 holds level and descends on its own (flight/control/failsafe.Descent: the accelerometer's vertical
 speed, a thrust ramp to a slow sink, thrust cut past the ground estimated from the last
 pos/state; counted "failsafe_engaged", "failsafe_landed"); fresh setpoints take over again.
+Restarted mid-flight by the supervisor (`--restarted`), the level sends no command for
+`restart_settle_s` after its first sample: a filter just started is not yet one to steer on.
 """
 
 from __future__ import annotations
@@ -112,6 +114,8 @@ class AttitudeLoop:
         self.descent = None        # the failsafe's descent while it runs
         self.accel_samples = []    # this run's raw specific forces (or the truth message) for the descent
         self.stale_t = None        # the sample time last counted stale
+        # restarted mid-flight: commands only from this sample time on (set at the first sample)
+        self.command_from = None if io.restarted else float("-inf")
         self.command = io.publisher(schemas.ATTITUDE_COMMAND)
         self.state_out = io.publisher(schemas.ATTITUDE_STATE)
         self.k, self.alpha = io.live_array("k"), io.live_array("alpha")
@@ -288,8 +292,12 @@ class AttitudeLoop:
         if thrust <= 0.0:
             torque = (0.0, 0.0, 0.0)  # on the ground, idle: nothing to steer (and nothing to wind up)
         self.last_torque = torque
-        if sp is not None:   # before any setpoint there is nothing to command: a level restarted in
-            # the air would otherwise send zero thrust over the motor driver's own failsafe
+        if self.command_from is None:
+            self.command_from = sample_t + p["restart_settle_s"]
+            self.io.problem(f"restarted: commands from t={self.command_from:.3f}, the filter settled")
+        if sp is not None and sample_t >= self.command_from:   # before any setpoint there is nothing to
+            # command: a level restarted in the air would otherwise send zero thrust over the motor
+            # driver's own failsafe; nor before a restarted filter has settled
             self.command.put({"thrust_n": float(thrust), "torque_nm": torque, "imu_t_s": sample_t}, t_s=t)
         self.state_out.put({"quaternion_wxyz": q, "euler_rad": euler, "rate_rad_s": rates,
                             "euler_ref_rad": ref, "euler_var_rad2": euler_var, "rate_var_rad2_s2": rate_var,

@@ -24,7 +24,9 @@ driver flies on its own (flight/control/failsafe.py, counted "failsafe_engaged")
 IMU then (nothing of it costs the 400 Hz path before), keeps the vehicle level with law (8) on a
 complementary estimate started from the last att/state, descends on a thrust ramp to a slow
 sink from the last thrust, and disarms past the estimated ground (latched until the planner
-disarms). A fresh command before that gives control back ("failsafe_recovered").
+disarms). A fresh command before that gives control back ("failsafe_recovered"). Restarted
+mid-flight by the supervisor (`--restarted`), the driver sends nothing until it has heard the
+planner and, armed, a fresh command: its idle output would cut the motors of a vehicle in the air.
 
 Output `sim` (default): motors/pwm for the simulator (or ESCs). Output
 `mavlink`: the same, and at the motor rate the mixer's result goes to an
@@ -73,6 +75,7 @@ class MotorDriver:
         self.cmd = None                   # the attitude command being flown
         self.max_age = io.params["command_timeout_s"]
         self.failsafe = MotorFailsafe(io, vehicle)
+        self.waiting = io.restarted   # restarted mid-flight: silent until the planner and the level are heard
         self.idle = {"pwm_us": [vehicle.pwm_min_us] * 4, "thrust_n": [0.0] * 4, "armed": False,
                      "saturated": False, "imu_t_s": -1.0}
 
@@ -124,6 +127,10 @@ class MotorDriver:
         tau = vehicle.motor_time_constant_s
         cmd, sp = self.fresh_command(t), self.setpoint.latest()
         armed = sp is not None and sp["armed"]
+        if self.waiting:   # idle output would cut the motors of a vehicle in the air: say nothing
+            if sp is None or (armed and cmd is None):   # (the motors hold the last output sent) until
+                return                                  # told it is disarmed, or commanded
+            self.waiting = False
         if not armed:
             failsafe.disarmed()
         forces = None

@@ -50,6 +50,7 @@ from services.stack import (LOCKSTEP_PARTICIPANTS, SERVICES_LISTEN, Stack, Stack
                             load_stack, parse_overrides, resolve_params)
 
 HEALTH_PERIOD_S = 1.0
+BEAT_PERIOD_S = 0.1    # the main loop's beat (real time): a hang is seen within 0.4 s (deploy/supervisor.py)
 LATE_S = 0.005        # a wake-up later than this past its deadline counts as late
 RAW_QUEUE_MAX = 256   # payloads per key waiting to be read; beyond, the oldest is lost (counted)
 # Rejecting must stay cheap under a flood of garbage (issue 22): beyond this many diagnosed
@@ -155,6 +156,8 @@ def service_parser(name: str, description: str) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="random seed (simulator)")
     p.add_argument("--param", action="append", metavar="KEY=VALUE",
                    help="override a parameter of this service (repeatable)")
+    p.add_argument("--restarted", action="store_true",
+                   help="started again mid-flight by the supervisor: take control only once settled")
     add_zenoh_args(p)
     return p
 
@@ -466,6 +469,7 @@ class Runtime(ParamAccess):
         self.vehicle_id = self.stack.vehicle_id
         self.vehicle_name = args.vehicle or self.stack.vehicle
         self.lockstep = bool(args.lockstep)
+        self.restarted = bool(getattr(args, "restarted", False))   # the supervisor's restart, mid-flight
         self.real_time_scheduling = not self.lockstep   # (the recorder keeps wall time in lockstep, not the priority)
         self.rate_hz = spec.rate_hz if spec else 0.0
         self.tick_rate = self.stack.tick_rate_hz
@@ -508,6 +512,10 @@ class Runtime(ParamAccess):
         self._health = Publisher(self, schemas.HEALTH, schemas.HEALTH.key(self.vehicle_id, name))
         self._health.tracked = False   # nobody on the clock reads health: it may follow a run's last message
         self._next_health = 0.0
+        # real time: a beat every BEAT_PERIOD_S from the main loop, for the supervisor's hang watch
+        self._beat = None if self.lockstep or LOCAL_BUS is not None else \
+            Publisher(self, schemas.BEAT, schemas.BEAT.key(self.vehicle_id, name))
+        self._next_beat = 0.0
         self.subscribe(schemas.PARAM_SET.key(self.vehicle_id), self._on_param_set)
         on_stop_request(self.stop_event.set)
 
@@ -711,7 +719,11 @@ class Runtime(ParamAccess):
             self._run_times.popleft()
 
     def publish_health(self, force: bool = False) -> None:
+        """Called from the main loop on every run: the beat and, once per period, health."""
         t = self.now()
+        if t >= self._next_beat and self._beat is not None:
+            self._next_beat = t + 0.9 * BEAT_PERIOD_S   # a 10 Hz loop beats on every run, not every other
+            self._beat.put({"cycles": self.cycles}, t_s=t)
         if not force and t < self._next_health:
             return
         self._next_health = (math.floor(t / HEALTH_PERIOD_S) + 1) * HEALTH_PERIOD_S
@@ -811,7 +823,7 @@ class Runtime(ParamAccess):
         if self.rate_hz <= 0:  # event driven: run when a message arrives, not on a timer
             self.event_driven = True
             while not self.stop_event.is_set():
-                if self._arrival.wait(HEALTH_PERIOD_S / 2):
+                if self._arrival.wait(BEAT_PERIOD_S):   # idle, it still beats
                     self._arrival.clear()
                     self._t = time.time()
                     self._safe_step(step, self._t)

@@ -36,10 +36,11 @@ if TYPE_CHECKING:
     from services.stack import Stack
 
 # What each service publishes (topics below zp/<vehicle>/), besides what every service
-# publishes: its health and, in lockstep, its sync. tests/unit/services/test_security.py checks this
+# publishes: its health, in lockstep its sync, in real time its beat. tests/unit/services/test_security.py checks this
 # against the services' code (every rt.publisher(schemas.X) call).
 PUBLISHES: dict[str, tuple[str, ...]] = {
-    "sim": ("sim/imu", "sim/baro", "sim/mag", "sim/camera", "sim/truth", "sim/battery", "@lockstep/clock/*"),
+    "sim": ("sim/imu", "sim/baro", "sim/mag", "sim/camera", "sim/@image", "sim/truth", "sim/battery",
+            "@lockstep/clock/*"),
     "motors": ("motors/pwm",),
     "attitude": ("att/command", "att/state"),
     "position": ("pos/setpoint", "pos/state", "pos/ekf_health"),
@@ -173,10 +174,12 @@ def router_acl(stack: "Stack", machine: str) -> dict:
     Default deny: an allow-list, so a put on a wildcard key (zp/0/**) is not let through."""
     prefix = f"zp/{stack.vehicle_id}"
     # `**` never matches a verbatim chunk: the lockstep handshake's keys are named apart
-    every_key = ["**", f"{prefix}/@lockstep/**"]
+    every_key = ["**", f"{prefix}/@lockstep/**", f"{prefix}/@beat/**"]
     rules: list[dict] = [
+        # the camera's images (sim/@image) pass only between the router's own machine's sessions:
+        # they never cross the link to another host (the vision service runs beside the camera)
         {"id": "everything", "messages": ALL_MESSAGES, "flows": ["ingress", "egress"],
-         "permission": "allow", "key_exprs": every_key},
+         "permission": "allow", "key_exprs": every_key + [f"{prefix}/sim/@image"]},
         {"id": "declarations", "messages": DECLARATIONS, "flows": ["ingress", "egress"],
          "permission": "allow", "key_exprs": every_key},
         {"id": "receive", "messages": ["put", "delete", "liveliness_token"], "flows": ["egress"],
@@ -189,7 +192,8 @@ def router_acl(stack: "Stack", machine: str) -> dict:
             continue
         services = [n for n, s in stack.services.items() if s.machine == other]
         keys = sorted({f"{prefix}/{t}" for n in services for t in PUBLISHES.get(n, ())}
-                      | {f"{prefix}/{n}/health" for n in services} | {f"{prefix}/@lockstep/sync/{n}" for n in services})
+                      | {f"{prefix}/{n}/health" for n in services} | {f"{prefix}/@lockstep/sync/{n}" for n in services}
+                      | {f"{prefix}/@beat/{n}" for n in services})
         subjects.append({"id": f"machine-{other}", "usernames": [other]})
         ids = ["declarations", "receive"]
         if keys:

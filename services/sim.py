@@ -18,7 +18,7 @@ from flight.vehicle import VehicleError, load_vehicle
 from services import lockstep
 from services.params.sim import PARAMS, SIM_CONFIG_KEYS  # SimConfig's settings and the service's own
 from services.runtime import Runtime, main_guard, service_parser
-from services.stack import LOCKSTEP_PARTICIPANTS
+from services.stack import LOCKSTEP_PARTICIPANTS, intrinsics_path
 from simulator.config import SimConfig
 from simulator.world import Simulator
 
@@ -99,15 +99,17 @@ class SimService:
         self.rt = rt = Runtime(NAME, args, PARAMS)
         sim_params = {k: v for k, v in rt.params.items() if k in SIM_CONFIG_KEYS}
         sim_params["tick_rate_hz"] = rt.tick_rate
+        if sim_params.get("camera_intrinsics"):   # relative to the stack file, as its other files
+            sim_params["camera_intrinsics"] = str(intrinsics_path(rt.stack.path, sim_params["camera_intrinsics"]))
         try:
             config = SimConfig.from_dict(sim_params)
             vehicle = load_vehicle(rt.vehicle_name)
             if rt.params["mass_scale"] != 1.0:
                 vehicle = dataclasses.replace(vehicle, mass_kg=vehicle.mass_kg * rt.params["mass_scale"])
+            self.sim = Simulator(vehicle, config, seed=args.seed)   # the image mode reads its intrinsics here
         except (ValueError, VehicleError) as exc:
             rt.close()
             raise ValueError(f"{rt.stack.path}: [services.sim.params]: {exc}") from None
-        self.sim = Simulator(vehicle, config, seed=args.seed)
         self.loop = SimLoop(rt, self.sim, rt.params)
         self.participants = [p for p in LOCKSTEP_PARTICIPANTS if p in rt.stack.services]
         self.first_tick: float | None = None   # time.monotonic() of tick 0

@@ -25,6 +25,7 @@ A stack file is TOML:
     cpu = [1]                 # CPUs the process may run on (affinity); [] or absent: any
     restart = "on-failure"    # the supervisor restarts it when it dies (real time): on-failure | always | never
     restart_limit = 3         # ... at most this many times (deploy/supervisor.py)
+    hang_restart_s = 0.5      # stopped or stuck this long: killed and restarted by its policy
     [services.attitude.params]
     state_source = "truth"
 
@@ -55,6 +56,8 @@ RESTART_POLICIES = ("on-failure", "always", "never")
 DEFAULT_RESTART = {"sim": "never", "recorder": "never"}   # every other service: "on-failure"
 DEFAULT_RESTART_LIMIT = 3
 NEVER_RESTARTED = ("sim",)  # a new world mid-flight
+# a hung level is no better than a dead one: killed and restarted while the failsafes still fly
+DEFAULT_HANG_RESTART_S = 0.5
 DEFAULT_STACK = STACKS_DIR / "default.toml"
 
 # service name -> python module that runs it (console script zenpilot-<name>)
@@ -96,6 +99,7 @@ class ServiceSpec:
     cpu: tuple[int, ...] = ()  # CPU affinity the service asks for; (): any CPU
     restart: str = "on-failure"  # the supervisor's policy (deploy/supervisor.py): on-failure | always | never
     restart_limit: int = 3       # restarts at most, per run
+    hang_restart_s: float = DEFAULT_HANG_RESTART_S  # stopped or stuck this long: a hang, killed and restarted
 
 
 # Where a service listens unless its machine says otherwise: its own host only. A peer that
@@ -186,7 +190,8 @@ def load_stack(path: str | Path | None = None) -> Stack:
         where = f"{path}: [services.{name}]"
         if name not in SERVICE_MODULES:
             raise StackError(f"{where}: unknown service (known: {', '.join(SERVICE_MODULES)})")
-        unknown = set(s) - {"machine", "rate_hz", "params", "nice", "priority", "cpu", "restart", "restart_limit"}
+        unknown = set(s) - {"machine", "rate_hz", "params", "nice", "priority", "cpu", "restart", "restart_limit",
+                             "hang_restart_s"}
         if unknown:
             raise StackError(f"{where}: unknown key(s) {sorted(unknown)}")
         machine = _expect(s.get("machine", next(iter(machines))), str, f"{where} machine")
@@ -213,8 +218,11 @@ def load_stack(path: str | Path | None = None) -> Stack:
         restart_limit = _expect(s.get("restart_limit", DEFAULT_RESTART_LIMIT), int, f"{where} restart_limit")
         if not 0 <= restart_limit <= 100:
             raise StackError(f"{where}: restart_limit {restart_limit} must be within 0..100")
+        hang_restart_s = _expect(s.get("hang_restart_s", DEFAULT_HANG_RESTART_S), float, f"{where} hang_restart_s")
+        if not 0.1 <= hang_restart_s <= 60.0:
+            raise StackError(f"{where}: hang_restart_s {hang_restart_s} must be within 0.1..60 s")
         services[name] = ServiceSpec(name, machine, rate, dict(_expect(s.get("params", {}), dict, f"{where} params")),
-                                     nice, priority, tuple(cpu), restart, restart_limit)
+                                     nice, priority, tuple(cpu), restart, restart_limit, hang_restart_s)
     for needed in ("sim", "motors", "attitude", "position", "planner"):
         if needed not in services:
             raise StackError(f"{path}: the stack needs a [services.{needed}] section")
@@ -335,6 +343,12 @@ def check_compatible(where: str, params: dict[str, dict[str, Any]]) -> None:
 
 def _is_number(x: Any) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def intrinsics_path(stack_path: str | Path, name: str) -> Path:
+    """A camera intrinsics file named in a stack's parameters: relative to the stack file's folder."""
+    p = Path(name).expanduser()
+    return p if p.is_absolute() else Path(stack_path).resolve().parent / p
 
 
 def mission_path(name_or_path: str) -> Path:

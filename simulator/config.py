@@ -47,6 +47,17 @@ class SimConfig(Declared):
     camera_width_px: int = _field(DEFAULT_CAMERA.width_px, "image width", "px", 1)
     camera_height_px: int = _field(DEFAULT_CAMERA.height_px, "image height", "px", 1)
     camera_focal_px: float = _field(DEFAULT_CAMERA.focal_px, "focal length", "px", 0.0, min_exclusive=True)
+    # the image mode: `zenpilot fly --set sim.camera_mode=image` (the vision service follows: it
+    # solves whichever the camera sends); the corner mode is the fast path, bit for bit as before
+    camera_mode: str = declared("corners", "", None, None, "what the camera sends: \"corners\" (the markers' "
+                                "pixel corners, sim/camera) or \"image\" (mono8 frames rendered from the "
+                                "intrinsics, sim/@image)", choices=("corners", "image"))
+    camera_intrinsics: str = declared("", "", None, None, "image mode: intrinsics file (`zenpilot calibrate-camera` "
+                                      "writes it; relative to the stack file); \"\": the camera_* size and focal "
+                                      "length with flight.camera.DEFAULT_DISTORTION")
+    camera_exposure_s: float = _field(0.004, "image mode: exposure time; the motion across it blurs the frame",
+                                      "s", 0.0, 0.05)
+    camera_image_noise: float = _field(2.0, "image mode: sensor noise (std) in grey levels of 255", "", 0.0, 64.0)
     marker_size_m: float = _field(DEFAULT_MARKERS.size_m, "a marker's side", "m", 0.0, min_exclusive=True)
     marker_spacing_m: float = _field(DEFAULT_MARKERS.spacing_m, "distance between marker centres (above the size)",
                                      "m", 0.0, min_exclusive=True)

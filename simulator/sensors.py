@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from flight.camera import _MIN_DEPTH_M, R_CAM_FROM_BODY, Camera, marker_grid
+from flight.camera import _MIN_DEPTH_M, R_CAM_FROM_BODY, Camera, Intrinsics, load_intrinsics, marker_grid
 from simulator.config import SimConfig
 
 SEA_LEVEL_PA = 101325.0
@@ -255,3 +255,34 @@ class MarkerCamera:
         uv = self._f * p_cam[:, :2] / depth + self._c
         ok = np.logical_and.reduce(((uv >= 0.0) & (uv <= self._wh)).reshape(-1, 8), axis=1)
         return uv.reshape(-1, 4, 2)[ok], ok
+
+
+class ImageCamera:
+    """The image mode's camera: what it sees of the marker floor as a mono8 frame
+    (simulator/render.py), with the corner mode's drop rate. The intrinsics: the file
+    `camera_intrinsics` names (the caller resolves a relative path), else the configured size
+    and focal length with flight.camera.DEFAULT_DISTORTION."""
+
+    def __init__(self, cfg: SimConfig, rng: np.random.Generator, intrinsics: Intrinsics | None = None):
+        from simulator.render import FloorRenderer   # cv2: only the image mode imports it
+
+        if intrinsics is None:
+            if cfg.camera_intrinsics:
+                intrinsics = load_intrinsics(cfg.camera_intrinsics)
+            else:
+                intrinsics = Intrinsics.of(Camera(cfg.camera_width_px, cfg.camera_height_px, cfg.camera_focal_px))
+        self.intrinsics = intrinsics
+        self.rng = rng
+        self.drop_rate = cfg.camera_drop_rate
+        self.exposure_s = cfg.camera_exposure_s
+        ids, corners = marker_grid(cfg.marker_size_m, cfg.marker_spacing_m, cfg.marker_grid_half_extent_m)
+        self.renderer = FloorRenderer.markers(intrinsics, ids, corners, noise_grey=cfg.camera_image_noise)
+
+    def sample(self, position_m, quaternion, velocity_m_s, rate_rad_s) -> dict | None:
+        """One exposure centred now: the camera_image fields, or None when the frame is dropped."""
+        if self.rng.random() < self.drop_rate:   # drawn first, as the corner mode does
+            return None
+        img = self.renderer.render(position_m, _rotation(quaternion), velocity_m_s, rate_rad_s, self.exposure_s,
+                                   self.rng)
+        return {"width_px": img.shape[1], "height_px": img.shape[0], "encoding": "mono8",
+                "exposure_s": self.exposure_s, "pixels": img.tobytes()}

@@ -14,14 +14,14 @@ from flight.vehicle import Vehicle
 from simulator.battery import Battery
 from simulator.config import SimConfig
 from simulator.plant import Plant, rotation_rows
-from simulator.sensors import Barometer, Imu, Magnetometer, MarkerCamera
+from simulator.sensors import Barometer, ImageCamera, Imu, Magnetometer, MarkerCamera
 
 _RATE_KEYS = {"imu": "imu_rate_hz", "baro": "baro_rate_hz", "mag": "mag_rate_hz",
               "camera": "camera_rate_hz", "truth": "truth_rate_hz", "battery": "battery_rate_hz"}
 
 
 class Simulator:
-    TOPICS = ("imu", "baro", "mag", "camera", "truth", "battery")
+    TOPICS = ("imu", "baro", "mag", "camera", "truth", "battery")   # camera: camera_image in the image mode
 
     def __init__(self, vehicle: Vehicle, config: SimConfig | None = None, seed: int = 0):
         self.vehicle = vehicle
@@ -41,7 +41,10 @@ class Simulator:
         self.imu = Imu(cfg, np.random.default_rng(imu_ss))
         self.baro = Barometer(cfg, np.random.default_rng(baro_ss))
         self.mag = Magnetometer(cfg, np.random.default_rng(mag_ss))
-        self.camera = MarkerCamera(cfg, np.random.default_rng(cam_ss))
+        # the image mode's camera draws from the same stream (its drop, then its noise)
+        self.camera = (ImageCamera(cfg, np.random.default_rng(cam_ss)) if cfg.camera_mode == "image"
+                       else MarkerCamera(cfg, np.random.default_rng(cam_ss)))
+        self._camera_topic = "camera_image" if cfg.camera_mode == "image" else "camera"
         self._wind_rng = np.random.default_rng(wind_ss)
 
         # Not in the spec: starting in the air, the motors start at hover thrust
@@ -145,12 +148,16 @@ class Simulator:
             out.append(("mag", t, self.mag.sample_rows(rot)))
         if tick % d_camera == 0 and not (0.0 <= cfg.camera_outage_start_s <= t
                                          < cfg.camera_outage_start_s + cfg.camera_outage_s):
-            frame = self.camera.sample(p.position_m, p.quaternion)
+            if self._camera_topic == "camera":
+                frame = self.camera.sample(p.position_m, p.quaternion)
+            else:
+                x = p.x
+                frame = self.camera.sample(x[0:3], x[6:10], x[3:6], x[10:13])
             if frame is not None:
                 self._queue_frame(tick, t, frame)
         while self._pending_frames and self._pending_frames[0][0] <= tick:
             _, exposure_t, frame = self._pending_frames.popleft()
-            out.append(("camera", exposure_t, frame))
+            out.append((self._camera_topic, exposure_t, frame))
         if tick % d_truth == 0:
             out.append(("truth", t, self._truth(acc if acc is not None else p.acceleration_floats(self._wind))))
         if tick % d_battery == 0:

@@ -48,6 +48,7 @@ import numpy as np
 from flight.camera import R_CAM_FROM_BODY, Camera, marker_grid
 from flight.quat import quat_from_rotation, quat_to_rotation
 
+METHODS = ("hand", "opencv")
 REASONS = ("too_few_points", "unknown_marker", "degenerate", "not_converged", "reprojection")
 
 MAX_CONDITION = 1e10          # J^T J condition number above which the geometry is degenerate
@@ -422,13 +423,15 @@ def _world_corners(marker_map, ids: np.ndarray):
 
 def solve_pose(camera: Camera, marker_map: MarkerMap, marker_ids, corners_px,
                pixel_sigma_px: float = 0.5, max_reprojection_px: float = 3.0,
-               prior=None) -> PoseSolution:
+               prior=None, method: str = "hand") -> PoseSolution:
     """Body pose from detected marker corners.
 
     marker_ids: M ids; corners_px: 8 M numbers (u0, v0, ..., u3, v3 per marker, the
     MarkerCamera layout) or an (M, 4, 2) array. A corner with a non-finite pixel is
     left out (a detector may lose single corners). prior: optional (position (3,),
     quaternion wxyz (4,)) used as the start when the homography is ill-conditioned.
+    method: "hand" (this module's homography and Levenberg-Marquardt) or "opencv"
+    (cv2.solvePnP, _solve_opencv); the checks and the covariance are the same.
     Raises ValueError only for a corners_px whose size does not match marker_ids.
     """
     ids = np.asarray(marker_ids).reshape(-1) if marker_ids is not None else np.zeros(0, dtype=np.int64)
@@ -448,6 +451,10 @@ def solve_pose(camera: Camera, marker_map: MarkerMap, marker_ids, corners_px,
     if n < 4:
         return _fail("too_few_points", n)
 
+    if method == "opencv":
+        return _solve_opencv(camera, pts, pix, pixel_sigma_px, max_reprojection_px, prior)
+    if method != "hand":
+        raise ValueError(f"solve_pose: method {method!r} is not one of {METHODS}")
     f = float(camera.focal_px)
     cxy = np.array(camera.principal_point_px, dtype=np.float64)
     start = _homography_pose(pts[:, :2], (pix - cxy) / f)
@@ -472,6 +479,12 @@ def solve_pose(camera: Camera, marker_map: MarkerMap, marker_ids, corners_px,
             ev2 = prob.residuals(r2, p2)
             if conv2 and ev1 is not None and ev2 is not None and ev2[0] @ ev2[0] < ev1[0] @ ev1[0]:
                 r_wb, p = r2, p2
+    return _checked(prob, r_wb, p, converged, n, pixel_sigma_px, max_reprojection_px)
+
+
+def _checked(prob: _Problem, r_wb, p, converged: bool, n: int, pixel_sigma_px: float,
+             max_reprojection_px: float) -> PoseSolution:
+    """The solution at (r_wb, p) with its covariance, or the reason it is refused."""
     ev = prob.residuals(r_wb, p)
     if ev is None or not converged or not np.all(np.isfinite(ev[0])):
         return _fail("not_converged", n, r_wb, p)
@@ -490,3 +503,36 @@ def solve_pose(camera: Camera, marker_map: MarkerMap, marker_ids, corners_px,
     return PoseSolution(ok=True, reason="", position_m=np.array(p, dtype=np.float64),
                         quaternion_wxyz=quat_from_rotation(r_wb), covariance=cov,
                         reprojection_rms_px=rms, points_used=n)
+
+
+def _solve_opencv(camera: Camera, pts: np.ndarray, pix: np.ndarray, pixel_sigma_px: float,
+                  max_reprojection_px: float, prior) -> PoseSolution:
+    """cv2.solvePnP on the same points: IPPE (the planar solver: both of the plane's pose
+    candidates, the better kept) then cv2.solvePnPRefineLM; with `prior` only when IPPE fails.
+    The checks and covariance as the hand solver's (_checked). cv2 is imported here only."""
+    import cv2
+
+    n = len(pts)
+    k = np.array([[camera.focal_px, 0.0, camera.principal_point_px[0]],
+                  [0.0, camera.focal_px, camera.principal_point_px[1]], [0.0, 0.0, 1.0]])
+    obj = np.ascontiguousarray(pts, dtype=np.float64)
+    img = np.ascontiguousarray(pix, dtype=np.float64)
+    try:
+        ok, rvec, tvec = cv2.solvePnP(obj, img, k, None, flags=cv2.SOLVEPNP_IPPE)
+        if ok:
+            rvec, tvec = cv2.solvePnPRefineLM(obj, img, k, None, rvec, tvec)
+        elif prior is not None:
+            r_cw0 = R_CAM_FROM_BODY @ quat_to_rotation(np.asarray(prior[1], dtype=np.float64)).T
+            rvec = cv2.Rodrigues(r_cw0)[0]
+            tvec = (-r_cw0 @ np.asarray(prior[0], dtype=np.float64)).reshape(3, 1)
+            ok, rvec, tvec = cv2.solvePnP(obj, img, k, None, rvec, tvec, True, cv2.SOLVEPNP_ITERATIVE)
+    except cv2.error:
+        ok = False
+    if not ok:
+        return _fail("degenerate", n)
+    r_cw = cv2.Rodrigues(rvec)[0]
+    r_wb = _orthonormalise(r_cw.T @ R_CAM_FROM_BODY)
+    p = -r_cw.T @ tvec.reshape(3)
+    if not (np.all(np.isfinite(r_wb)) and np.all(np.isfinite(p))):
+        return _fail("not_converged", n)
+    return _checked(_Problem(camera, pts, pix), r_wb, p, True, n, pixel_sigma_px, max_reprojection_px)

@@ -32,6 +32,9 @@ PARAMS = {
                                     "a controlled descent (failsafe); on the ground, idle"),
     "state_timeout_s": Param(0.05, "s", 0.0, min_exclusive=True,
                              doc="newest IMU sample (or truth) older than this: no command"),
+    "restart_settle_s": Param(0.3, "s", 0.0, 10.0,
+                              doc="restarted mid-flight by the supervisor: no command for this long after the "
+                                  "first sample, while the filter settles (the motor driver's failsafe flies)"),
     "failsafe_descent": Param({}, table=DescentParams,
                               doc="the failsafe descent's settings (flight/control/failsafe.py DescentParams)"),
     "filter": Param({}, table=AttitudeFilterParams,

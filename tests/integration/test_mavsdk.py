@@ -4,11 +4,12 @@ The flows are MAVSDK's own example flows, written as a user would: telemetry,
 health and parameters on the ground; arm / take off / hold / offboard position
 steps / land in one flight; the README's script (examples/mavsdk_mission.py, run
 as it is) flies a 4-waypoint mission and returns to launch in another. The
-stack runs in lockstep with no mission (the planner waits for commands); the
-bridge lives on the wall clock, so every wait is generous (the simulator runs
-slower than real time on a busy machine). One stack serves every test, in order:
-first a plain pymavlink listener checks the messages QGroundControl relies on,
-then MAVSDK binds the same port.
+stack runs with no mission (the planner waits for commands), twice: in lockstep
+(the bridge lives on the wall clock, so every wait is generous: the simulator runs
+slower than real time on a busy machine), then in real time on the default stack
+(the estimators, as a user flies it). One stack serves every test of a mode, in
+order: first a plain pymavlink listener checks the messages QGroundControl relies
+on, then MAVSDK binds the same port.
 """
 
 import asyncio
@@ -53,14 +54,15 @@ def zp(*args, env):
                           capture_output=True, text=True, timeout=180)
 
 
-@pytest.fixture(scope="module")
-def stack(tmp_path_factory):
-    """`zenpilot up --lockstep` with no mission (the planner waits for commands); the bridge it
-    starts (on the wall clock, as always) talks to this test's UDP port."""
+@pytest.fixture(scope="module", params=["lockstep", "real time"])
+def stack(request, tmp_path_factory):
+    """`zenpilot up` (`--lockstep`, then in real time) with no mission (the planner waits for
+    commands); the bridge it starts (on the wall clock, as always) talks to this test's UDP port."""
     tmp = tmp_path_factory.mktemp("mavsdk")
     env = dict(os.environ, ZENPILOT_STATE_DIR=str(tmp))
     router, udp = f"tcp/127.0.0.1:{free_port()}", free_udp_port()
-    up = zp("up", "-d", "--lockstep", "--router", router, "--out", str(tmp / "run"),
+    mode = ["--lockstep"] if request.param == "lockstep" else []
+    up = zp("up", "-d", *mode, "--router", router, "--out", str(tmp / "run"),
             "--set", "planner.mission=none", "--set", f"mavlink.endpoint=udpout:127.0.0.1:{udp}", env=env)
     try:
         assert up.returncode == 0, up.stdout + up.stderr

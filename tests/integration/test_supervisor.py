@@ -1,5 +1,6 @@
-"""The supervisor in a real-time flight (issue 22, item 2): a service killed mid-hover is seen
-at once, restarted after its back-off, and the flight goes on without a crash."""
+"""The supervisor in a real-time flight (issue 22, item 2): a service killed or frozen mid-hover
+is seen at once, restarted after its back-off (a frozen one killed first, once it has hung for
+its bound), and the flight goes on without a crash."""
 import json
 import os
 import signal
@@ -34,12 +35,8 @@ def _service_pid(out, module: str) -> int:
     return pids[0]
 
 
-def test_attitude_killed_in_real_time_is_restarted_and_the_vehicle_does_not_crash(tmp_path):
-    """kill -9 of the attitude level 5 s into a real-time hover on the estimates: the motor
-    driver's failsafe holds level and descends (deploy/reliability.md) while the supervisor
-    restarts the service 0.5 s later; the restarted level takes the vehicle back, or the descent
-    lands it - either way on the truth it never crashes, and the restart is in the record."""
-    out = tmp_path / "run"
+def _fly_and(out, fault):
+    """A real-time hover on the estimates; `fault()` 5 s after its first tick; what `fly` said."""
     proc = fly(out, "hover", lockstep=False, background=True)
     try:
         deadline = time.monotonic() + 120
@@ -47,18 +44,59 @@ def test_attitude_killed_in_real_time_is_restarted_and_the_vehicle_does_not_cras
             assert proc.poll() is None and time.monotonic() < deadline, proc.stdout.read()
             time.sleep(0.2)
         time.sleep(5.0)
-        killed = _service_pid(out, "attitude")
-        os.kill(killed, signal.SIGKILL)
+        fault()
         said, _ = proc.communicate(timeout=180)
     finally:
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 0, said
+    return said
+
+
+def _not_crashed(out):
+    m = json.loads((out / "metrics.json").read_text())
+    assert not m["crashed"], m.get("crash_reason")
+    return m
+
+
+def test_attitude_killed_in_real_time_is_restarted_and_the_vehicle_does_not_crash(tmp_path):
+    """kill -9 of the attitude level 5 s into a real-time hover on the estimates: the motor
+    driver's failsafe holds level and descends (deploy/reliability.md) while the supervisor
+    restarts the service 0.5 s later; the restarted level takes the vehicle back, or the descent
+    lands it - either way on the truth it never crashes, and the restart is in the record."""
+    out = tmp_path / "run"
+    said = _fly_and(out, lambda: os.kill(_service_pid(out, "attitude"), signal.SIGKILL))
     assert "supervisor: attitude killed by signal 9" in said and "restart 1 of 3" in said, said
     record = json.loads((out / "supervisor.json").read_text())
     assert record["services"]["attitude"]["restarts"] == 1 and record["services"]["attitude"]["exits"] == 1, record
     assert "attitude restarted at" in (out / "logs" / "attitude.log").read_text()
-    m = json.loads((out / "metrics.json").read_text())
-    assert not m["crashed"], m.get("crash_reason")
+    m = _not_crashed(out)
     health = m["rejected_messages"].get("supervisor") or {}
     assert health.get("restarted_attitude") == 1, m["rejected_messages"]
+
+
+def test_position_frozen_in_real_time_is_killed_restarted_and_the_vehicle_does_not_crash(tmp_path):
+    """SIGSTOP of the position level (never continued) 5 s into a real-time hover on the
+    estimates: seen stopped within the supervisor's poll, killed once it has hung for its
+    `hang_restart_s` (0.5 s), restarted; meanwhile the attitude level's failsafe holds level and
+    descends; the vehicle never crashes on the truth."""
+    out = tmp_path / "run"
+    stopped_at = []
+
+    def freeze():
+        os.kill(_service_pid(out, "position"), signal.SIGSTOP)
+        stopped_at.append(time.monotonic())
+    said = _fly_and(out, freeze)
+    assert "supervisor: position the process is stopped" in said, said
+    assert "position hung (stopped for 0." in said and "restart 1 of 3" in said, said
+    record = json.loads((out / "supervisor.json").read_text())
+    events = [e for e in record["events"] if e["service"] == "position"]
+    assert [e["event"] for e in events][:3] == ["stopped", "hung", "restarted"], events
+    assert events[1]["t_s"] - events[0]["t_s"] < 0.8, events   # hung 0.5 s after it was seen stopped
+    assert record["services"]["position"]["hangs"] == 1 and record["services"]["position"]["restarts"] == 1
+    beats = {n: w["beats"] for n, w in record["services"].items()}
+    assert all(b >= 50 for b in beats.values()), beats   # every loop beat at ~10 Hz through the flight
+    assert "position restarted at" in (out / "logs" / "position.log").read_text()
+    m = _not_crashed(out)
+    health = m["rejected_messages"].get("supervisor") or {}
+    assert health.get("hung_position") == 1 and health.get("restarted_position") == 1, m["rejected_messages"]

@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from deploy.supervisor import BACKOFF_S, HEALTH_SILENCE_S, Supervisor, process_state
+import deploy.supervisor
+from deploy.supervisor import BEAT_SILENCE_S, START_S, HEALTH_SILENCE_S, Supervisor, backoff_s, process_state
 from services.stack import StackError, load_stack
 
 
@@ -27,16 +28,22 @@ class FakeLauncher:
         self.specs = {}
         for name, (policy, limit) in policies.items():
             s = spec()
-            s.restart, s.restart_limit = policy, limit
+            s.restart, s.restart_limit, s.hang_restart_s = policy, limit, 1.0
             self.specs[name] = s
         self.stack = type("Stack", (), {"service": lambda _, n: self.specs[n]})()
         self.run_dir = tmp_path
         self.procs = {n: FakeProc(pid=10 ** 9 + i) for i, n in enumerate(policies)}   # no such pids
         self.restarted = []
 
+        self.killed = []
+
     def restart(self, name):
         self.restarted.append(name)
         self.procs[name] = FakeProc(pid=10 ** 9 + 100 + len(self.restarted))
+
+    def kill(self, name):
+        self.killed.append(name)
+        self.procs[name].returncode = -9
 
 
 class Clock:
@@ -57,7 +64,7 @@ def test_a_dead_service_is_restarted_after_a_growing_back_off_until_its_limit(tm
     for restart in range(2):
         launcher.procs["attitude"].returncode = -9
         assert sup.poll() == [] and sup.watches["attitude"].state == "restarting"
-        clock.t += BACKOFF_S * 2 ** restart - 0.01
+        clock.t += backoff_s(restart) - 0.01
         sup.poll()
         assert len(launcher.restarted) == restart, "restarted before its back-off"
         clock.t += 0.02
@@ -73,6 +80,10 @@ def test_a_dead_service_is_restarted_after_a_growing_back_off_until_its_limit(tm
     assert saved["services"]["attitude"]["restarts"] == 2 and len(saved["events"]) == 5
     health = sup.health_message()
     assert health["state"] == "degraded" and health["rejected"] == {"exited_attitude": 3, "restarted_attitude": 2}
+
+
+def test_back_off_first_short_then_doubling_to_a_bound():
+    assert [backoff_s(n) for n in range(7)] == [0.1, 0.5, 1.0, 2.0, 4.0, 8.0, 8.0]
 
 
 def test_policies_never_always_and_lockstep(tmp_path):
@@ -137,3 +148,86 @@ def test_stack_restart_keys_are_checked(tmp_path):
         path.write_text(base.replace(section, f"{section}\n{extra}", 1))
         with pytest.raises(StackError, match=message):
             load_stack(str(path))
+
+
+def run_for(sup, clock, seconds, beating=(), step=0.1):
+    """Poll every `step` for `seconds`, the services in `beating` beating before each poll."""
+    for _ in range(round(seconds / step)):
+        clock.t += step
+        for name in beating:
+            sup.beat_seen(name)
+        sup.poll()
+
+
+def test_a_stuck_loop_is_a_hang_killed_and_restarted_after_its_bound(tmp_path):
+    sup, launcher, clock, said = supervisor(tmp_path, {"attitude": ("on-failure", 3)})
+    run_for(sup, clock, 1.0, beating=["attitude"])
+    run_for(sup, clock, BEAT_SILENCE_S + 0.1)   # its loop stuck: no beat
+    w = sup.watches["attitude"]
+    assert w.state == "stuck" and w.stucks == 1 and "its loop sent no beat for 0.4" in said[-1], said
+    assert launcher.killed == []
+    run_for(sup, clock, 1.1)
+    assert launcher.killed == ["attitude"] and w.hangs == 1 and w.state == "restarting", said
+    assert "hung (stuck for 1." in said[-1]
+    sup.beat_seen("attitude")   # a beat of the killed process still on its way: not the new one's
+    run_for(sup, clock, backoff_s(0) + 0.1)
+    assert launcher.restarted == ["attitude"] and w.state == "running" and w.exits == 0
+    run_for(sup, clock, HEALTH_SILENCE_S + 1.0)   # starting slowly: no beat, no health
+    assert w.state == "silent" and launcher.killed == ["attitude"], "a slow start-up is not a hang"
+    run_for(sup, clock, 1.0, beating=["attitude"])
+    assert w.state == "running" and sup.health_message()["rejected"] == {
+        "stuck_attitude": 1, "silent_attitude": 1, "hung_attitude": 1, "restarted_attitude": 1}
+
+
+def test_a_loop_that_beats_again_before_its_bound_is_left_alone(tmp_path):
+    sup, launcher, clock, said = supervisor(tmp_path, {"motors": ("on-failure", 3)})
+    run_for(sup, clock, 0.5, beating=["motors"])
+    run_for(sup, clock, 0.6)
+    assert sup.watches["motors"].state == "stuck"
+    run_for(sup, clock, 2.0, beating=["motors"])
+    assert sup.watches["motors"].state == "running" and launcher.killed == [] and "beats again" in said[-1]
+
+
+def test_a_stopped_service_past_its_bound_is_killed_unless_its_policy_says_never(tmp_path, monkeypatch):
+    stopped = set()
+    monkeypatch.setattr(deploy.supervisor, "process_state", lambda pid: "T" if pid in stopped else "S")
+    sup, launcher, clock, said = supervisor(tmp_path, {"position": ("on-failure", 3), "recorder": ("never", 3)})
+    stopped |= {launcher.procs["position"].pid, launcher.procs["recorder"].pid}
+    run_for(sup, clock, 0.1)
+    assert sup.watches["position"].state == "stopped" and sup.watches["recorder"].state == "stopped"
+    run_for(sup, clock, 1.1)
+    assert launcher.killed == ["position"] and sup.watches["recorder"].state == "stopped"
+    run_for(sup, clock, backoff_s(0) + 0.1)
+    assert launcher.restarted == ["position"]
+    lock, launcher, clock, _ = supervisor(tmp_path, {"position": ("on-failure", 3)}, real_time=False)
+    stopped.add(launcher.procs["position"].pid)
+    run_for(lock, clock, 5.0)
+    assert launcher.killed == [] and lock.watches["position"].state == "stopped", "lockstep: reported only"
+
+
+def test_stack_hang_bound_is_checked(tmp_path):
+    base = (Path(__file__).resolve().parents[3] / "deploy" / "stacks" / "default.toml").read_text()
+    assert load_stack(None).service("attitude").hang_restart_s == 0.5
+    for value in ("0.0", "nan", '"1"', "61"):
+        path = tmp_path / "s.toml"
+        path.write_text(base.replace("[services.attitude]", f"[services.attitude]\nhang_restart_s = {value}", 1))
+        with pytest.raises(StackError, match="hang_restart_s"):
+            load_stack(str(path))
+
+
+def test_a_start_up_silent_past_its_bound_is_a_hang(tmp_path):
+    sup, launcher, clock, said = supervisor(tmp_path, {"planner": ("on-failure", 3)})
+    run_for(sup, clock, HEALTH_SILENCE_S + START_S - 0.5)
+    assert sup.watches["planner"].state == "silent" and launcher.killed == []
+    run_for(sup, clock, 1.0)
+    assert launcher.killed == ["planner"] and any("hung (silent for 30." in line for line in said), said
+
+
+def test_a_record_that_cannot_be_written_is_said_once_and_supervision_goes_on(tmp_path):
+    sup, launcher, clock, said = supervisor(tmp_path, {"attitude": ("on-failure", 3)})
+    sup.path = tmp_path / "gone" / "supervisor.json"   # its folder removed under it
+    launcher.procs["attitude"].returncode = -9
+    sup.poll()
+    run_for(sup, clock, 1.0)
+    assert launcher.restarted == ["attitude"]
+    assert sum("cannot write" in line for line in said) == 1, said

@@ -28,3 +28,32 @@ def test_marker_grid_ids_and_corner_order():
     # seen from a level camera with yaw 0: TL, TR, BR, BL in the image too
     pix, _ = Camera(640, 480, 400.0).project(c, [0, 0, 1], [1, 0, 0, 0])
     np.testing.assert_allclose(pix, [[280, 200], [360, 200], [360, 280], [280, 280]])
+
+
+def test_intrinsics_file_round_trip_and_bad_files_refused_naming_file_and_key(tmp_path):
+    import pytest
+
+    from flight.camera import DEFAULT_CAMERA, Intrinsics, IntrinsicsError, load_intrinsics
+
+    good = Intrinsics(640, 480, 401.5, 399.25, 321.0, 238.5, (-0.1, 0.02, 0.001, 0.0, -0.003))
+    path = tmp_path / "cam.toml"
+    path.write_text(good.to_toml("a comment\nof two lines"))
+    assert load_intrinsics(path) == good
+    assert Intrinsics.of(DEFAULT_CAMERA).matrix[0, 2] == 320.0
+    cases = {
+        "nothing.toml": (None, "camera intrinsics file not found"),
+        "not-toml.toml": ("width_px = [", "not valid TOML"),
+        "missing.toml": ("width_px = 640\n", "missing key(s)"),
+        "focal.toml": (good.to_toml().replace("fx_px = 401.5", "fx_px = -3.0"), "focal lengths must be > 0"),
+        "dist.toml": (good.to_toml().replace("distortion = [", "distortion = [1.0, "), "expected 5 finite numbers"),
+        "size.toml": (good.to_toml().replace("width_px = 640", "width_px = 64.5"), "width_px = 64.5"),
+        "extra.toml": (good.to_toml() + "fov = 3\n", "unknown key(s) ['fov']"),
+        "centre.toml": (good.to_toml().replace("cx_px = 321.0", "cx_px = 900.0"), "outside the 640 x 480 image"),
+    }
+    for name, (text, said) in cases.items():
+        p = tmp_path / name
+        if text is not None:
+            p.write_text(text)
+        with pytest.raises(IntrinsicsError) as err:
+            load_intrinsics(p)
+        assert str(p) in str(err.value) and said in str(err.value), name

@@ -122,10 +122,14 @@ def valid_values(m):
             out[f.name] = [x + (hi - lo) * 0.01 * j for j in range(f.length or 2)]
         elif f.kind == "int[]":
             out[f.name] = [int(max(x, 0 if f.min is None else f.min))] * (f.length or 2)
+        elif f.kind == "bytes":
+            out[f.name] = bytes(range(f.length or 5))
         else:
             out[f.name] = [f.choices[0] if f.choices else "a"] * (f.length or 2)
     if m is schemas.CAMERA:
         out["corners_px"] = [100.0] * (8 * len(out["marker_ids"]))
+    if m is schemas.CAMERA_IMAGE:  # one byte per pixel
+        out.update(width_px=3, height_px=2, pixels=bytes([0, 1, 2, 253, 254, 255]))
     if m is schemas.PLANNER_PLAN:  # sizes that satisfy its cross-field check
         h, n = 2, 13
         out.update(horizon=h, state_dim=n, states=[0.0] * ((h + 1) * n), controls_rad_s=[1.0] * (4 * h), gains=[0.0] * (4 * h * n),
@@ -212,6 +216,8 @@ EVERY_KIND = schemas.Message("every_kind", "test/every_kind", 3, "a test message
     schemas.Field("sa", "str[]", "", choices=("a", "b")),
     schemas.Field("c", "counts", ""),
     schemas.Field("c_lo", "counts", "", min=-1),
+    schemas.Field("by", "bytes", ""),
+    schemas.Field("by4", "bytes", "", length=4),
 ), check=lambda doc: "fa and ia differ" if len(doc["fa"]) > 3 else None)
 CODEC_CASES = (*schemas.ALL, EVERY_KIND)
 
@@ -447,3 +453,13 @@ def test_the_lockstep_handshake_is_outside_every_vehicle_wide_subscription():
         assert zenoh.KeyExpr(message.key(0, "*")).intersects(key)
         assert schemas.message_for_key(str(key)) is message
     assert everything.intersects(zenoh.KeyExpr(schemas.IMU.key(0)))
+
+
+def test_camera_images_are_outside_every_wildcard_subscription():
+    """The recorder and the ground tools subscribe to zp/<vehicle>/**: the pixels (~6 MB/s) are not sent to them."""
+    import zenoh
+    key = zenoh.KeyExpr(schemas.CAMERA_IMAGE.key(0))
+    assert not zenoh.KeyExpr("zp/0/**").intersects(key)
+    assert zenoh.KeyExpr("zp/0/sim/@image").intersects(key)
+    doc = valid_doc(schemas.CAMERA_IMAGE)
+    assert outcome(schemas.CAMERA_IMAGE.validate, {**doc, "pixels": b"\x00" * 5})[1] == "wrong_length"

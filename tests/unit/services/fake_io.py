@@ -52,8 +52,9 @@ class FakePublisher:
 
 class FakeIO(ParamAccess):
     def __init__(self, name: str, defaults: dict, params: dict | None = None, vehicle: str = "x250",
-                 rate_hz: float = 200.0, lockstep: bool = True):
+                 rate_hz: float = 200.0, lockstep: bool = True, restarted: bool = False):
         self.name = name
+        self.restarted = restarted
         self.declared = defaults
         self.params = resolve_params(defaults, params or {}, self.where())
         self.vehicle_name = vehicle

@@ -114,3 +114,17 @@ def test_the_estimate_converges_level_from_imu_samples_at_rest():
 def test_bad_parameters_are_refused_naming_the_key(params, key):
     with pytest.raises(ValueError, match=f"services.attitude.params.*{key}"):
         AttitudeLoop(FakeIO("attitude", PARAMS, params))
+
+
+def test_restarted_mid_flight_no_command_until_its_filter_has_settled():
+    io = FakeIO("attitude", PARAMS, {"state_source": "truth", "restart_settle_s": 0.5}, restarted=True)
+    loop = AttitudeLoop(io)
+    truths, setpoints = io.received(schemas.TRUTH, "sim"), io.received(schemas.POSITION_SETPOINT, "position")
+    for k in range(12):   # 0.55 s of samples and setpoints from t = 1.0
+        t = 1.0 + 0.05 * k
+        truths.push(t, truth(t))
+        setpoints.push(t, {"attitude_ref_rad": [0.0, 0.0, 0.0], "thrust_n": HOVER_N})
+        loop.step(t)
+    sent = [t for t, _ in io.sent(schemas.ATTITUDE_COMMAND)]
+    assert sent and min(sent) == pytest.approx(1.5), sent   # from the first sample + restart_settle_s
+    assert len(io.sent(schemas.ATTITUDE_STATE)) == 12 and "restarted: commands from t=1.500" in io.problems[0]

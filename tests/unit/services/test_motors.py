@@ -80,3 +80,24 @@ def test_the_attitude_level_gone_in_the_air_the_driver_descends_on_its_own():
 def test_bad_parameters_are_refused_naming_the_key(params, key):
     with pytest.raises(ValueError, match=f"services.motors.params.*{key}"):
         driver(**params)
+
+
+def test_restarted_mid_flight_it_says_nothing_until_it_has_heard_the_planner_and_a_command():
+    io = FakeIO("motors", PARAMS, {}, rate_hz=400.0, restarted=True)
+    io.tick_rate = 400.0
+    d = MotorDriver(io)
+    setpoints, commands = io.received(schemas.PLANNER_SETPOINT, "planner"), io.received(schemas.ATTITUDE_COMMAND, "attitude")
+    d.step(1.0)                       # nothing heard: an idle output would cut a vehicle in the air
+    setpoints.push(1.0, planner())    # armed, flying: still nothing until a command
+    d.step(1.0025)
+    assert io.sent(schemas.MOTOR_PWM) == []
+    commands.push(1.004, {"thrust_n": HOVER_N, "torque_nm": [0.0, 0.0, 0.0], "imu_t_s": 1.004})
+    d.step(1.005)
+    [(_, out)] = io.sent(schemas.MOTOR_PWM)
+    assert out["armed"] and sum(out["thrust_n"]) == pytest.approx(HOVER_N)
+    io2 = FakeIO("motors", PARAMS, {}, rate_hz=400.0, restarted=True)
+    io2.tick_rate = 400.0
+    d2 = MotorDriver(io2)
+    io2.received(schemas.PLANNER_SETPOINT, "planner").push(1.0, planner(armed=False))
+    d2.step(1.0)                      # told it is disarmed: idle, as always
+    assert io2.sent(schemas.MOTOR_PWM)[-1][1]["pwm_us"] == [X250.pwm_min_us] * 4

@@ -1,0 +1,131 @@
+"""Each service killed or frozen mid-hover in real time, as `zenpilot fly` supervises it (issue 22).
+
+Per (service, fault), a real-time hover on the estimates (the default stack); 5 s after the
+simulator's first tick the fault: `kill` (SIGKILL), `stop2` (SIGSTOP, SIGCONT 2 s later) or
+`freeze` (SIGSTOP, never continued). Printed per flight: when the supervisor saw it (after the
+fault), what it did (its events), the failsafes the services counted, and the flight's outcome
+on the simulator's truth (completed, crashed, touchdown speed).
+
+    python bench/supervised_faults.py [--services attitude position ...] [--faults kill stop2 freeze]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from flight.quat import quat_tilt  # noqa: E402
+from schemas.flightlog import LogError, read_log  # noqa: E402
+SERVICES = ("attitude", "position", "motors", "planner", "vision")
+FAULTS = ("kill", "stop2", "freeze")
+
+
+def cmdline(pid: int) -> list[bytes]:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as fh:
+            return fh.read().split(b"\0")
+    except OSError:
+        return []
+
+
+def service_pid(out: Path, service: str) -> int:
+    """The flight's service process: the one started with the recorder's router endpoint."""
+    procs = [int(p) for p in os.listdir("/proc") if p.isdigit()]
+    recorder = next(p for p in procs if b"services.recorder" in cmdline(p) and str(out).encode() in b" ".join(cmdline(p)))
+    argv = cmdline(recorder)
+    endpoint = argv[argv.index(b"-e") + 1]
+    found = [p for p in procs if endpoint in cmdline(p) and f"services.{service}".encode() in cmdline(p)]
+    if len(found) != 1:
+        raise SystemExit(f"bench: expected one {service} process of {out}, found {found}")
+    return found[0]
+
+
+def fly_with(out: Path, service: str, fault: str, at_s: float, seed: int) -> dict:
+    argv = [sys.executable, "-m", "deploy.cli", "fly", "--mission", "hover", "--seed", str(seed),
+            "--out", str(out), "--no-plots"]
+    proc = subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        sim_log = out / "logs" / "sim.log"
+        while not (sim_log.exists() and "first tick" in sim_log.read_text(errors="replace")):
+            if proc.poll() is not None or time.monotonic() > deadline:
+                raise SystemExit(f"bench: the flight did not start:\n{proc.stdout.read()}")
+            time.sleep(0.05)
+        time.sleep(at_s)
+        pid = service_pid(out, service)
+        injected = time.time()
+        os.kill(pid, signal.SIGKILL if fault == "kill" else signal.SIGSTOP)
+        if fault == "stop2":
+            time.sleep(2.0)
+            try:
+                os.kill(pid, signal.SIGCONT)
+            except ProcessLookupError:   # the supervisor killed it first
+                pass
+        said, _ = proc.communicate(timeout=240)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    record = json.loads((out / "supervisor.json").read_text())
+    events = [e for e in record["events"] if e["service"] == service]
+    metrics = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").exists() else {}
+    return {"rc": proc.returncode, "events": events, "after": after_fault(out, injected),
+            "seen_ms": (record["started_unix"] + events[0]["t_s"] - injected) * 1e3 if events else None,
+            "metrics": metrics, "said": said}
+
+
+def after_fault(out: Path, injected: float, window_s: float = 5.0) -> dict:
+    """On the simulator's truth, the window_s after the fault: lowest and highest height, most tilt."""
+    try:
+        truth = read_log(out / "flight.mcap")["zp/0/sim/truth"]
+    except (OSError, KeyError, LogError) as exc:   # a log the flight left unreadable is a result too
+        return {"error": str(exc)}
+    seen = [m for m in truth if injected <= m["header"]["t_s"] <= injected + window_s]
+    if not seen:
+        return {}
+    z = [m["position_m"][2] for m in seen]
+    return {"z_min": min(z), "z_max": max(z), "tilt_max_deg": max(math.degrees(quat_tilt(m["quaternion_wxyz"])) for m in seen)}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--services", nargs="+", default=list(SERVICES), choices=SERVICES)
+    ap.add_argument("--faults", nargs="+", default=list(FAULTS), choices=FAULTS)
+    ap.add_argument("--at", type=float, default=5.0, help="wall seconds after the first tick")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", default="runs/bench-supervised-faults")
+    args = ap.parse_args()
+    print("$ python bench/supervised_faults.py " + " ".join(sys.argv[1:]), flush=True)
+    rows = []
+    for service in args.services:
+        for fault in args.faults:
+            out = Path(args.out) / f"{service}-{fault}"
+            load = os.getloadavg()[0]
+            r = fly_with(out.resolve(), service, fault, args.at, args.seed)
+            m = r["metrics"]
+            did = "; ".join(f"+{e['t_s']:.2f} {e['event']}" for e in r["events"]) or "nothing"
+            fs = ", ".join(f"{k}" for svc in (m.get("failsafes") or {}).values() for k in svc) or "-"
+            seen = f"{r['seen_ms']:.0f}" if r["seen_ms"] is not None else "-"
+            rows.append((service, fault, seen, did, fs, m.get("completed"), m.get("crashed"),
+                         m.get("touchdown_speed_m_s"), load))
+            a = r["after"]
+            fig = (f"z {a['z_min']:.2f}..{a['z_max']:.2f} m, tilt <= {a['tilt_max_deg']:.0f} deg" if "z_min" in a
+                   else a.get("error", "no truth"))
+            print(f"{service:9} {fault:6} seen after {seen:>5} ms | {did} | failsafes: {fs} | 5 s after: {fig} | "
+                  f"completed {m.get('completed')} crashed {m.get('crashed')} {m.get('crash_reason') or ''} "
+                  f"| load {load:.1f} | {out}", flush=True)
+    bad = [r for r in rows if r[6] is not False]
+    print(f"\n{len(rows) - len(bad)} of {len(rows)} flights not crashed")
+    return 1 if bad else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
