@@ -172,6 +172,7 @@ def replay(vehicle: str, old: bool, times, per_run, ekf_share: bool = False) -> 
     loop = PositionLoop(io)
     if old:
         loop.ekf = OldPositionEKF(loop.vehicle, io.table("ekf", OldParams.from_dict), dt=loop.dt)
+        loop.ekf.camera_fix = None   # it has no hook for the camera delay's fit: that part is not run
         loop.rotor_forces = OldLaggedMotorInput(loop.vehicle.motor_time_constant_s)
     ekf_s = [0.0]
     if ekf_share:

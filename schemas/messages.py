@@ -194,6 +194,34 @@ POSITION_STATE = Message(
     ),
 )
 
+POSITION_EKF_HEALTH = Message(
+    "position_ekf_health", "pos/ekf_health", 1,
+    "The position EKF's health, at 1 Hz beside the service's: its camera fixes, and the camera's "
+    "delay watched two ways (flight/estimation/camera_delay.py): as the stamps show it (arrival "
+    "minus exposure stamp) and, for a delay the stamps do not show, as the innovations show it "
+    "(the offset of the fixes' real time from their stamps), with the correction the fusion applies.",
+    (
+        F("camera_delay_s", "float", "running median of a fix's arrival minus its exposure stamp "
+          "(-1: no fix yet)", "s", min=-1.0, max=1e3),
+        F("camera_delay_spread_s", "float", "max - min of that delay over the median's window", "s",
+          min=0.0, max=1e3),
+        F("camera_delay_steps", "int", "steps of that median reported since start", min=0),
+        F("camera_delay_step_t_s", "float", "when the last was reported (-1: none)", "s", min=-1.0),
+        F("camera_offset_s", "float", "offset of the fixes' real time from their stamps, estimated from the "
+          "innovations (positive: the fixes are older than stamped)", "s", min=-1e3, max=1e3),
+        F("camera_offset_std_s", "float", "its standard error (1: nothing learnt, the vehicle has not moved)",
+          "s", min=0.0, max=1.0),
+        F("camera_offset_confident", "bool", "the std is below the confidence threshold"),
+        F("camera_offset_correction_s", "float", "what the fusion takes off each fix's stamp now", "s",
+          min=-1e3, max=1e3),
+        F("camera_offset_detections", "int", "offsets detected (confident, outside the deadband) since start",
+          min=0),
+        F("camera_offset_detected_t_s", "float", "when the last was detected (-1: none)", "s", min=-1.0),
+        F("camera_fixes", "counts", "camera fixes since start: accepted, and refused by reason (gate, too_old, "
+          "future, invalid)"),
+    ),
+)
+
 ATTITUDE_COMMAND = Message(
     "attitude_command", "att/command", 1,
     "Attitude level output (law (8)): body torques and the collective thrust, "
@@ -419,7 +447,7 @@ PARAM_SET = Message(
 
 ALL = (
     CLOCK, SYNC_DONE, IMU, BARO, MAG, CAMERA, CAMERA_IMAGE, TRUTH, VISION_POSE, PLANNER_SETPOINT,
-    POSITION_SETPOINT, POSITION_STATE, ATTITUDE_COMMAND, ATTITUDE_STATE, MOTOR_PWM, HEALTH, BEAT,
+    POSITION_SETPOINT, POSITION_STATE, POSITION_EKF_HEALTH, ATTITUDE_COMMAND, ATTITUDE_STATE, MOTOR_PWM, HEALTH, BEAT,
     BATTERY, PLANNER_COMMAND, PARAM_SET, PLANNER_PLAN, PLANNER_MISSION, PLANNER_FLIP_PREDICTION,
 )
 

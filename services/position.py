@@ -30,6 +30,7 @@ import numpy as np
 
 import schemas
 from flight.control.laws import altitude_law, hold_integral_update, position_law
+from flight.estimation.camera_delay import CameraDelayEstimator, CameraDelayParams
 from flight.estimation.position_ekf import LaggedMotorInput, PositionEKF, PositionEKFParams
 from flight.quat import quat_tilt, quat_to_euler
 from flight.vehicle import load_vehicle
@@ -45,6 +46,11 @@ LANDED_HEIGHT_M = 0.1
 LANDED_SPEED_M_S = 0.2
 LANDED_FOR_S = 1.0
 VISION_MIN_HEIGHT_M = 0.3   # below this the camera's silence is not a loss (too close to the markers)
+EKF_HEALTH_PERIOD_S = 1.0   # pos/ekf_health, beside the service's own health
+# after the attitude was pinned (a flip) the EKF has coasted, after a position reset it starts
+# again: its first fixes' innovations are that error, not the camera's timing, and stay out of
+# the delay's fit this long
+DELAY_FIT_AFTER_S = 1.0
 
 
 class PositionLoop:
@@ -63,6 +69,12 @@ class PositionLoop:
             self.motors = io.inbox(schemas.MOTOR_PWM, "motors", keep=32)  # every 400 Hz command of a step
             self.poses = io.inbox(schemas.VISION_POSE, "vision", keep=16)
             self.rotor_forces = LaggedMotorInput(vehicle.motor_time_constant_s)  # the plant's motor lag
+            self.delay = CameraDelayEstimator(io.table("camera_delay", CameraDelayParams.from_dict))
+            self.ekf_health_out = io.publisher(schemas.POSITION_EKF_HEALTH)
+            self.ekf_health_out.tracked = False   # as the service's health: nobody on the clock reads it
+            self.next_ekf_health = 0.0
+            self.delay_step_t = self.offset_detected_t = -1.0   # when (a) last saw a step, (b) an offset
+            self.unsettled_t = -math.inf     # when the attitude was last pinned or the position reset
         else:
             self.truth = io.inbox(schemas.TRUTH, "sim")
         self.ekf_started = False
@@ -115,18 +127,37 @@ class PositionLoop:
                 and quat_tilt(att["quaternion_wxyz"]) > math.radians(p["attitude_pin_tilt_deg"]):
             ekf.pin_attitude(att["header"]["t_s"], att["euler_rad"], att["rate_rad_s"])
             count("attitude_pinned_tilted")
+            self.unsettled_t = t
         elif att is not None and att["state_source"] == "estimate":
             if not ekf.update_attitude(att["header"]["t_s"], att["euler_rad"], att["rate_rad_s"],
                                        [max(v, f) for v, f in zip(att["euler_var_rad2"], p["attitude_var_floor"])],
                                        [max(v, f) for v, f in zip(att["rate_var_rad2_s2"], p["rate_var_floor"])]):
                 count("fusion_attitude_gate")
+        delay = self.delay
         for pose in self.poses.take():
-            if t - pose["header"]["t_s"] > p["pose_timeout_s"]:
+            stamp = pose["header"]["t_s"]
+            if delay.transport(t, stamp):
+                count("camera_delay_step")
+                self.delay_step_t = t
+                self.io.problem(f"camera delay now {1e3 * delay.transport_s:.0f} ms (arrival - stamp) at t={t:.3f}")
+            if t - stamp > p["pose_timeout_s"]:
                 count("stale_pose")
                 continue
             cov = np.asarray(pose["position_cov_m2"]).reshape(3, 3) + np.eye(3) * p["camera_var_floor"]
-            t_fix = pose["header"]["t_s"] if p["fuse_camera_at_exposure"] else ekf.t
+            t_fix = stamp if p["fuse_camera_at_exposure"] else ekf.t
+            correction = delay.correction_s
+            if correction and p["fuse_camera_at_exposure"]:   # the offset the innovations show and the stamps do not; never ahead of the filter
+                t_fix -= correction
+                if t_fix > ekf.t:
+                    t_fix = max(stamp, ekf.t)
             accepted, _nis = ekf.update_position(t_fix, np.asarray(pose["position_m"]), cov)
+            fix = ekf.camera_fix
+            if fix is not None and delay.innovation(t_fix, *fix, fit=t - self.unsettled_t > DELAY_FIT_AFTER_S):
+                count("camera_offset_detected")
+                self.offset_detected_t = t
+                self.io.problem(f"camera fixes {1e3 * delay.offset_s:.0f} ms older than stamped "
+                                f"(+-{1e3 * delay.offset_std_s:.0f} ms) at t={t:.3f}"
+                                + (": correcting" if delay.params.correct else ""))
             if accepted:
                 self.refused = 0
                 self.fused_t = t
@@ -135,10 +166,27 @@ class PositionLoop:
             self.refused += 1
             if self.refused >= p["position_reset_after"]:
                 ekf.reset_position(pose["position_m"], cov)
+                delay.reset()
+                self.unsettled_t = t
                 count("fusion_position_reset")
                 self.refused = 0
+        if t >= self.next_ekf_health:
+            self.next_ekf_health = (math.floor(t / EKF_HEALTH_PERIOD_S) + 1) * EKF_HEALTH_PERIOD_S
+            self.publish_ekf_health(t)
         x = ekf.x
         return x[0:3], x[3:6], x[6:9], ekf.position_cov, float(x[12])
+
+    def publish_ekf_health(self, t: float) -> None:
+        delay, counts = self.delay, self.ekf.counters["position"]
+        median = delay.transport_s
+        self.ekf_health_out.put({
+            "camera_delay_s": median if math.isfinite(median) else -1.0,
+            "camera_delay_spread_s": delay.transport_spread_s, "camera_delay_steps": delay.transport_steps,
+            "camera_delay_step_t_s": self.delay_step_t,
+            "camera_offset_s": delay.offset_s, "camera_offset_std_s": delay.offset_std_s,
+            "camera_offset_confident": delay.confident, "camera_offset_correction_s": delay.correction_s,
+            "camera_offset_detections": delay.detections, "camera_offset_detected_t_s": self.offset_detected_t,
+            "camera_fixes": counts}, t_s=t)
 
     def step(self, t: float) -> None:
         """One run at time t: the state, then the setpoint for the attitude level."""

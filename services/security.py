@@ -43,7 +43,7 @@ PUBLISHES: dict[str, tuple[str, ...]] = {
             "@lockstep/clock/*"),
     "motors": ("motors/pwm",),
     "attitude": ("att/command", "att/state"),
-    "position": ("pos/setpoint", "pos/state"),
+    "position": ("pos/setpoint", "pos/state", "pos/ekf_health"),
     "vision": ("vision/pose",),
     "planner": ("planner/setpoint", "planner/plan", "planner/flip_prediction"),
     "recorder": (),

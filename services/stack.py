@@ -321,16 +321,22 @@ def check_compatible(where: str, params: dict[str, dict[str, Any]]) -> None:
     `params`: service -> the parameters it is given (the stack file's, with any --param)."""
     sim, ekf = params.get("sim", {}), params.get("position", {}).get("ekf", {})
     ekf = ekf if isinstance(ekf, dict) else {}   # not a table: the position service says so
-    if "camera_latency_s" not in sim and "max_delay_s" not in ekf:
+    if "camera_latency_s" not in sim and "camera_latency_step_at_s" not in sim and "max_delay_s" not in ekf:
         return   # the defaults fit (tests/unit/services/test_params.py); the simulator and the EKF stay unloaded
     from flight.estimation.position_ekf import PositionEKFParams
     from services.params.sim import PARAMS as SIM
 
-    latency = sim.get("camera_latency_s", SIM["camera_latency_s"].default)
+    key, latency = "camera_latency_s", sim.get("camera_latency_s", SIM["camera_latency_s"].default)
+    step_at = sim.get("camera_latency_step_at_s", -1.0)
+    stepped = sim.get("camera_latency_step_s", SIM["camera_latency_step_s"].default)
+    # a delay step whose stamps follow reaches the EKF as the new delay (one whose stamps do not, as the old)
+    if _is_number(step_at) and step_at >= 0 and sim.get("camera_latency_step_stamped", True) is True \
+            and _is_number(stepped) and _is_number(latency) and stepped > latency:
+        key, latency = "camera_latency_step_s", stepped
     max_delay = ekf.get("max_delay_s", PositionEKFParams.max_delay_s)
     # wrong types are the owners' to report, with their own words
     if _is_number(latency) and _is_number(max_delay) and latency >= max_delay:
-        raise StackError(f"{where}: [services.sim.params] camera_latency_s = {latency:g} s is not below "
+        raise StackError(f"{where}: [services.sim.params] {key} = {latency:g} s is not below "
                          f"[services.position.params] ekf.max_delay_s = {max_delay:g} s: the position EKF keeps "
                          f"no history that old and would drop every camera fix")
 

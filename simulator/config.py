@@ -31,6 +31,14 @@ class SimConfig(Declared):
                                   0.0, min_exclusive=True)
     camera_latency_s: float = _field(0.05, "publication delay of a frame after its exposure (rounded up to a tick)",
                                      "s", 0.0)
+    # fault injection: the camera's delay steps mid-flight (a slower exposure, a loaded detector); with
+    # stamps that do not follow, only the position level's innovations can tell (flight/estimation/camera_delay.py)
+    camera_latency_step_at_s: float = _field(-1.0, "frames exposed from here (negative: never) are published ...", "s")
+    camera_latency_step_s: float = _field(0.12, "... this long after their exposure instead of camera_latency_s", "s",
+                                          0.0)
+    camera_latency_step_stamped: bool = _field(True, "... and stamped with their exposure (false: stamped as if "
+                                               "camera_latency_s still held, a late shutter stamp or a camera clock "
+                                               "offset)")
     imu_latency_s: float = _field(0.0, "transport delay of the IMU samples (the bus, the driver)", "s")
     camera_drop_rate: float = _field(0.0, "probability a frame is lost", "", 0.0, 1.0)
     camera_outage_start_s: float = _field(-1.0, "the camera is silent from here (negative: never) ...", "s")

@@ -32,6 +32,7 @@ class Simulator:
         self._divisor = {topic: cfg.ticks_per_sample(key) for topic, key in _RATE_KEYS.items()}
         # latency rounded up to whole ticks (tolerance: 0.05 s * 400 Hz is 20.000000000000004)
         self._camera_delay_ticks = math.ceil(cfg.camera_latency_s * cfg.tick_rate_hz - 1e-9)
+        self._camera_step_delay_ticks = math.ceil(cfg.camera_latency_step_s * cfg.tick_rate_hz - 1e-9)
         self._imu_delay_ticks = math.ceil(cfg.imu_latency_s * cfg.tick_rate_hz - 1e-9)
         self._pending_imu: deque = deque()  # (publish_tick, sample_t_s, fields)
 
@@ -153,7 +154,7 @@ class Simulator:
                 x = p.x
                 frame = self.camera.sample(x[0:3], x[6:10], x[3:6], x[10:13])
             if frame is not None:
-                self._pending_frames.append((tick + self._camera_delay_ticks, t, frame))
+                self._queue_frame(tick, t, frame)
         while self._pending_frames and self._pending_frames[0][0] <= tick:
             _, exposure_t, frame = self._pending_frames.popleft()
             out.append((self._camera_topic, exposure_t, frame))
@@ -164,6 +165,20 @@ class Simulator:
         self._outputs_tick = tick
         self._outputs = out
         return list(out)
+
+    def _queue_frame(self, tick: int, t: float, frame: dict) -> None:
+        """A frame exposed at t, published camera_latency_s later (or camera_latency_step_s from
+        camera_latency_step_at_s on, stamped as configured). Frames leave in the order taken,
+        as a camera's do: a shorter delay after a longer one waits for the frames before it
+        (outputs() releases the queue from its head)."""
+        cfg = self.config
+        stamp = t
+        publish = tick + self._camera_delay_ticks
+        if 0.0 <= cfg.camera_latency_step_at_s <= t:
+            publish = tick + self._camera_step_delay_ticks
+            if not cfg.camera_latency_step_stamped:   # stamped as if the old delay held
+                stamp = (publish - self._camera_delay_ticks) / cfg.tick_rate_hz
+        self._pending_frames.append((publish, stamp, frame))
 
     def step(self, pwm_us, armed: bool) -> None:
         """Advance one tick with the PWM held constant (zero thrust when disarmed)."""

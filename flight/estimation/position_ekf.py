@@ -99,6 +99,11 @@ results.  In flight the attitude state arrives 5 ms after the position level's r
 fused at the node before, and a camera fix six nodes back: run at once, the new prediction
 ran twice a step, three times with a fix.
 
+The stamps are trusted as they come. Whether they should be is watched outside the filter
+(flight/estimation/camera_delay.py): each camera fix leaves its innovation, the velocity at
+its time and its gain in ``camera_fix``, from which the position level fits the offset of the
+fixes' real time from their stamps, and fuses them at their stamp less it once it is sure.
+
 Cost: at this size numpy's per-call overhead, not the flops, is the price, so the
 mean, f and the Jacobian run in plain floats (:func:`_step`, term for term the
 expressions of :func:`f`, :func:`rk4_step` and :func:`jacobian_f`), products with an
@@ -534,6 +539,11 @@ class PositionEKF:
         self._hist: list[_Node] = []
         self._counts = {k: {"accepted": 0, **{r: 0 for r in _REASONS}} for k in _KINDS}
         self.last_nis = {k: math.nan for k in _KINDS}
+        # the last camera fix's (innovation (3,), velocity at its time (3 floats), gain K (13x3)
+        # or None when gated), for the delay estimator (flight/estimation/camera_delay.py); None
+        # when the fix was refused before its innovation was formed (invalid, too old, future)
+        self.camera_fix: tuple | None = None
+        self._K = None   # the gain of the last correction (_correct)
 
     @property
     def vehicle(self) -> Vehicle:
@@ -705,6 +715,7 @@ class PositionEKF:
 
     def update_position(self, t_meas_s: float, position, cov) -> tuple[bool, float]:
         """Camera position of (24) taken at t_meas_s (<= now): fused there, re-predicted to now."""
+        self.camera_fix = None
         z = _vec(position, 3, "position")
         R = np.array(cov, dtype=np.float64)
         if R.shape != (3, 3):
@@ -798,6 +809,7 @@ class PositionEKF:
             K = P.dot(H.T).dot(S_inv)
             IKH = _EYE13 - K.dot(H)
             IKH_T = IKH.T
+        self._K = K
         xs = [a + b for a, b in zip(x, K.dot(y).tolist())]
         xs[6] = wrap_angle_float(xs[6])
         xs[8] = wrap_angle_float(xs[8])
@@ -886,8 +898,13 @@ class PositionEKF:
             if not math.isfinite(nis) or nis < 0:
                 return self._reject(kind, "invalid")
             if nis > self._gate[len(z)]:
+                if kind == "position":
+                    self.camera_fix = (y, x[3:6], None)
                 return self._reject(kind, "gate", nis)
+            x0 = x
             x, P = self._correct(x, P, y, H, S_inv, R)
+            if kind == "position":
+                self.camera_fix = (y, x0[3:6], self._K)
             meas = (kind, z, R, offset)
         node.meas.append(meas)
         node.post = (x, P)

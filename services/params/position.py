@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from flight.estimation.camera_delay import CameraDelayParams
 from flight.estimation.position_ekf import PositionEKFParams
 from services.params import Param
 
@@ -54,6 +55,9 @@ PARAMS = {
     "attitude_pin_tilt_deg": Param(60.0, "deg", 0.0, 180.0,
                                    doc="past this tilt (a flip) the attitude level's angles are pinned into the "
                                        "EKF, not fused (PositionEKF.pin_attitude)"),
+    "camera_delay": Param({}, table=CameraDelayParams,
+                          doc="the camera delay's online estimate and correction (flight/estimation/camera_delay.py "
+                              "CameraDelayParams)"),
     "ekf": Param({}, table=PositionEKFParams,
                  doc="the EKF's settings (flight/estimation/position_ekf.py PositionEKFParams)"),
 }

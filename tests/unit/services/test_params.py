@@ -16,6 +16,7 @@ import pytest
 from flight.control.failsafe import DescentParams
 from flight.estimation.attitude_filter import AttitudeFilterParams
 from flight.estimation.camera_level import CameraLevelParams
+from flight.estimation.camera_delay import CameraDelayParams
 from flight.estimation.gyro_carrier import GyroCarrierParams
 from flight.estimation.position_ekf import PositionEKFError, PositionEKFParams
 from flight.param import declarations
@@ -52,7 +53,8 @@ def test_every_service_declares_every_parameter_with_a_doc():
 # every nested table a service parameter holds, and the dataclass that owns its keys
 NESTED = {("attitude", "filter"): AttitudeFilterParams, ("attitude", "failsafe_descent"): DescentParams,
           ("attitude", "camera_level_settings"): CameraLevelParams, ("attitude", "carrier"): GyroCarrierParams,
-          ("motors", "failsafe_descent"): DescentParams, ("position", "ekf"): PositionEKFParams}
+          ("motors", "failsafe_descent"): DescentParams, ("position", "ekf"): PositionEKFParams,
+          ("position", "camera_delay"): CameraDelayParams}
 
 
 def test_every_nested_table_declares_every_key_with_unit_bounds_and_doc():

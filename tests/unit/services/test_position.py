@@ -100,6 +100,14 @@ def test_estimate_fuses_camera_fixes_and_counts_stale_ones():
     loop.step(2.01)   # a fix 1 s old at arrival: not fused
     assert io.rejected.get("stale_pose") == 1
     assert io.sent(schemas.POSITION_STATE)[-1][1]["position_m"][0] == pytest.approx(0.2, abs=0.02)
+    # the EKF's health at 1 Hz: the delay the stamps show (50 ms), at rest nothing learnt of an offset
+    health = io.sent(schemas.POSITION_EKF_HEALTH)
+    assert [t for t, _ in health] == [0.01, 1.0, 2.0]
+    last = health[-1][1]
+    assert last["camera_delay_s"] == pytest.approx(0.05) and last["camera_delay_steps"] == 0
+    assert sum(last["camera_fixes"].values()) == 40 and last["camera_fixes"]["accepted"] == 35   # the rest refused
+    assert not last["camera_offset_confident"]
+    assert last["camera_offset_correction_s"] == 0.0 and last["camera_offset_detections"] == 0
 
 
 def test_bad_parameters_are_refused_naming_the_key():
@@ -107,3 +115,5 @@ def test_bad_parameters_are_refused_naming_the_key():
         PositionLoop(FakeIO("position", PARAMS, {"state_source": "guess"}, rate_hz=100.0))
     with pytest.raises(ValueError, match="services.position.params.*ekf"):
         PositionLoop(FakeIO("position", PARAMS, {"ekf": {"no_such_key": 1.0}}, rate_hz=100.0))
+    with pytest.raises(ValueError, match="services.position.params.*camera_delay.*window"):
+        PositionLoop(FakeIO("position", PARAMS, {"camera_delay": {"window": 1}}, rate_hz=100.0))

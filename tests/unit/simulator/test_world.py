@@ -87,6 +87,39 @@ def test_camera_sees_markers_at_1m_with_latency():
     assert all(isinstance(e, float) for e in f["corners_px"])
 
 
+@pytest.mark.parametrize("stamped", [True, False])
+def test_camera_delay_step_with_and_without_its_stamps(stamped):
+    """Frames exposed from camera_latency_step_at_s on come camera_latency_step_s after their
+    exposure; their stamps say so, or (stamped=False) still say camera_latency_s."""
+    cfg = SimConfig(initial_position_m=(0, 0, 1.0), camera_latency_step_at_s=0.1, camera_latency_step_s=0.12,
+                    camera_latency_step_stamped=stamped)
+    sim = Simulator(X250, cfg, seed=3)
+    arrivals = []
+    for _ in range(200):
+        arrivals += [(sim.t, t, f) for topic, t, f in sim.outputs() if topic == "camera"]
+        sim.step(hover_pwm(X250), True)
+    got = [(round(a, 4), round(s, 4)) for a, s, _ in arrivals]
+    # exposures at 0, 0.05 (50 ms); from 0.1 on 120 ms, stamped at the exposure or 70 ms late
+    late = 0.0 if stamped else 0.07
+    assert got[:4] == [(0.05, 0.0), (0.1, 0.05), (0.22, round(0.1 + late, 4)), (0.27, round(0.15 + late, 4))]
+    # the content is the exposure's: the same frames as a run without the step, only later
+    plain = Simulator(X250, SimConfig(initial_position_m=(0, 0, 1.0)), seed=3)
+    frames = [f for topic, _, f in run(plain, 200, hover_pwm(X250)) if topic == "camera"]
+    assert [f for _, _, f in arrivals] == frames[:len(arrivals)]
+
+
+def test_camera_delay_step_down_keeps_the_frames_in_order():
+    cfg = SimConfig(initial_position_m=(0, 0, 1.0), camera_latency_s=0.12, camera_latency_step_at_s=0.1,
+                    camera_latency_step_s=0.0)
+    sim = Simulator(X250, cfg, seed=3)
+    arrivals = []
+    for _ in range(200):
+        arrivals += [(round(sim.t, 4), t) for topic, t, _ in sim.outputs() if topic == "camera"]
+        sim.step(hover_pwm(X250), True)
+    # the frame of 0.1 s is ready at once, but leaves after the one of 0.05 s (at 0.17 s)
+    assert arrivals[:4] == [(0.12, 0.0), (0.17, 0.05), (0.17, 0.1), (0.17, 0.15)]
+
+
 def test_camera_upside_down_sees_nothing():
     cam = MarkerCamera(SimConfig(), np.random.default_rng(0))
     assert cam.sample([0, 0, 1.0], quat_from_euler(np.pi, 0, 0)) == {"marker_ids": [], "corners_px": []}
