@@ -37,6 +37,7 @@ FLIP_THRUST_G = 0.3                  # collective during the turn (less height l
 FLIP_END_RAD = math.radians(320)     # accumulated roll at which recovery starts
 YAW_SLEW_RAD_S = 1.0                 # yaw references are rate limited: yaw authority is small
 ATTITUDE_GAINS = np.array([16.0, 16.0, 6.0])   # law (8) k = alpha per axis (roll, pitch, yaw)
+MAX_TILT_RAD = 0.7                   # tilt the position laws and attitude steps may ask for (below a vehicle's own)
 
 # The sensor errors of a training flight: gyro biases are added per sequence
 # (004's 8 sign combinations), so the recorded gyro has none of its own.
@@ -177,6 +178,9 @@ def fly(vehicle: Vehicle, segments, seed: int = 0, config: SimConfig = TRAINING_
         raise ValueError("scenarios: the recorded truth is at the tick, so imu_latency_s must be 0")
     m, g, inertia = vehicle.mass_kg, vehicle.gravity_m_s2, np.asarray(vehicle.inertia_kg_m2)
     att_k = ATTITUDE_GAINS
+    # the airframe's own tilt limit (q820.toml: 10 deg; at 40 deg the laws of 000 drive its few
+    # rad/s^2 of torque into a saturated limit cycle that tumbled a flight to the ground)
+    max_tilt = MAX_TILT_RAD if vehicle.max_tilt_deg is None else min(MAX_TILT_RAD, math.radians(vehicle.max_tilt_deg))
     rows_t, rows_g, rows_a, rows_q, rows_p, rows_u = [], [], [], [], [], []
     yaw_hold = yaw_cmd = config.initial_yaw_rad
     max_yaw_step = YAW_SLEW_RAD_S / config.tick_rate_hz
@@ -211,7 +215,8 @@ def fly(vehicle: Vehicle, segments, seed: int = 0, config: SimConfig = TRAINING_
                     if flip_roll >= FLIP_END_RAD:
                         flip_phase = "recover"
             elif seg.kind == "attitude":
-                ref = np.array([seg.roll_rad, seg.pitch_rad, yaw_cmd])
+                ref = np.array([np.clip(seg.roll_rad, -max_tilt, max_tilt), np.clip(seg.pitch_rad, -max_tilt, max_tilt),
+                                yaw_cmd])
                 thrust = altitude_law(m, g, pos[2], vel[2], seg.target_m[2], 4.0, 4.0, euler[0], euler[1])
                 torque = attitude_law(inertia, euler, rates, ref, att_k, att_k)
             else:
@@ -222,7 +227,7 @@ def fly(vehicle: Vehicle, segments, seed: int = 0, config: SimConfig = TRAINING_
                 k = np.full(3, seg.gains)
                 # velocity feed-forward: the law acts on the error (p - p_ref, v - v_ref)
                 roll_ref, pitch_ref, thrust = position_law(m, g, pos - p_ref, vel - v_ref, np.zeros(3), k, k,
-                                                           yaw_ref, max_tilt_rad=0.7)
+                                                           yaw_ref, max_tilt_rad=max_tilt)
                 torque = attitude_law(inertia, euler, rates, [roll_ref, pitch_ref, yaw_ref], att_k, att_k)
             forces, _ = mix(vehicle, thrust, torque)
             while len(rows_u) < len(rows_t):
