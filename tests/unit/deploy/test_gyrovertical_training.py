@@ -44,6 +44,16 @@ def test_scenario_flip_turns_over_and_recovers(flip_flight):
     np.testing.assert_array_equal(again.gyro_rad_s, f.gyro_rad_s)  # deterministic for a seed
 
 
+def test_manoeuvres_keep_to_the_airframes_tilt_limit():
+    """The q820 (max_tilt_deg 10: its torque saturates law (8) beyond) sprints and steps its attitude
+    within 10 deg (at the menus' 40 deg it limit-cycled into the ground); the x250 still tilts more."""
+    segs = (Segment("hover", 1.0), Segment("goto", 4.0, (4.0, 4.0, 2.0), gains=6.0),
+            Segment("attitude", 1.5, (4.0, 4.0, 2.0), roll_rad=np.radians(25.0)))
+    q820, x250 = (np.degrees(np.hypot(f.roll_rad, f.pitch_rad)).max()
+                  for f in (fly(load_vehicle(v), segs, seed=4) for v in ("q820", "x250")))
+    assert q820 < 12.0 < x250, (q820, x250)
+
+
 def test_manoeuvre_menus_differ_and_are_seeded():
     a, b = manoeuvres("training", 60, 1), manoeuvres("control", 60, 1)
     assert a == manoeuvres("training", 60, 1) and a != manoeuvres("training", 60, 2)

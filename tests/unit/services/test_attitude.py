@@ -134,7 +134,7 @@ def test_restarted_mid_flight_no_command_until_its_filter_has_settled():
 GV = {"estimator": "gyro-vertical"}
 
 
-def gyrovertical_of(loop) -> "GyroVerticalParams":
+def gyrovertical_of(loop):
     return loop.make_gyrovertical([1.0, 0.0, 0.0, 0.0]).params
 
 
