@@ -34,6 +34,14 @@ XY_LIMIT_M = 4.0
 FLIP_ALTITUDE_M = 4.0
 FLIP_RATE_RAD_S = 4.0 * math.pi      # 720 deg/s roll rate through the flip
 FLIP_THRUST_G = 0.3                  # collective during the turn (less height lost upside down)
+# ... but at least the collective that leaves this roll acceleration to the differential: the q820's
+# torque at 0.3 g gives 4 rad/s^2, a 3 s turn that fell 4 m to the ground (whose contact levels the
+# truth with no gyro to see it); the x250's 0.3 g gives 13.9, unchanged
+FLIP_ROLL_ACCEL_RAD_S2 = 12.0
+# the roll the recovery may take to stop the turn at full torque: the rate is capped so that
+# rate^2 / (2 max roll acceleration) fits (the q820's 21.8 rad/s^2 stops 720 deg/s in 208 deg, which
+# tumbled it into a second turn; the x250's 58.9 allow 735 deg/s, so its 720 is unchanged)
+FLIP_STOP_RAD = 1.4
 FLIP_END_RAD = math.radians(320)     # accumulated roll at which recovery starts
 YAW_SLEW_RAD_S = 1.0                 # yaw references are rate limited: yaw authority is small
 ATTITUDE_GAINS = np.array([16.0, 16.0, 6.0])   # law (8) k = alpha per axis (roll, pitch, yaw)
@@ -184,6 +192,11 @@ def fly(vehicle: Vehicle, segments, seed: int = 0, config: SimConfig = TRAINING_
     rows_t, rows_g, rows_a, rows_q, rows_p, rows_u = [], [], [], [], [], []
     yaw_hold = yaw_cmd = config.initial_yaw_rad
     max_yaw_step = YAW_SLEW_RAD_S / config.tick_rate_hz
+    # below half the full collective, the differential's roll acceleration grows with the collective
+    full_n = 4.0 * vehicle.max_thrust_n
+    flip_rate = min(FLIP_RATE_RAD_S, math.sqrt(2.0 * vehicle.max_angular_accel_rad_s2[0] * FLIP_STOP_RAD))
+    flip_thrust = max(FLIP_THRUST_G * m * g,
+                      min(0.5 * full_n, FLIP_ROLL_ACCEL_RAD_S2 / vehicle.max_angular_accel_rad_s2[0] * 0.5 * full_n))
     for seg in segments:
         n_ticks = int(round(seg.duration_s * config.tick_rate_hz))
         flip_roll = 0.0
@@ -208,8 +221,8 @@ def fly(vehicle: Vehicle, segments, seed: int = 0, config: SimConfig = TRAINING_
                     if tau >= 0.3:
                         flip_phase = "turn"
                 else:
-                    thrust = FLIP_THRUST_G * m * g
-                    rate_ref = np.array([FLIP_RATE_RAD_S, 0.0, 0.0])
+                    thrust = flip_thrust
+                    rate_ref = np.array([flip_rate, 0.0, 0.0])
                     torque = inertia * 40.0 * (rate_ref - rates)
                     flip_roll += rates[0] / config.tick_rate_hz
                     if flip_roll >= FLIP_END_RAD:
