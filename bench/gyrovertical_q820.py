@@ -26,14 +26,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from deploy.gyrovertical_training import control_flight, estimate, tilt_error_deg  # noqa: E402
-from deploy.manoeuvres import FlightData  # noqa: E402
-from flight.estimation.gyrovertical import GyroVertical, load_trained, run_sequence  # noqa: E402
-from flight.quat import quats_to_euler, wrap_angle  # noqa: E402
-from flight.vehicle import PARAMS_DIR  # noqa: E402
+from deploy.gyrovertical_training import control_flight, estimate, tilt_error_deg
+from deploy.manoeuvres import FlightData
+from flight.estimation.gyrovertical import GyroVertical, load_trained, run_sequence
+from flight.quat import quats_to_euler, wrap_angle
+from flight.vehicle import PARAMS_DIR
 
 BIAS_DEG_S = 0.05
-FILES = ("gyrovertical_q820.toml", "gyrovertical_x250_mems.toml", "gyrovertical_x250.toml")
+FILES = ("gyrovertical_q820_mems.toml", "gyrovertical_q820.toml", "gyrovertical_x250_mems.toml", "gyrovertical_x250.toml")
 
 
 def rms(x) -> float:
