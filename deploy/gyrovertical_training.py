@@ -127,7 +127,8 @@ def cmd_train(args) -> int:
     trained = run_training(args.vehicle, args.seed, args.flights, args.duration_s, args.bias_deg_s,
                            args.maxiter, log=lambda s: print(s, flush=True))
     save(out, trained)
-    print(f"wrote {out}; use it with --set attitude.gyrovertical_params={out}", file=sys.stdout)
+    print(f"wrote {out}; fly it with --set attitude.gyrovertical_params={out}, or copy it into flight/params/ "
+          f"and name it in flight/vehicles/{args.vehicle}.toml (gyrovertical_params = \"NAME.toml\")", file=sys.stdout)
     return 0
 
 

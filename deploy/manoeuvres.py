@@ -34,9 +34,18 @@ XY_LIMIT_M = 4.0
 FLIP_ALTITUDE_M = 4.0
 FLIP_RATE_RAD_S = 4.0 * math.pi      # 720 deg/s roll rate through the flip
 FLIP_THRUST_G = 0.3                  # collective during the turn (less height lost upside down)
+# ... but at least the collective that leaves this roll acceleration to the differential: the q820's
+# torque at 0.3 g gives 4 rad/s^2, a 3 s turn that fell 4 m to the ground (whose contact levels the
+# truth with no gyro to see it); the x250's 0.3 g gives 13.9, unchanged
+FLIP_ROLL_ACCEL_RAD_S2 = 12.0
+# the roll the recovery may take to stop the turn at full torque: the rate is capped so that
+# rate^2 / (2 max roll acceleration) fits (the q820's 21.8 rad/s^2 stops 720 deg/s in 208 deg, which
+# tumbled it into a second turn; the x250's 58.9 allow 735 deg/s, so its 720 is unchanged)
+FLIP_STOP_RAD = 1.4
 FLIP_END_RAD = math.radians(320)     # accumulated roll at which recovery starts
 YAW_SLEW_RAD_S = 1.0                 # yaw references are rate limited: yaw authority is small
 ATTITUDE_GAINS = np.array([16.0, 16.0, 6.0])   # law (8) k = alpha per axis (roll, pitch, yaw)
+MAX_TILT_RAD = 0.7                   # tilt the position laws and attitude steps may ask for (below a vehicle's own)
 
 # The sensor errors of a training flight: gyro biases are added per sequence
 # (004's 8 sign combinations), so the recorded gyro has none of its own.
@@ -177,9 +186,17 @@ def fly(vehicle: Vehicle, segments, seed: int = 0, config: SimConfig = TRAINING_
         raise ValueError("scenarios: the recorded truth is at the tick, so imu_latency_s must be 0")
     m, g, inertia = vehicle.mass_kg, vehicle.gravity_m_s2, np.asarray(vehicle.inertia_kg_m2)
     att_k = ATTITUDE_GAINS
+    # the airframe's own tilt limit (q820.toml: 10 deg; at 40 deg the laws of 000 drive its few
+    # rad/s^2 of torque into a saturated limit cycle that tumbled a flight to the ground)
+    max_tilt = MAX_TILT_RAD if vehicle.max_tilt_deg is None else min(MAX_TILT_RAD, math.radians(vehicle.max_tilt_deg))
     rows_t, rows_g, rows_a, rows_q, rows_p, rows_u = [], [], [], [], [], []
     yaw_hold = yaw_cmd = config.initial_yaw_rad
     max_yaw_step = YAW_SLEW_RAD_S / config.tick_rate_hz
+    # below half the full collective, the differential's roll acceleration grows with the collective
+    full_n = 4.0 * vehicle.max_thrust_n
+    flip_rate = min(FLIP_RATE_RAD_S, math.sqrt(2.0 * vehicle.max_angular_accel_rad_s2[0] * FLIP_STOP_RAD))
+    flip_thrust = max(FLIP_THRUST_G * m * g,
+                      min(0.5 * full_n, FLIP_ROLL_ACCEL_RAD_S2 / vehicle.max_angular_accel_rad_s2[0] * 0.5 * full_n))
     for seg in segments:
         n_ticks = int(round(seg.duration_s * config.tick_rate_hz))
         flip_roll = 0.0
@@ -204,14 +221,15 @@ def fly(vehicle: Vehicle, segments, seed: int = 0, config: SimConfig = TRAINING_
                     if tau >= 0.3:
                         flip_phase = "turn"
                 else:
-                    thrust = FLIP_THRUST_G * m * g
-                    rate_ref = np.array([FLIP_RATE_RAD_S, 0.0, 0.0])
+                    thrust = flip_thrust
+                    rate_ref = np.array([flip_rate, 0.0, 0.0])
                     torque = inertia * 40.0 * (rate_ref - rates)
                     flip_roll += rates[0] / config.tick_rate_hz
                     if flip_roll >= FLIP_END_RAD:
                         flip_phase = "recover"
             elif seg.kind == "attitude":
-                ref = np.array([seg.roll_rad, seg.pitch_rad, yaw_cmd])
+                ref = np.array([np.clip(seg.roll_rad, -max_tilt, max_tilt), np.clip(seg.pitch_rad, -max_tilt, max_tilt),
+                                yaw_cmd])
                 thrust = altitude_law(m, g, pos[2], vel[2], seg.target_m[2], 4.0, 4.0, euler[0], euler[1])
                 torque = attitude_law(inertia, euler, rates, ref, att_k, att_k)
             else:
@@ -222,7 +240,7 @@ def fly(vehicle: Vehicle, segments, seed: int = 0, config: SimConfig = TRAINING_
                 k = np.full(3, seg.gains)
                 # velocity feed-forward: the law acts on the error (p - p_ref, v - v_ref)
                 roll_ref, pitch_ref, thrust = position_law(m, g, pos - p_ref, vel - v_ref, np.zeros(3), k, k,
-                                                           yaw_ref, max_tilt_rad=0.7)
+                                                           yaw_ref, max_tilt_rad=max_tilt)
                 torque = attitude_law(inertia, euler, rates, [roll_ref, pitch_ref, yaw_ref], att_k, att_k)
             forces, _ = mix(vehicle, thrust, torque)
             while len(rows_u) < len(rows_t):

@@ -20,6 +20,8 @@ import functools
 import numpy as np
 
 VEHICLES_DIR = Path(__file__).resolve().parent / "vehicles"
+# trained parameter files an airframe may name (gyrovertical_params): `zenpilot train-gyrovertical`'s output
+PARAMS_DIR = Path(__file__).resolve().parent / "params"
 
 
 class VehicleError(ValueError):
@@ -58,6 +60,13 @@ class Vehicle:
     # the tilt this airframe's position laws may ask for (None: the position service's
     # max_tilt_deg alone); a heavy frame with little torque needs less (q820.toml says why)
     max_tilt_deg: float | None = None
+    # the gyro-vertical's trained parameter file for this airframe, a name in flight/params/ (the
+    # attitude service's gyrovertical_params, when set, overrides it; None: the service's default)
+    gyrovertical_params: str | None = None
+
+    @property
+    def gyrovertical_params_path(self) -> Path | None:
+        return None if self.gyrovertical_params is None else PARAMS_DIR / self.gyrovertical_params
 
     @functools.cached_property  # computed once: the mixer runs at 400 Hz
     def allocation(self) -> np.ndarray:
@@ -126,6 +135,7 @@ _FIELDS: dict[str, tuple[str, bool]] = {
     "rotor_inertia_kg_m2": ("pos", False),
     "max_body_rate_rad_s": ("pos", False),
     "max_tilt_deg": ("pos", False),
+    "gyrovertical_params": ("paramfile", False),
 }
 
 
@@ -165,6 +175,13 @@ def _check(src: str, key: str, kind: str, v):
                 or not all(isinstance(e, int) and not isinstance(e, bool) and e in (1, -1) for e in v)):
             raise bad("must be a list of 4 integers, each +1 or -1")
         return tuple(v)
+    if kind == "paramfile":
+        # a bare name, so the airframe file cannot point outside the shipped parameters
+        if not isinstance(v, str) or not re.fullmatch(r"[A-Za-z0-9_\-.]+\.toml", v) or v.startswith("."):
+            raise bad("must be the name of a .toml file in flight/params/ (no folders)")
+        # not opened here: `zenpilot train-gyrovertical --vehicle` loads the airframe before its file
+        # exists; the attitude service refuses a missing or bad one when it flies the gyro-vertical
+        return v
     raise AssertionError(kind)
 
 

@@ -29,6 +29,7 @@ from __future__ import annotations
 import bisect
 from collections import deque
 from operator import itemgetter
+from pathlib import Path
 
 import numpy as np
 
@@ -55,15 +56,25 @@ def truth_specific_force(truth: dict, gravity_m_s2: float):
     return truth["header"]["t_s"], rotate_vector(q * [1.0, -1.0, -1.0, -1.0], [a[0], a[1], a[2] + gravity_m_s2])
 
 
-def load_gyrovertical(io):
+def gyrovertical_params_file(io, vehicle) -> tuple[Path, str]:
+    """(file, where it was named): the service's gyrovertical_params when set, else the one the
+    vehicle file names (trained on that airframe), else the shipped default."""
+    if io.params["gyrovertical_params"]:
+        return Path(io.params["gyrovertical_params"]), f"{io.where()} gyrovertical_params"
+    if vehicle.gyrovertical_params_path is not None:
+        return vehicle.gyrovertical_params_path, f"vehicle {vehicle.name}'s gyrovertical_params"
+    return DEFAULT_PARAMS_FILE, "the default gyro-vertical parameters"
+
+
+def load_gyrovertical(io, vehicle):
     """A maker of the gyro-vertical (trained parameters, IMU period) from an initial quaternion.
 
-    A missing or bad parameter file is refused at start-up with its name."""
-    path = io.params["gyrovertical_params"] or DEFAULT_PARAMS_FILE
+    A missing or bad parameter file is refused at start-up with its name and who named it."""
+    path, named_by = gyrovertical_params_file(io, vehicle)
     try:
         trained = load_trained(path)
     except ValueError as exc:
-        raise ValueError(f"{io.where()} gyrovertical_params: {exc}") from None
+        raise ValueError(f"{named_by}: {exc}") from None
     rate = io.params["imu_rate_hz"]
     return lambda q0: GyroVertical(trained.adaptive, dt=1.0 / rate, q0=q0)
 
@@ -93,11 +104,12 @@ class AttitudeLoop:
             self.imu = io.inbox(schemas.IMU, "sim", keep=32)
             self.mag = io.inbox(schemas.MAG, "sim", keep=8)
             self.motors = io.inbox(schemas.MOTOR_PWM, "motors")
+            gv_file = None
             if p["estimator"] == "gyro-vertical":
-                self.make_gyrovertical = load_gyrovertical(io)
+                self.make_gyrovertical = load_gyrovertical(io, vehicle)
+                gv_file = gyrovertical_params_file(io, vehicle)[0]
             compensate = p["compensate_acceleration"] and self.make_gyrovertical is None
-            print(f"zenpilot-attitude: estimator {p['estimator']}"
-                  + (f" ({p['gyrovertical_params'] or DEFAULT_PARAMS_FILE.name})" if self.make_gyrovertical else ""),
+            print(f"zenpilot-attitude: estimator {p['estimator']}" + (f" ({gv_file.name})" if gv_file else ""),
                   flush=True)
             self.motion = io.inbox(schemas.POSITION_STATE, "position") if compensate else None
             self.windowed = p["acceleration_compensation"] == "window"

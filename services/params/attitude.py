@@ -58,7 +58,8 @@ PARAMS = {
                            "gyro-vertical, the adaptive gyro-vertical of 004 (raw IMU, its own accelerometer "
                            "trust; compensate_acceleration does not apply)"),
     "gyrovertical_params": Param("", doc="the gyro-vertical's trained parameter file (`zenpilot "
-                                         "train-gyrovertical`); \"\": the shipped one for the x250"),
+                                         "train-gyrovertical`); \"\": the one the vehicle file names (its "
+                                         "gyrovertical_params), else the shipped x250 file"),
     "imu_rate_hz": Param(400.0, "Hz", 0.0, min_exclusive=True,
                          doc="the gyro-vertical's sample rate (its variances are per sample)"),
     "camera_level": Param(True, doc="remove the accelerometer bias's tilt with the camera's attitude (vision/pose, "

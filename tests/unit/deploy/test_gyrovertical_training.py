@@ -44,6 +44,28 @@ def test_scenario_flip_turns_over_and_recovers(flip_flight):
     np.testing.assert_array_equal(again.gyro_rad_s, f.gyro_rad_s)  # deterministic for a seed
 
 
+def test_q820_flip_turns_once_and_stays_in_the_air():
+    """The q820's scenario flip within its torque: one turn, no ground contact (which levels the
+    truth with no gyro rate to show it; at 0.3 g and 720 deg/s it reached the ground)."""
+    segs = (Segment("hover", 1.0), Segment("goto", 3.0, (0.0, 0.0, FLIP_ALTITUDE_M)),
+            Segment("flip", 3.0, (0.0, 0.0, FLIP_ALTITUDE_M)))
+    f = fly(load_vehicle("q820"), segs, seed=3)
+    flip = f.t_s >= 4.0
+    assert np.max(np.abs(np.degrees(f.roll_rad[flip]))) > 179.0
+    assert 330.0 < np.degrees(np.sum(f.gyro_rad_s[flip, 0]) * 0.0025) < 390.0   # one turn, not two
+    assert f.position_m[flip, 2].min() > FLIP_ALTITUDE_M - 1.0
+
+
+def test_manoeuvres_keep_to_the_airframes_tilt_limit():
+    """The q820 (max_tilt_deg 10: its torque saturates law (8) beyond) sprints and steps its attitude
+    within 10 deg (at the menus' 40 deg it limit-cycled into the ground); the x250 still tilts more."""
+    segs = (Segment("hover", 1.0), Segment("goto", 4.0, (4.0, 4.0, 2.0), gains=6.0),
+            Segment("attitude", 1.5, (4.0, 4.0, 2.0), roll_rad=np.radians(25.0)))
+    q820, x250 = (np.degrees(np.hypot(f.roll_rad, f.pitch_rad)).max()
+                  for f in (fly(load_vehicle(v), segs, seed=4) for v in ("q820", "x250")))
+    assert q820 < 12.0 < x250, (q820, x250)
+
+
 def test_manoeuvre_menus_differ_and_are_seeded():
     a, b = manoeuvres("training", 60, 1), manoeuvres("control", 60, 1)
     assert a == manoeuvres("training", 60, 1) and a != manoeuvres("training", 60, 2)

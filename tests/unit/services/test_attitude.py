@@ -128,3 +128,44 @@ def test_restarted_mid_flight_no_command_until_its_filter_has_settled():
     sent = [t for t, _ in io.sent(schemas.ATTITUDE_COMMAND)]
     assert sent and min(sent) == pytest.approx(1.5), sent   # from the first sample + restart_settle_s
     assert len(io.sent(schemas.ATTITUDE_STATE)) == 12 and "restarted: commands from t=1.500" in io.problems[0]
+
+
+# ---------------------------------------------------------------- the gyro-vertical's parameter file
+GV = {"estimator": "gyro-vertical"}
+
+
+def gyrovertical_of(loop):
+    return loop.make_gyrovertical([1.0, 0.0, 0.0, 0.0]).params
+
+
+@pytest.mark.parametrize("vehicle, file", [("q820", "gyrovertical_q820_mems.toml"), ("x250", "gyrovertical_x250_mems.toml")])
+def test_each_vehicle_flies_the_gyrovertical_file_its_airframe_names(vehicle, file):
+    """q820.toml names the file trained on q820 flights; the x250 keeps the one it flew before."""
+    from flight.estimation.gyrovertical import load_trained
+    from flight.vehicle import PARAMS_DIR
+    loop = AttitudeLoop(FakeIO("attitude", PARAMS, GV, vehicle=vehicle))
+    assert load_vehicle(vehicle).gyrovertical_params == file
+    assert gyrovertical_of(loop) == load_trained(PARAMS_DIR / file).adaptive
+
+
+def test_the_services_gyrovertical_params_overrides_the_airframes():
+    from flight.estimation.gyrovertical import PAPER_PARAMS_FILE, load_trained
+    loop = AttitudeLoop(FakeIO("attitude", PARAMS, {**GV, "gyrovertical_params": str(PAPER_PARAMS_FILE)},
+                               vehicle="q820"))
+    assert gyrovertical_of(loop) == load_trained(PAPER_PARAMS_FILE).adaptive
+    assert gyrovertical_of(loop) != load_trained(load_vehicle("q820").gyrovertical_params_path).adaptive
+
+
+def test_a_bad_gyrovertical_file_named_by_the_airframe_is_refused_naming_both(tmp_path, monkeypatch):
+    from flight import vehicle as vehicle_module
+    from flight.vehicle import VEHICLES_DIR
+    monkeypatch.setattr(vehicle_module, "PARAMS_DIR", tmp_path)
+    (tmp_path / "broken.toml").write_text("[adaptive]\npitch_var0 = 'x'\n")
+    frame = tmp_path / "frame.toml"
+    frame.write_text((VEHICLES_DIR / "q820.toml").read_text().replace("gyrovertical_q820_mems.toml", "broken.toml"))
+    with pytest.raises(ValueError, match=r"vehicle q820's gyrovertical_params: .*broken\.toml: .*pitch_var0"):
+        AttitudeLoop(FakeIO("attitude", PARAMS, GV, vehicle=str(frame)))
+    frame.write_text((VEHICLES_DIR / "q820.toml").read_text().replace("gyrovertical_q820_mems.toml", "nonesuch.toml"))
+    with pytest.raises(ValueError, match=r"vehicle q820's gyrovertical_params: .*nonesuch\.toml: cannot read"):
+        AttitudeLoop(FakeIO("attitude", PARAMS, GV, vehicle=str(frame)))
+    AttitudeLoop(FakeIO("attitude", PARAMS, {}, vehicle=str(frame)))   # kalman-000 never opens it
