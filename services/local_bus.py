@@ -113,8 +113,10 @@ class Publisher:
     def put(self, payload: bytes) -> None:
         bus = self.session.bus
         if self._version != bus.version:   # subscribers came or went: match again
-            self._targets = bus.matching(self._kexpr, liveliness=False)
-            self._version = bus.version
+            # the version read with the match, under one lock: read after it, a subscriber added
+            # meanwhile would be missed for good (the simulator then never heard a participant's
+            # "ready": a start-up that hung)
+            self._version, self._targets = bus.matching_versioned(self._kexpr)
         if self.session.closed:
             return
         bus.deliver(self._targets, Sample(self.key, Payload(payload)))
@@ -197,6 +199,12 @@ class LocalBus:
         with self._lock:
             return tuple((s.session.owner, s.deliver) for s in self._subs
                          if s.liveliness == liveliness and s.key.intersects(key))
+
+    def matching_versioned(self, key: zenoh.KeyExpr) -> tuple[int, tuple[tuple[str, Callable[[Sample], None]], ...]]:
+        """The data subscribers matching `key`, with the version they are as of."""
+        with self._lock:
+            return self.version, tuple((s.session.owner, s.deliver) for s in self._subs
+                                       if not s.liveliness and s.key.intersects(key))
 
     @staticmethod
     def deliver(targets, sample: Sample) -> None:

@@ -146,3 +146,22 @@ def test_frames_carry_keys_and_payloads_through_a_pipe_and_a_cut_one_is_dropped(
     assert list(local_bus.read_frames(io.BytesIO(data))) == messages
     assert list(local_bus.read_frames(io.BytesIO(data[:-1]))) == messages[:2]   # a writer killed mid-frame
     assert list(local_bus.read_frames(io.BytesIO(b""))) == []
+
+
+def test_a_subscriber_added_while_a_publisher_matches_is_never_missed():
+    """A subscriber that comes right after a publisher's match (another thread: the simulator
+    subscribing to a participant's "ready" as the participant says it) is matched on the next put."""
+    bus = local_bus.LocalBus()
+    got = []
+    pub = bus.open().declare_publisher("zp/0/@lockstep/sync/vision")
+    match = bus.matching_versioned
+
+    def match_then_subscribe(key):
+        found = match(key)
+        bus.matching_versioned = match   # once
+        bus.open().declare_subscriber("zp/0/@lockstep/sync/*", collect(got))   # lands just after the match
+        return found
+    bus.matching_versioned = match_then_subscribe
+    pub.put(b"ready")     # matched before the subscriber came: not delivered
+    pub.put(b"ready")     # said again: this one must arrive
+    assert [p for _, p, _ in got] == [b"ready"]
