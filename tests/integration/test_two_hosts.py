@@ -42,12 +42,14 @@ def _netns_refused() -> str | None:
     return None
 
 
-def test_hover_over_two_hosts(tmp_path):
+def _two_hosts(tmp_path, *args: str) -> str:
+    """bench/two_hosts.py ARGS --no-one-host into tmp_path (skipped where namespaces cannot be
+    made); its output, once it has exited 0."""
     refused = _netns_refused()
     if refused:
         pytest.skip(refused)
-    bench = subprocess.Popen([sys.executable, str(ROOT / "bench" / "two_hosts.py"), "--mission", "hover",
-                              "--no-one-host", "--out", str(tmp_path)],
+    bench = subprocess.Popen([sys.executable, str(ROOT / "bench" / "two_hosts.py"), *args, "--no-one-host",
+                              "--out", str(tmp_path)],
                              cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         out, _ = bench.communicate(timeout=240)
@@ -56,6 +58,11 @@ def test_hover_over_two_hosts(tmp_path):
         out, _ = bench.communicate(timeout=120)
         pytest.fail("the two-host flight did not finish in 240 s:\n" + out)
     assert bench.returncode == 0, out
+    return out
+
+
+def test_hover_over_two_hosts(tmp_path):
+    out = _two_hosts(tmp_path, "--mission", "hover")
     namespaces = re.findall(r"netns (zp\d+-(?:vehicle|ground))", out)
     assert len(namespaces) == 2, out
     assert not set(namespaces) & set(subprocess.run(["ip", "netns", "list"], capture_output=True,
@@ -76,21 +83,9 @@ def test_hover_over_two_hosts(tmp_path):
 
 
 def test_short_hover_across_a_lossy_link_with_the_planner_on_the_ground(tmp_path):
-    refused = _netns_refused()
-    if refused:
-        pytest.skip(refused)
     t0 = time.monotonic()
-    bench = subprocess.Popen([sys.executable, str(ROOT / "bench" / "two_hosts.py"), "--mission", "hover-short",
-                              "--placement", "ground", "--link", "lan", "--no-one-host", "--out", str(tmp_path)],
-                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
-        out, _ = bench.communicate(timeout=240)
-    except subprocess.TimeoutExpired:
-        bench.send_signal(signal.SIGTERM)  # the bench removes its namespaces and processes
-        out, _ = bench.communicate(timeout=120)
-        pytest.fail("the flight across the link did not finish in 240 s:\n" + out)
+    out = _two_hosts(tmp_path, "--mission", "hover-short", "--placement", "ground", "--link", "lan")
     took = time.monotonic() - t0
-    assert bench.returncode == 0, out
     namespaces = re.findall(r"removed (zp\d+-vehicle), (zp\d+-ground)(?:, (zp\d+-link))?", out)
     assert namespaces, out
     assert not {n for n in namespaces[0] if n} & set(subprocess.run(["ip", "netns", "list"], capture_output=True,
