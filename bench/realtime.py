@@ -11,7 +11,11 @@ overflow). For the stack: the imu->pwm latency (the IMU sample's time to the mot
 output that used it) and the CPU of the vehicle's services together and of everything.
 
 `--load N` keeps N busy processes (normal priority) beside the stack: `--load 1` takes one
-of the two cores. Figures are printed beside their targets (docs/performance.md).
+of the two cores. `--flood BYTES@HZ[:PRIORITY]` floods the camera's image key from a peer beside
+the stack's services for the whole flight (bench/support/flooder.py; e.g. `--flood 1048576@200`:
+1 MiB at 10x the camera's rate; PRIORITY control|bulk, default the key's own; its session capped
+as the stack's vehicle machine caps its services' bulk keys, `bulk_max_hz`, unless `--rogue`) and
+reports what the control keys lost. Figures are printed beside their targets (docs/performance.md).
 """
 
 from __future__ import annotations
@@ -28,7 +32,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench.support.flooder import flood_spec  # noqa: E402
 from schemas.flightlog import read_log  # noqa: E402
+from services.stack import load_stack  # noqa: E402
 
 NOMINAL_HZ = {"sim": 400, "motors": 400, "attitude": 200, "position": 100, "vision": 20, "planner": 50}
 VEHICLE = ("attitude", "position", "vision", "motors")
@@ -82,6 +88,11 @@ def fly(args, out: Path) -> tuple[dict[str, float], float, int]:
     """Fly; returns CPU % of one core per process name, the measured seconds, the exit status."""
     argv = [sys.executable, "-m", "deploy.cli", "fly", "--mission", args.mission, "--seed", str(args.seed),
             "--out", str(out)]
+    flooder = None
+    if args.flood:
+        from deploy.launcher import free_port
+        port = free_port()
+        argv += ["--port", str(port)]
     for item in args.set:
         argv += ["--set", item]
     if args.stack:
@@ -92,8 +103,16 @@ def fly(args, out: Path) -> tuple[dict[str, float], float, int]:
         if {"sim", *VEHICLE} <= set(descendants(proc.pid).values()):
             break
         time.sleep(0.2)
+    if args.flood:   # from the start: the whole flight flies through it
+        size, hz, priority = args.flood
+        cap = [] if args.rogue else ["--max-hz", str(load_stack(args.stack).machines["vehicle"].bulk_max_hz)]
+        flooder = subprocess.Popen([sys.executable, "-m", "bench.support.flooder", "--connect", f"tcp/127.0.0.1:{port}",
+                                    "--bytes", str(size), "--hz", str(hz), *cap] + (["--priority", priority] if priority else []),
+                                   cwd=ROOT, stdout=subprocess.PIPE, text=True)
     time.sleep(args.settle_s)   # ... then start-up (imports, compiles) is not what the loops cost
     pids = descendants(proc.pid)
+    if flooder is not None:
+        pids[flooder.pid] = "flooder"
     first = {p: cpu_ticks(p) for p in pids}
     t0 = time.monotonic()
     last = dict(first)
@@ -107,6 +126,9 @@ def fly(args, out: Path) -> tuple[dict[str, float], float, int]:
                 last[p] = v
         t_last = time.monotonic()
     proc.wait()
+    if flooder is not None:
+        flooder.terminate()
+        print(f"flooder: {flooder.communicate(timeout=10)[0].strip()}")
     err = proc.stderr.read()
     if proc.returncode:
         print(f"bench: the flight ended with status {proc.returncode}: {err.strip().splitlines()[-1:] }")
@@ -137,7 +159,8 @@ def health_table(log: dict) -> dict[str, dict]:
             "p99_median": statistics.median(h["lateness_p99_ms"] for h in windows),
             "max": max(h["lateness_max_ms"] for h in windows),
             "late": hs[-1]["late"], "cycles": hs[-1]["cycles"], "overruns": hs[-1]["overruns"],
-            "dropped": sum(hs[-1]["dropped"].values()), "scheduling": hs[-1]["scheduling"],
+            "dropped": sum(hs[-1]["dropped"].values()), "dropped_by_key": hs[-1]["dropped"],
+            "rejected": hs[-1]["rejected"], "scheduling": hs[-1]["scheduling"],
         }
     return table
 
@@ -150,6 +173,11 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[], metavar="SERVICE.KEY=VALUE")
     ap.add_argument("--load", type=int, default=0, help="busy processes beside the stack")
     ap.add_argument("--settle-s", type=float, default=4.0, help="start-up left out of the CPU figures")
+    ap.add_argument("--flood", type=flood_spec, metavar="BYTES@HZ[:PRIORITY]",
+                    help="flood the camera's image key beside the stack (e.g. 1048576@200)")
+    ap.add_argument("--rogue", action="store_true",
+                    help="the flood from outside the stack: no bulk_max_hz cap on its session (default: as the "
+                         "stack's camera, capped as its vehicle machine says)")
     ap.add_argument("--out", default="runs/bench-realtime")
     args = ap.parse_args()
     if args.load < 0:
@@ -178,6 +206,10 @@ def main() -> None:
         per = 1e4 * h["late"] / max(h["cycles"], 1)
         print(f"{s:<9} {h['rate']:>8.1f} {nominal or '-':>7} {pct} {h['p50']:>8.2f} {h['p99']:>6.2f} {h['max']:>7.2f} "
               f"{h['late']:>5} {per:>6.1f} {h['overruns']:>7} {h['dropped']:>7} {cpu.get(s, 0.0):>6.1f}  {h['scheduling']}")
+    lost = {f"{s}:{k}": n for s, h in health.items() for k, n in h["dropped_by_key"].items() if n}
+    print("messages lost before their service read them: " + (", ".join(f"{k} {n}" for k, n in sorted(lost.items())) or "none"))
+    if args.flood:
+        print("rejected by reason: " + ", ".join(f"{s} {h['rejected']}" for s, h in health.items() if h["rejected"]))
     lat = metrics["latency_ms"]
     vehicle = sum(cpu.get(s, 0.0) for s in VEHICLE)
     total = sum(cpu.values())

@@ -3,6 +3,7 @@
     python bench/two_hosts.py [--mission hover|flip-short|FILE] [--seed N] [--lockstep]
                               [--placement vehicle|ground] [--link none|lan|bad|D/J/L]
                               [--emulator auto|netem|forwarder] [--out DIR] [--no-one-host]
+                              [--flood BYTES@HZ[:PRIORITY]]
 
 Two hosts are two network namespaces that this bench creates (root, `ip netns`): "vehicle"
 (10.77.0.1/24) and "ground" (10.77.0.2/24), loopback up in each, nothing else: no route out, so
@@ -46,6 +47,14 @@ sender up to the simulator's end: in the ground's flight log for the vehicle's k
 vehicle's probe for the ground's (the vehicle keeps no log). The forwarder's own account (frames,
 drops, the delay it gave, its CPU) is in <out>/link/.
 
+`--flood BYTES@HZ[:PRIORITY]` (real time): a bulk flood across the link for the whole flight,
+e.g. `1048576@200`, 1 MiB camera images at 10x the camera's rate: bench/support/flooder.py
+publishes them on the vehicle (a peer of its router, beside its services) and a sink on the
+ground subscribes to them (a ground tool showing the camera), so they cross the routers' link
+beside the control keys; PRIORITY (control|bulk, default the key's own: bulk) is the priority it
+declares; its session is capped as the vehicle machine's services' are (`bulk_max_hz`), unless
+`--rogue`. The per-key table then shows what the flood did to the control keys.
+
 The same mission is then flown on one host with `zenpilot fly` (same stack, seed and mode) into
 <out>/one-host/, its per-key losses beside; in lockstep the two logs are compared message for
 message. Namespaces, the link and every process in them are removed at the end, also on an error
@@ -70,6 +79,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench.support.flooder import flood_spec  # noqa: E402
 from deploy.metrics import compute_metrics  # noqa: E402
 from flight.control.mission import MissionError  # noqa: E402
 from schemas.flightlog import LOG_NAME, read_log  # noqa: E402
@@ -407,6 +417,40 @@ class Probes:
         return got
 
 
+def start_flood(hosts: TwoHosts, out: Path, spec: tuple[int, float, str | None], router: str,
+                max_hz: float) -> dict:
+    """The flood's sink on the ground, then its publisher on the vehicle (both on their host's
+    router; the publisher's session capped as the vehicle's services' are: `max_hz`)."""
+    size, hz, priority = spec
+    base = [sys.executable, "-m", "bench.support.flooder", "--connect", router]
+    procs = {"sink": subprocess.Popen(hosts.argv("ground", base + ["--sink"]), cwd=ROOT, stdout=subprocess.PIPE,
+                                      text=True)}
+    if procs["sink"].stdout.readline().strip() != "flooder: sink listening":
+        raise BenchError("the flood's sink did not start")
+    procs["source"] = subprocess.Popen(
+        hosts.argv("vehicle", base + ["--bytes", str(size), "--hz", str(hz), "--max-hz", str(max_hz)] + (["--priority", priority] if priority else [])),
+        cwd=ROOT, stdout=subprocess.PIPE, text=True)
+    return procs
+
+
+def stop_flood(procs: dict) -> dict:
+    """What the flood's two ends printed: {"source": {...}, "sink": {...}}."""
+    got = {}
+    for name in ("source", "sink"):
+        proc = procs.get(name)
+        if proc is None:
+            continue
+        proc.terminate()
+        try:
+            lines = proc.communicate(timeout=20)[0].strip().splitlines()
+            got[name] = json.loads(lines[-1]) if lines else {}
+        except (subprocess.TimeoutExpired, ValueError) as exc:
+            proc.kill()
+            proc.wait()
+            got[name] = {"error": str(exc)}
+    return got
+
+
 def _q(xs: list[float], f: float) -> float | None:
     return xs[min(len(xs) - 1, int(f * len(xs)))] if xs else None
 
@@ -495,6 +539,8 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
     if not args.lockstep:   # arrival - header time is a latency only when headers are wall-clock times
         probes.start("ground", router, incoming_keys(split, {"ground"}))
         probes.start("vehicle", router, incoming_keys(split, {"vehicle", "vehicle-router"}))
+    cap = 0.0 if args.rogue else split.machines["vehicle"].bulk_max_hz
+    flood = start_flood(hosts, out, args.flood, router, cap) if args.flood else {}
     t_fly = time.monotonic()
     _, timing["up vehicle s"] = zenpilot(hosts, "vehicle", out, "up", "-d", "--stack", stack, "--machine", "vehicle",
                                          "--router", router, "--out", str(out / "vehicle"), "--seed", str(args.seed),
@@ -546,6 +592,7 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
         sampled = hosts.sockets()
     time.sleep(0.3)
     arrivals = probes.stop()
+    flooded = stop_flood(flood)
     # as `zenpilot fly` stops them: the vehicle's services first (stopped later, the recorder would
     # log the motors re-sending their last command after the simulator ended), then the ground,
     # whose recorder writes the flight log when stopped
@@ -571,7 +618,7 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
         except (OSError, ValueError, KeyError):
             pass
     metrics["two_hosts"] = {"link": link, "sockets": sampled, "timing": timing, "status": status,
-                            "supervisor": supervised,
+                            "supervisor": supervised, "flood": flooded,
                             "placement": args.placement, "stack": stack_path.name, "lockstep": args.lockstep,
                             "profile": dataclasses.asdict(p), "emulator": hosts.method, "forwarder": forwarder,
                             "keys": link_keys(log, arrivals, split, window),
@@ -736,6 +783,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--lockstep", action="store_true", help="lockstep instead of real time")
     p.add_argument("--out", help="output directory (default runs/two-hosts-<mission>-<placement>-<link>-<mode>-seed<N>)")
     p.add_argument("--no-one-host", action="store_true", help="skip the one-host comparison flight")
+    p.add_argument("--flood", type=flood_spec, metavar="BYTES@HZ[:PRIORITY]",
+                   help="real time: flood camera images across the link for the whole flight (e.g. 1048576@200)")
+    p.add_argument("--rogue", action="store_true",
+                   help="the flood from outside the stack: its session not capped as the vehicle's services' are")
     return p
 
 

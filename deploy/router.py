@@ -20,9 +20,11 @@ import threading
 import zenoh
 
 from services import security
+from services.runtime import bulk_downsampling
 from services.stack import StackError, load_stack
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
+MAX_LINKS = 8   # links per router pair: at most one per Zenoh priority
 
 
 def router_config(listen: list[str], stack_file: str | None = None, machine: str | None = None) -> tuple[zenoh.Config, list[str]]:
@@ -30,6 +32,10 @@ def router_config(listen: list[str], stack_file: str | None = None, machine: str
     conf = zenoh.Config()
     conf.insert_json5("mode", '"router"')
     conf.insert_json5("scouting/multicast/enabled", "false")
+    # No shared memory, as for the services (services.runtime.zenoh_config): two routers on one
+    # machine (network namespaces standing for two hosts) would otherwise pass large payloads
+    # through /dev/shm, not their link, as two real hosts never can
+    conf.insert_json5("transport/shared_memory/enabled", "false")
     connect: list[str] = []
     if machine:
         stack = load_stack(stack_file)
@@ -40,7 +46,13 @@ def router_config(listen: list[str], stack_file: str | None = None, machine: str
         connect = list(m.connect)
         if stack.security is not None:
             security.apply_router(conf, stack, machine)
+        if m.bulk_max_hz:
+            conf.insert_json5("downsampling", json.dumps(bulk_downsampling(stack.vehicle_id, m.bulk_max_hz)))
     listen = listen or [DEFAULT_LISTEN]
+    if any("prio=" in e for e in listen + connect):
+        # endpoints that carry a priority range (`?prio=7-7`): one link per range to the same
+        # router, so that bulk data never queues in front of control data in one TCP stream
+        conf.insert_json5("transport/unicast/max_links", str(MAX_LINKS))
     conf.insert_json5("listen/endpoints", json.dumps(listen))
     if connect:
         conf.insert_json5("connect/endpoints", json.dumps(connect))

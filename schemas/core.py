@@ -67,6 +67,12 @@ REASONS = (
 STR_MAX_BYTES = 256
 DEFAULT_MAX_BYTES = 64 * 1024
 
+# A key's transport priority (services.runtime.zenoh_priority maps them to Zenoh's): "control",
+# every message the stack's loops and lockstep handshake carry, all at one priority because their
+# order on a link is part of the protocol (a plan before its setpoint, a run's outputs before its
+# sync); "bulk", large messages that must never hold those up on a shared link (camera images).
+PRIORITIES = ("control", "bulk")
+
 # Field kinds. Arrays are MessagePack arrays; "counts" is a map str -> int >= 0.
 KINDS = ("float", "int", "bool", "str", "float[]", "int[]", "str[]", "counts",  # counts: map str -> int >= min (0)
          "bytes")   # bytes: MessagePack bin (an image's pixels), of `length` bytes when given
@@ -108,9 +114,11 @@ class Message:
     fields: tuple[Field, ...]
     check: Callable[[dict], str | None] | None = None  # cross-field check -> error detail
     max_bytes: int | None = None  # bound on the encoded size; None: computed (_size_bound)
+    priority: str = "control"  # one of PRIORITIES
     _by_name: dict = field(default_factory=dict, compare=False, repr=False)
 
     def __post_init__(self):
+        assert self.priority in PRIORITIES, (self.name, self.priority)
         self._by_name.update({f.name: f for f in self.fields})
 
     def __getattr__(self, name: str):

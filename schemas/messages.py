@@ -117,6 +117,7 @@ CAMERA_IMAGE = Message(
     ),
     check=_image_size,
     max_bytes=4096 * 4096 + 1024,
+    priority="bulk",
 )
 
 TRUTH = Message(

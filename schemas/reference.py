@@ -46,10 +46,15 @@ def render() -> str:
         "",
         "## Key expressions",
         "",
-        "| key expression | message | version |",
-        "|---|---|---|",
-        *[f"| `{m.key('<vehicle>', '<service>')}` | [{m.name}](#{m.name}) | {m.version} |" for m in ALL],
-        "| `zp/<vehicle>/alive/<service>` | liveliness token | |",
+        "Priority: `control` keys travel at Zenoh's real-time priority, all at one so that their order "
+        "on a link holds (a plan before its setpoint, a run's outputs before its sync); `bulk` keys at "
+        "the background priority, in a queue of their own, so that a flood of them never holds a "
+        "control message up on a shared link (docs/reliability.md).",
+        "",
+        "| key expression | message | version | priority |",
+        "|---|---|---|---|",
+        *[f"| `{m.key('<vehicle>', '<service>')}` | [{m.name}](#{m.name}) | {m.version} | {m.priority} |" for m in ALL],
+        "| `zp/<vehicle>/alive/<service>` | liveliness token | | |",
         "",
     ]
     for m in ALL:

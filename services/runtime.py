@@ -130,6 +130,8 @@ def zenoh_config(args: argparse.Namespace, stack: Stack | None = None, machine: 
             listen = given
     if args.mode != "client":   # a client listens nowhere
         conf.insert_json5("listen/endpoints", json.dumps(listen))
+    if m is not None and m.bulk_max_hz and not getattr(args, "lockstep", False):   # a wall-clock cap: real time only
+        conf.insert_json5("downsampling", json.dumps(bulk_downsampling(stack.vehicle_id, m.bulk_max_hz)))
     if stack is not None and stack.security is not None:
         if m is None:
             raise StackError(f"{stack.path}: [security] is set but this session's machine is unknown")
@@ -146,6 +148,15 @@ def zenoh_config(args: argparse.Namespace, stack: Stack | None = None, machine: 
             raise StackError(f"--cfg {item!r}: expected KEY:VALUE")
         conf.insert_json5(key, value)
     return conf
+
+
+def bulk_downsampling(vehicle_id: int, max_hz: float) -> list[dict]:
+    """Zenoh's downsampling rules that forward each bulk key (schemas: priority "bulk") at most
+    `max_hz` times a second (a machine's `bulk_max_hz`): applied by its router and by its
+    services' own sessions, a flooding camera is cut where it publishes, not on the link."""
+    keys = [m.key(vehicle_id, "*") for m in schemas.ALL if m.priority == "bulk"]
+    return [{"id": "bulk", "messages": ["put"], "flows": ["egress"],
+             "rules": [{"key_expr": k, "freq": max_hz} for k in keys]}]
 
 
 def service_parser(name: str, description: str) -> argparse.ArgumentParser:
@@ -361,6 +372,17 @@ class Inbox:
         return out
 
 
+ZENOH_PRIORITIES = {"control": zenoh.Priority.REAL_TIME, "bulk": zenoh.Priority.BACKGROUND}
+
+
+def zenoh_priority(name: str) -> zenoh.Priority:
+    """Zenoh's priority for a key's priority class (schemas.PRIORITIES)."""
+    try:
+        return ZENOH_PRIORITIES[name]
+    except KeyError:
+        raise ValueError(f"priority {name!r}: expected one of {', '.join(ZENOH_PRIORITIES)}") from None
+
+
 class Publisher:
     def __init__(self, runtime: "Runtime", message: schemas.Message, key: str):
         self.runtime = runtime
@@ -369,9 +391,11 @@ class Publisher:
         self.seq = 0
         # Express: sent at once, not held for batching (a control hop must not wait for
         # the next batch). Lockstep must not lose a message (the handshake would stall),
-        # so it blocks under congestion; real time drops stale data instead.
+        # so it blocks under congestion; real time drops stale data instead. The key's
+        # priority (schemas.PRIORITIES) gives bulk messages a queue of their own on each link.
         congestion = zenoh.CongestionControl.BLOCK if runtime.lockstep else zenoh.CongestionControl.DROP
-        self._pub = runtime.session.declare_publisher(key, express=True, congestion_control=congestion)
+        self._pub = runtime.session.declare_publisher(key, express=True, congestion_control=congestion,
+                                                      priority=zenoh_priority(message.priority))
         self._put = self._pub.put
         self._encode = message.encode
         self._source = runtime.name

@@ -113,9 +113,10 @@ def parse_security(table: object, stack_path: Path) -> Security:
 
 
 def endpoint_host(endpoint: str) -> tuple[str, str, str]:
-    """(protocol, host, port) of a Zenoh endpoint such as tls/10.0.0.1:7448 or tcp/[::1]:0."""
+    """(protocol, host, port) of a Zenoh endpoint such as tls/10.0.0.1:7448, tcp/[::1]:0 or
+    tcp/10.0.0.1:7449?prio=7-7 (metadata after `?`, configuration after `#`)."""
     proto, sep, rest = endpoint.partition("/")
-    host, sep2, port = rest.split("#")[0].rpartition(":")
+    host, sep2, port = rest.split("#")[0].split("?")[0].rpartition(":")
     if not sep or not sep2 or not proto or not host:
         raise ValueError(f"endpoint {endpoint!r}: expected PROTOCOL/HOST:PORT, e.g. tcp/127.0.0.1:7447")
     return proto, host.strip("[]"), port

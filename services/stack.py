@@ -13,6 +13,7 @@ A stack file is TOML:
     listen = ["tls/10.0.0.2:7448"]  # more endpoints its router listens on: a link to other hosts
     connect = []              # routers of other hosts its router links to
     services_listen = ["tcp/127.0.0.1:0"]  # where its services listen (default: loopback only)
+    bulk_max_hz = 20.0        # its router forwards each bulk key (camera images) at most this often (0: any)
 
     [security]                # optional: TLS, passwords and access control (services/security.py)
     dir = "keys"              # made by `zenpilot certs keys --stack FILE`; relative to this file
@@ -115,6 +116,7 @@ class Machine:
     listen: tuple[str, ...] = ()      # more endpoints its router listens on (a link to other hosts)
     connect: tuple[str, ...] = ()     # other hosts' routers its router links to
     services_listen: tuple[str, ...] = SERVICES_LISTEN
+    bulk_max_hz: float = 0.0          # its router's cap per bulk key (schemas priority "bulk"); 0: none
 
 
 @dataclass(frozen=True)
@@ -166,7 +168,8 @@ def load_stack(path: str | Path | None = None) -> Stack:
     machines = {}
     for name, m in doc.get("machines", {}).items():
         where = f"{path}: [machines.{name}]"
-        unknown = set(m) - {"router", "runs_router", "description", "listen", "connect", "services_listen"}
+        unknown = set(m) - {"router", "runs_router", "description", "listen", "connect", "services_listen",
+                             "bulk_max_hz"}
         if unknown:
             raise StackError(f"{where}: unknown key(s) {sorted(unknown)}")
         machines[name] = Machine(
@@ -176,7 +179,10 @@ def load_stack(path: str | Path | None = None) -> Stack:
             _endpoints(m.get("listen", []), f"{where} listen"),
             _endpoints(m.get("connect", []), f"{where} connect"),
             _endpoints(m.get("services_listen", list(SERVICES_LISTEN)), f"{where} services_listen", empty=False),
+            _expect(m.get("bulk_max_hz", 0.0), float, f"{where} bulk_max_hz"),
         )
+        if not 0.0 <= machines[name].bulk_max_hz < float("inf"):
+            raise StackError(f"{where} bulk_max_hz: must be >= 0 (0: no cap), got {machines[name].bulk_max_hz}")
     if not machines:
         raise StackError(f"{path}: no [machines.*] table")
     try:

@@ -98,9 +98,10 @@ def test_short_hover_across_a_lossy_link_with_the_planner_on_the_ground(tmp_path
     # the issue's placement: planner, recorder, bridge ran on the ground, the control path on the vehicle
     assert {p.stem for p in (tmp_path / "ground" / "logs").glob("*.log")} >= {"planner", "recorder", "mavlink", "router"}
     assert not {"planner", "recorder", "mavlink"} & {p.stem for p in (tmp_path / "vehicle" / "logs").glob("*.log")}
-    # only the two routers' link crosses: every service talks to its own host's router
+    # only the two routers' link crosses (a TCP stream per priority range: control, bulk): every
+    # service talks to its own host's router
     for host in ("vehicle", "ground"):
-        assert link["sockets"][host]["tcp_across_link"] == 1, link["sockets"]
+        assert link["sockets"][host]["tcp_across_link"] == 2, link["sockets"]
         assert link["sockets"][host]["udp_7446"] == 0 and not link["sockets"][host]["scouting_group_joined"], out
     # the delay was really there, both ways: the ground's inputs and the vehicle's setpoints came
     # late by at least the link's 15 ms minimum (on loopback they take ~1-2 ms)

@@ -37,6 +37,10 @@ def test_default_stack_loads():
     ("[stack]\n[machines.a]\n[services.sim]\npriority = 'high'\n", "[services.sim] priority: expected int"),
     ("[stack]\n[machines.a]\n[services.sim]\ncpu = 1\n", "[services.sim] cpu: expected list"),
     ("[stack]\n[machines.a]\n[services.sim]\ncpu = [-1]\n", "[services.sim]: cpu [-1] must be a list of CPU numbers"),
+    ("[stack]\n[machines.a]\nbulk_max_hz = -1\n", "[machines.a] bulk_max_hz: must be >= 0"),
+    ("[stack]\n[machines.a]\nbulk_max_hz = nan\n", "[machines.a] bulk_max_hz: must be >= 0"),
+    ("[stack]\n[machines.a]\nbulk_max_hz = '40'\n", "[machines.a] bulk_max_hz: expected float"),
+    ("[stack]\n[machines.a]\nlisten = ['tcp/10.0.0.1']\n", "[machines.a] listen[0]: endpoint"),
 ])
 def test_bad_stack_is_refused_with_location(tmp_path, text, needle):
     f = tmp_path / "s.toml"

@@ -1,0 +1,97 @@
+"""Transport priorities: control keys at one real-time priority, bulk keys in a queue of their own,
+capped in real time where a machine says so, and a router link per priority range."""
+
+import json
+import time
+from pathlib import Path
+
+import zenoh
+
+import schemas
+from deploy.launcher import free_port
+from deploy.router import MAX_LINKS, router_config
+from services.runtime import ZENOH_PRIORITIES, bulk_downsampling, service_parser, zenoh_config
+from services.stack import load_stack
+
+STACKS = Path(__file__).resolve().parents[2] / "integration" / "stacks"
+
+
+def test_every_key_has_a_priority_and_only_images_are_bulk():
+    assert {m.name for m in schemas.ALL if m.priority == "bulk"} == {"camera_image"}
+    assert set(ZENOH_PRIORITIES) == set(schemas.core.PRIORITIES)
+    # control above bulk: Zenoh's numbers rise as the priority falls
+    assert int(ZENOH_PRIORITIES["control"]) < int(ZENOH_PRIORITIES["bulk"])
+
+
+def test_bulk_cap_names_every_bulk_key_of_the_vehicle():
+    rules = bulk_downsampling(3, 40.0)[0]["rules"]
+    assert rules == [{"key_expr": "zp/3/sim/@image", "freq": 40.0}]
+
+
+def _rules(conf: zenoh.Config) -> list:
+    """The downsampling rules of a configuration (Zenoh fills the fields left out)."""
+    return [r for d in json.loads(str(conf))["downsampling"] for r in d["rules"]]
+
+
+def _session_rules(argv: list[str], machine: str = "vehicle") -> list:
+    return _rules(zenoh_config(service_parser("sim", "").parse_args(argv), load_stack(), machine))
+
+
+def test_services_cap_bulk_keys_in_real_time_only():
+    assert _session_rules([]) == [{"key_expr": "zp/0/sim/@image", "freq": 40.0}]   # default stack: vehicle 40 Hz
+    assert _session_rules(["--lockstep"]) == []   # a wall-clock cap would stall lockstep
+    assert _session_rules([], machine="ground") == []   # its machine sets none
+
+
+def _open(conf_items: dict) -> zenoh.Session:
+    conf = zenoh.Config()
+    for k, v in conf_items.items():
+        conf.insert_json5(k, json.dumps(v))
+    return zenoh.open(conf)
+
+
+def _image(seq: int) -> bytes:
+    return schemas.CAMERA_IMAGE.encode(0.0, seq, "test", {"width_px": 64, "height_px": 16, "encoding": "mono8",
+                                                           "exposure_s": 0.004, "pixels": bytes(64 * 16)})
+
+
+def test_a_capped_session_sends_a_flooded_bulk_key_at_its_cap_and_control_keys_whole():
+    """A publisher capped at 20 Hz floods the image key at ~400 Hz for 1 s beside a control key:
+    the subscriber gets about 20 images and every control message."""
+    port = free_port()
+    common = {"mode": "peer", "scouting/multicast/enabled": False, "transport/shared_memory/enabled": False}
+    sub = _open({**common, "listen/endpoints": [f"tcp/127.0.0.1:{port}"]})
+    pub = _open({**common, "connect/endpoints": [f"tcp/127.0.0.1:{port}"], "listen/endpoints": [],
+                 "downsampling": bulk_downsampling(0, 20.0)})
+    got = {"image": 0, "imu": 0}
+    try:
+        sub.declare_subscriber("zp/0/sim/@image", lambda s: got.__setitem__("image", got["image"] + 1))
+        sub.declare_subscriber("zp/0/sim/imu", lambda s: got.__setitem__("imu", got["imu"] + 1))
+        time.sleep(0.5)
+        image = pub.declare_publisher("zp/0/sim/@image", priority=ZENOH_PRIORITIES["bulk"])
+        imu = pub.declare_publisher("zp/0/sim/imu", priority=ZENOH_PRIORITIES["control"])
+        t0 = time.monotonic()
+        n = 0
+        while time.monotonic() - t0 < 1.0:
+            image.put(_image(n))
+            imu.put(b"\x80")
+            n += 1
+            time.sleep(0.0025)
+        time.sleep(0.3)
+    finally:
+        pub.close()
+        sub.close()
+    assert n > 200
+    assert got["imu"] == n
+    assert 15 <= got["image"] <= 25, got
+
+
+def test_router_links_one_tcp_stream_per_priority_range_and_caps_bulk():
+    """The two-host stack's vehicle router: a link per priority range to the ground, bulk capped."""
+    conf, listen = router_config([], str(STACKS / "two-hosts-ground.toml"), "vehicle-router")
+    assert json.loads(str(conf))["transport"]["unicast"]["max_links"] == MAX_LINKS
+    assert _rules(conf) == [{"key_expr": "zp/0/sim/@image", "freq": 20.0}]
+    assert listen == ["tcp/127.0.0.1:7447", "tcp/10.77.0.1:7448?prio=0-6", "tcp/10.77.0.1:7449?prio=7-7"]
+    plain, _ = router_config(["tcp/127.0.0.1:7447"])
+    assert json.loads(str(plain))["transport"]["unicast"]["max_links"] == 1
+    assert _rules(plain) == []
