@@ -43,6 +43,7 @@ from deploy.report import REPORT_NAME, RUN_FILES, write_report
 from deploy.supervisor import POLL_S, Supervisor
 from flight.control.mission import MissionError
 from schemas.flightlog import LOG_NAME, LogError, LogScan, log_is_complete, read_log, recover, scan
+from services.runtime import on_stop_signals, tie_to_parent
 from services.stack import StackError, available_missions, load_mission, load_stack, lockstep_services
 
 DEFAULT_MISSION = "steps"
@@ -78,8 +79,10 @@ def cmd_fly(args) -> int:
     router = f"tcp/127.0.0.1:{args.port or free_port()}"
     if args.foxglove is not None and not 0 < args.foxglove < 65536:
         raise StackError(f"--foxglove {args.foxglove}: expected a port number 1..65535")
+    # a simulated flight belongs to this command: killed, it takes the stack with it (its log written)
     launcher = Launcher(stack, out, router, lockstep=args.lockstep, seed=args.seed,
-                        vehicle=mission.vehicle, mission=mission.path, params=_param_overrides(args.set, stack))
+                        vehicle=mission.vehicle, mission=mission.path, params=_param_overrides(args.set, stack),
+                        die_with_parent=True)
     names = lockstep_services(stack.services) if args.lockstep else list(stack.services)
     # lockstep in one process unless asked otherwise, or the bus is wanted (a live view, a router's port)
     one_process = args.lockstep and not args.processes and args.foxglove is None and args.port is None
@@ -487,8 +490,7 @@ def cmd_up(args) -> int:
     print(f"zenpilot: machine {machine!r} up: router {router}, services {', '.join(names)}; logs in {run_dir / 'logs'}",
           flush=True)
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    on_stop_signals(stop.set)
     session = client_session(router, stack, machine)
     supervisor = watch_services(launcher, names, session, not args.lockstep)
     recorded = _write_state(Path(args.state_file), stack, router, run_dir, launcher) if background else None
@@ -636,8 +638,7 @@ def cmd_view(args) -> int:
     router = args.router or (up[0].router if len(up) == 1 else None) or next(iter(stack.machines.values())).router
     vehicle = load_vehicle(args.vehicle or stack.vehicle)
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    on_stop_signals(stop.set)
     serve(router, stack.vehicle_id, vehicle.motor_positions_m, MarkerGrid.for_stack(stack), args.host, args.port, stop)
     return 0
 
@@ -768,6 +769,7 @@ def _raise_terminated(signum, frame):
 
 def main(argv=None) -> None:
     args = build_parser().parse_args(argv)
+    tie_to_parent()   # the live view a `fly` started
     signal.signal(signal.SIGTERM, _raise_terminated)  # `up` installs its own
     try:
         code = args.func(args)

@@ -22,6 +22,7 @@ import zenoh
 
 from schemas.flightlog import LOG_NAME
 from services import security
+from services.runtime import PARENT_ENV
 from services.stack import SERVICE_MODULES, Stack, StackError
 
 ROUTER_START_TIMEOUT_S = 10.0
@@ -120,6 +121,7 @@ class Launcher:
     procs: dict[str, subprocess.Popen] = field(default_factory=dict)
     machine: str | None = None  # the stack's machine whose router this starts (None: a bare router)
     spare: subprocess.Popen | None = None   # the supervisor's warm spare (start_spare), real time
+    die_with_parent: bool = False   # its processes end when this one does (services.runtime.tie_to_parent)
 
     def __post_init__(self):
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
@@ -134,9 +136,11 @@ class Launcher:
         self.procs[name] = proc
         return proc
 
-    @staticmethod
-    def _service_env() -> dict[str, str]:
+    def _service_env(self) -> dict[str, str]:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
+        env.pop(PARENT_ENV, None)
+        if self.die_with_parent:
+            env[PARENT_ENV] = str(os.getpid())
         env.setdefault("ZENOH_RUNTIME", ZENOH_RUNTIME)
         for key, value in SERVICE_THREADS.items():
             env.setdefault(key, value)

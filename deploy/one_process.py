@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
-import signal
 import subprocess
 import sys
 import threading
@@ -187,13 +186,13 @@ def main(argv=None) -> int:
     p.add_argument("--vehicle-id", required=True, type=int)
     p.add_argument("services", help='JSON: [[name, module, [argument, ...]], ...] in start order')
     args = p.parse_args(argv)
+    runtime.tie_to_parent()
     services = [(n, m, list(a)) for n, m, a in json.loads(args.services)]
     args.logs.mkdir(parents=True, exist_ok=True)
     files = {name: open(args.logs / f"{name}.log", "w") for name, _, _ in services}
     host = Host(services, args.logs, args.vehicle_id)
     runtime.LOCAL_BUS = host.bus
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: host.stop.set())
+    runtime.on_stop_signals(host.stop.set)
     sys.stdout = ThreadOutput(files, sys.__stdout__)
     sys.stderr = ThreadOutput(files, sys.__stderr__)
     try:

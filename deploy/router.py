@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 import sys
 import threading
 
 import zenoh
 
 from services import security
-from services.runtime import bulk_downsampling
+from services.runtime import bulk_downsampling, on_stop_signals, tie_to_parent
 from services.stack import StackError, load_stack
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
@@ -66,6 +65,7 @@ def main(argv=None) -> None:
     p.add_argument("--stack", help="stack file (default: deploy/stacks/default.toml)")
     p.add_argument("--machine", help="run this machine's router as the stack file describes it")
     args = p.parse_args(argv)
+    tie_to_parent()
     try:
         conf, listen = router_config(args.listen, args.stack, args.machine)
         session = zenoh.open(conf)
@@ -77,8 +77,7 @@ def main(argv=None) -> None:
               file=sys.stderr)
         raise SystemExit(2)
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    on_stop_signals(stop.set)
     print(f"zenpilot-router: listening on {', '.join(listen)}", flush=True)
     stop.wait()
     session.close()

@@ -86,14 +86,29 @@ WAKE_TIMER_MARGIN = 0.25
 LOCAL_BUS = None
 
 
+def on_stop_signals(handler: Callable[[], None]) -> None:
+    """Call `handler()` once on the first SIGINT/SIGTERM, from a thread of its own: a signal
+    handler runs inside whatever the main thread was doing, maybe holding the very lock the
+    handler needs (an Event's, mid-`wait`): set from the handler itself, that deadlocked a
+    service for good when two signals came close together."""
+    asked = []
+
+    def on_signal(*_):
+        if not asked:
+            asked.append(True)
+            threading.Thread(target=handler, name="stop-request", daemon=True).start()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, on_signal)
+
+
 def on_stop_request(handler: Callable[[], None]) -> None:
     """Call `handler()` when this service is asked to stop: its SIGINT/SIGTERM, or the host's
     request in a one-process run (signals belong to the process, not to a thread)."""
     if LOCAL_BUS is not None:
         LOCAL_BUS.on_stop(handler)
     else:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: handler())
+        on_stop_signals(handler)
 
 
 # ---------------------------------------------------------------- CLI and Zenoh
@@ -940,8 +955,27 @@ def _per_thread(call, tid: int, *args) -> None:
         pass
 
 
+PARENT_ENV = "ZENPILOT_PARENT_PID"   # set by a launcher whose processes end with it (`zenpilot fly`)
+
+
+def tie_to_parent() -> None:
+    """End with the process that started us when it asked so (PARENT_ENV: its pid): the kernel
+    sends SIGTERM when it dies, killed or not, so a simulated flight whose `zenpilot fly` was
+    killed stops, its log written, instead of flying on unwatched. A vehicle's `zenpilot up` does
+    not ask: its services outlive a lost launcher. Taken out of the environment: for us only."""
+    parent = os.environ.pop(PARENT_ENV, None)
+    if parent is None or not sys.platform.startswith("linux"):
+        return
+    import ctypes
+    PR_SET_PDEATHSIG = 1
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+    if str(os.getppid()) != parent:   # it died before we asked: the signal will not come
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
 def main_guard(name: str, fn: Callable[[], None]) -> None:
     """Run a service's main: configuration problems become one line, not a traceback."""
+    tie_to_parent()
     try:
         fn()
     except (StackError, ValueError) as exc:

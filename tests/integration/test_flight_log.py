@@ -20,6 +20,7 @@ from .conftest import ROOT, TRUTH_STATE, fly, processes_mentioning
 pytestmark = pytest.mark.integration
 
 FLYING_S = 4.0   # wall time flown before the stop: a few of the recorder's 1 s chunks
+MISSIONS = ROOT / "tests" / "integration" / "missions"
 
 
 def zp(*args):
@@ -28,7 +29,7 @@ def zp(*args):
 
 
 def fly_until_flying(out, *extra):
-    proc = fly(out, "hover", *TRUTH_STATE, *extra, background=True)
+    proc = fly(out, str(MISSIONS / "hover-long.toml"), *TRUTH_STATE, *extra, background=True)
     deadline = time.monotonic() + 120
     while "first tick" not in _read(out / "logs" / "sim.log"):
         assert proc.poll() is None and time.monotonic() < deadline, proc.stdout.read() if proc.stdout else ""
@@ -103,3 +104,28 @@ def test_a_recorder_killed_leaves_its_chunks_and_recover_completes_them(tmp_path
     assert read_log(out / "flight.mcap") == log
     assert (out / "flight.cut.mcap").stat().st_size == cut.size_bytes   # the cut file kept as it was
     assert zp("log", "info", str(out)).returncode == 0
+
+
+@pytest.mark.parametrize("mode", [[], ["--processes"]], ids=["one process", "processes"])
+def test_fly_killed_takes_its_stack_with_it_and_the_log_is_complete(tmp_path, mode):
+    """`zenpilot fly` killed with -9 (a test's timeout, an OOM kill): its services get SIGTERM from
+    the kernel (services.runtime.tie_to_parent), stop as on Ctrl-C, and the log is complete."""
+    out = tmp_path / "run"
+    proc = fly_until_flying(out, *mode)
+    stack = processes_mentioning(str(out))
+    assert stack
+    proc.kill()
+    proc.wait(timeout=10)
+    deadline = time.monotonic() + 60
+    while (left := processes_mentioning(str(out))) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    try:
+        assert not left, f"still running after fly was killed: {left}"
+    finally:
+        for p in left:
+            os.kill(p, signal.SIGKILL)
+    with open(out / "flight.mcap", "rb") as fh:
+        summary = make_reader(fh).get_summary()   # indexed: the recorder finished its log
+    assert summary is not None and summary.statistics.message_count > 0
+    imu = [m["header"]["t_s"] for m in read_log(out / "flight.mcap")["zp/0/sim/imu"]]
+    assert imu[-1] > 0.25 and np.allclose(np.diff(imu), 1 / 400)
