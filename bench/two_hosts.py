@@ -3,7 +3,7 @@
     python bench/two_hosts.py [--mission hover|flip-short|FILE] [--seed N] [--lockstep]
                               [--placement vehicle|ground] [--link none|lan|bad|D/J/L]
                               [--emulator auto|netem|forwarder] [--out DIR] [--no-one-host]
-                              [--flood BYTES@HZ[:PRIORITY]]
+                              [--flood BYTES@HZ[:PRIORITY]] [--stop SERVICE@T_S[:FOR_S]]
 
 Two hosts are two network namespaces that this bench creates (root, `ip netns`): "vehicle"
 (10.77.0.1/24) and "ground" (10.77.0.2/24), loopback up in each, nothing else: no route out, so
@@ -54,6 +54,11 @@ ground subscribes to them (a ground tool showing the camera), so they cross the 
 beside the control keys; PRIORITY (control|bulk, default the key's own: bulk) is the priority it
 declares; its session is capped as the vehicle machine's services' are (`bulk_max_hz`), unless
 `--rogue`. The per-key table then shows what the flood did to the control keys.
+
+`--stop SERVICE@T_S[:FOR_S]` (real time): SIGSTOP one of the vehicle's services T_S into the
+flight, SIGCONT after FOR_S (if its supervisor has not killed and restarted it by then), and
+report when each host's supervisor saw it: the vehicle's from /proc, the ground's from the
+service's beats across the link (deploy/supervisor.py, other machines' services).
 
 The same mission is then flown on one host with `zenpilot fly` (same stack, seed and mode) into
 <out>/one-host/, its per-key losses beside; in lockstep the two logs are compared message for
@@ -417,6 +422,24 @@ class Probes:
         return got
 
 
+def fault_seen(out: Path, fault: dict) -> dict:
+    """How long after the SIGSTOP each host's supervisor reported the service (its first event
+    after it): the vehicle's own ("stopped", from /proc), the ground's across the link ("stuck",
+    from its beats)."""
+    seen = {}
+    for host, folder in (("vehicle", out / "vehicle"), ("ground", out / "ground")):
+        try:
+            record = json.loads((folder / "supervisor.json").read_text())
+        except (OSError, ValueError):
+            continue
+        for e in record["events"]:
+            t = record["started_unix"] + e["t_s"] - fault["stopped_unix"]
+            if e["service"] == fault["service"] and e["event"] in ("stopped", "stuck") and t >= -0.05:
+                seen[host] = {"after_s": round(t, 3), "event": e["event"], "detail": e["detail"]}
+                break
+    return seen
+
+
 def start_flood(hosts: TwoHosts, out: Path, spec: tuple[int, float, str | None], router: str,
                 max_hz: float) -> dict:
     """The flood's sink on the ground, then its publisher on the vehicle (both on their host's
@@ -562,7 +585,20 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
     limit = mission.timeout_s * (20.0 if args.lockstep else 1.5) + 60.0
     deadline, sampled, status = time.monotonic() + limit, None, ""
     down_since: dict[str, float] = {}
+    fault = {"service": args.stop[0], "at_s": args.stop[1], "for_s": args.stop[2]} if args.stop else None
     while _running(pids["sim"]):
+        if fault is not None:   # --stop: SIGSTOP a vehicle service, SIGCONT it later (if still there)
+            into = time.monotonic() - t_fly
+            if "stopped_unix" not in fault and into >= fault["at_s"]:
+                fault["pid"] = pids[fault["service"]]
+                os.kill(fault["pid"], signal.SIGSTOP)
+                fault["stopped_unix"] = time.time()
+            elif "stopped_unix" in fault and "continued" not in fault and into >= fault["at_s"] + fault["for_s"]:
+                try:
+                    os.kill(fault["pid"], signal.SIGCONT)
+                except ProcessLookupError:   # its supervisor killed it (a hang) and restarted it
+                    pass
+                fault["continued"] = True
         # a service not running for RESTART_GRACE_S on end: its supervisor did not bring it back
         # (a kill and restart takes it a back-off and a start; the state file then has the new pid)
         now = time.monotonic()
@@ -617,7 +653,9 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
                     supervised[name] = {k: w[k] for k in ("restarts", "hangs", "silences", "stucks", "exits")}
         except (OSError, ValueError, KeyError):
             pass
-    metrics["two_hosts"] = {"link": link, "sockets": sampled, "timing": timing, "status": status,
+    if fault is not None and "stopped_unix" in fault:
+        fault["seen_s"] = fault_seen(out, fault)
+    metrics["two_hosts"] = {"link": link, "sockets": sampled, "timing": timing, "status": status, "fault": fault,
                             "supervisor": supervised, "flood": flooded,
                             "placement": args.placement, "stack": stack_path.name, "lockstep": args.lockstep,
                             "profile": dataclasses.asdict(p), "emulator": hosts.method, "forwarder": forwarder,
@@ -764,6 +802,19 @@ def resolve_mission(name: str):
     return dataclasses.replace(mission, path=str(Path(mission.path).resolve()))
 
 
+def stop_spec(text: str) -> tuple[str, float, float]:
+    """SERVICE@T_S[:FOR_S] -> (service, t_s, for_s)."""
+    service, _, rest = text.partition("@")
+    at, _, length = rest.partition(":")
+    try:
+        out = service, float(at), float(length or 2.0)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected SERVICE@T_S[:FOR_S], e.g. vision@8:2") from None
+    if not service or out[1] < 0 or out[2] <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: a service, T_S >= 0, FOR_S > 0")
+    return out
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--mission", default="hover",
@@ -785,6 +836,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--no-one-host", action="store_true", help="skip the one-host comparison flight")
     p.add_argument("--flood", type=flood_spec, metavar="BYTES@HZ[:PRIORITY]",
                    help="real time: flood camera images across the link for the whole flight (e.g. 1048576@200)")
+    p.add_argument("--stop", type=stop_spec, metavar="SERVICE@T_S[:FOR_S]",
+                   help="real time: SIGSTOP a vehicle service T_S into the flight for FOR_S (default 2) s; "
+                        "reports when each host's supervisor saw it")
     p.add_argument("--rogue", action="store_true",
                    help="the flood from outside the stack: its session not capped as the vehicle's services' are")
     return p
@@ -876,6 +930,11 @@ def main(argv=None) -> int:
           f"lost = sequence gaps up to the simulator's end):")
     print(key_table(th["keys"], one))
     print()
+    if th.get("fault"):
+        f = th["fault"]
+        print(f"fault: {f['service']} stopped (SIGSTOP) {f['at_s']:g} s into the flight for {f['for_s']:g} s; seen by "
+              + (", ".join(f"the {h}'s supervisor after {v['after_s'] * 1e3:.0f} ms ({v['event']}: {v['detail']})"
+                           for h, v in f.get("seen_s", {}).items()) or "no supervisor"))
     t = th["timing"]
     if th["status"]:
         print("`zenpilot status` on the ground, mid-flight (the recorder does not log its own health):")

@@ -205,8 +205,8 @@ def _read(path: Path) -> str:
 
 def watch_services(launcher: Launcher, names: list[str], session, real_time: bool) -> Supervisor:
     """The supervisor of `names` (deploy/supervisor.py), told of every health message and, in
-    real time, of every loop's beat; there it also publishes its own health (supervisor/health)
-    once a second."""
+    real time, of every loop's beat (the other machines' services' too, which it reports); there
+    it also publishes its own health (supervisor/health) once a second."""
     publish = None
     vehicle = launcher.stack.vehicle_id
     if real_time:   # in lockstep a wall-clock message would make the log depend on the machine
@@ -215,7 +215,9 @@ def watch_services(launcher: Launcher, names: list[str], session, real_time: boo
 
         def publish(health: dict) -> None:
             publisher.put(schemas.HEALTH.encode(time.time(), next(seq), "supervisor", health))
-    supervisor = Supervisor(launcher, names, real_time, publish=publish,
+    # the stack's services this launcher did not start run on other machines: watched by their beats
+    remote = [n for n in launcher.stack.services if n not in launcher.procs]
+    supervisor = Supervisor(launcher, names, real_time, publish=publish, remote=remote,
                             say=lambda text: print(text, file=sys.stderr, flush=True))
     prefix = f"zp/{vehicle}/"
     supervisor.subscription = session.declare_subscriber(

@@ -16,6 +16,10 @@ Detected, every POLL_S on the service's own host:
     time only, judged from the service's first beat on;
   * silent: before its first beat, no health message for HEALTH_SILENCE_S (a slow or stuck
     start-up: the planner's JAX compile takes seconds), real time only.
+Services of other machines (`zenpilot up --machine NAME` on two hosts), real time only, are
+watched by their beats across the link and reported, not acted on (their own host's supervisor
+does that): stuck after REMOTE_BEAT_SILENCE_S without a beat (the link's delay on top of the
+loop's), running again at the next beat.
 A stopped or stuck service that stays so for its `hang_restart_s`, or a silent one for START_S,
 has hung: it is killed (SIGKILL) and restarted as a failure. A restart waits a back-off
 (none the first time: a vehicle without its motor driver tilts past 20 degrees in half a second;
@@ -48,6 +52,7 @@ BACKOFF_MAX_S = 8.0
 HEALTH_SILENCE_S = 3.0
 START_S = 30.0   # a service silent this long before its first beat has hung in its start-up
 BEAT_SILENCE_S = 0.3   # three beats missed (services/runtime.BEAT_PERIOD_S): seen within 0.4 s
+REMOTE_BEAT_SILENCE_S = 0.5   # another host's service: its beats cross a link (jitter, a lost segment)
 
 
 def backoff_s(restarts: int) -> float:
@@ -86,14 +91,24 @@ class Watch:
     since: float | None = None     # when the present stop or silence began
 
 
+@dataclass
+class RemoteWatch:
+    """Another machine's service, as its beats show it here."""
+    state: str = "unseen"   # unseen (no beat yet) | running | stuck
+    beats: int = 0
+    stucks: int = 0
+    last_beat: float | None = None
+
+
 class Supervisor:
     """poll() once per POLL_S from the launcher's loop; it returns the services that ended and
     will not be restarted (the caller decides what that means for the flight)."""
 
     def __init__(self, launcher, names: list[str], real_time: bool,
                  say: Callable[[str], None] = print, clock: Callable[[], float] = time.monotonic,
-                 publish: Callable[[dict], None] | None = None):
-        """publish(health): called with health_message() once a second from poll() (None: not)."""
+                 publish: Callable[[dict], None] | None = None, remote: list[str] = ()):
+        """publish(health): called with health_message() once a second from poll() (None: not).
+        remote: other machines' services, watched by their beats (real time) and reported only."""
         self.launcher = launcher
         self.publish = publish
         self._published = None
@@ -105,6 +120,7 @@ class Supervisor:
         stack = launcher.stack
         self.watches = {n: Watch(stack.service(n).restart, stack.service(n).restart_limit,
                                  stack.service(n).hang_restart_s) for n in names}
+        self.remote = {n: RemoteWatch() for n in remote if n not in self.watches} if real_time else {}
         self.events: list[dict] = []
         self._write_failed = False
         self.path = Path(launcher.run_dir) / "supervisor.json"
@@ -123,6 +139,9 @@ class Supervisor:
         if w is not None and w.state != "restarting":   # a late beat of the killed process is not the new one's
             w.last_beat = self.clock()
             w.beats += 1
+        elif (r := self.remote.get(service)) is not None:
+            r.last_beat = self.clock()
+            r.beats += 1
 
     # -- the pass ---------------------------------------------------------------------
     def poll(self) -> list[str]:
@@ -180,6 +199,18 @@ class Supervisor:
                 self.launcher.kill(name)   # a stopped process dies of SIGKILL too
                 w.hangs += 1
                 self._restart_later(name, w, now, f"hung ({state} for {now - w.since:.1f} s): killed")
+        for name, r in self.remote.items():
+            if r.last_beat is None:
+                continue
+            state = "stuck" if now - r.last_beat > REMOTE_BEAT_SILENCE_S else "running"
+            if state != r.state:
+                if state == "stuck":
+                    r.stucks += 1
+                    self._event(name, "stuck", f"no beat from its host for {now - r.last_beat:.2f} s (another "
+                                               f"machine's service: reported, its own supervisor acts)")
+                elif r.state == "stuck":
+                    self._event(name, "running", "its loop beats again (another machine's service)")
+                r.state = state
         return lost
 
     def _state(self, w: Watch, now: float, pid: int) -> str:
@@ -212,8 +243,8 @@ class Supervisor:
 
     # -- reporting --------------------------------------------------------------------
     def _event(self, name: str, kind: str, detail: str) -> None:
-        w = self.watches[name]
-        w.detail = detail
+        if name in self.watches:
+            self.watches[name].detail = detail
         t = self.clock() - self.t0
         self.events.append({"t_s": round(t, 3), "service": name, "event": kind, "detail": detail})
         self.say(f"zenpilot: supervisor: {name} {detail} (+{t:.2f} s)")
@@ -223,6 +254,7 @@ class Supervisor:
         return {"real_time": self.real_time, "started_unix": self.started_unix,
                 "services": {n: {k: v for k, v in asdict(w).items() if k not in ("restart_at", "last_health", "last_beat", "since")}
                              for n, w in self.watches.items()},
+                "remote": {n: {k: v for k, v in asdict(r).items() if k != "last_beat"} for n, r in self.remote.items()},
                 "events": self.events}
 
     def _write(self) -> None:
@@ -246,7 +278,11 @@ class Supervisor:
                                 ("stuck", w.stucks), ("silent", w.silences), ("hung", w.hangs)):
                 if value:
                     counts[f"{kind}_{n}"] = value
+        for n, r in self.remote.items():
+            if r.stucks:
+                counts[f"stuck_remote_{n}"] = r.stucks
         bad = [f"{n} {w.state}" for n, w in self.watches.items() if w.state != "running"]
+        bad += [f"{n} stuck (remote)" for n, r in self.remote.items() if r.state == "stuck"]
         return {"state": "degraded" if bad else "running", "rate_hz": 1.0 / POLL_S, "target_rate_hz": 1.0 / POLL_S,
                 "overruns": 0, "jitter_p99_ms": 0.0, "lateness_p50_ms": 0.0, "lateness_p99_ms": 0.0,
                 "lateness_max_ms": 0.0, "late": 0, "cycles": 0, "step_s": 0.0, "wait_s": 0.0,

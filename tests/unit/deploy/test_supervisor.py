@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 
 import deploy.supervisor
-from deploy.supervisor import BEAT_SILENCE_S, START_S, HEALTH_SILENCE_S, Supervisor, backoff_s, process_state
+from deploy.supervisor import (BEAT_SILENCE_S, HEALTH_SILENCE_S, REMOTE_BEAT_SILENCE_S, START_S, Supervisor, backoff_s,
+                               process_state)
 from services.stack import StackError, load_stack
 
 
@@ -231,3 +232,24 @@ def test_a_record_that_cannot_be_written_is_said_once_and_supervision_goes_on(tm
     run_for(sup, clock, 1.0)
     assert launcher.restarted == ["attitude"]
     assert sum("cannot write" in line for line in said) == 1, said
+
+
+def test_another_machines_service_is_reported_by_its_beats_never_acted_on(tmp_path):
+    launcher, clock, said = FakeLauncher(tmp_path, {"planner": ("on-failure", 3)}), Clock(), []
+    sup = Supervisor(launcher, ["planner"], True, say=said.append, clock=clock, remote=["attitude", "planner"])
+    assert list(sup.remote) == ["attitude"]   # a service of this machine is watched as its own
+    run_for(sup, clock, 2.0, beating=["planner"])
+    assert sup.remote["attitude"].state == "unseen" and said == []   # not beating yet: not judged
+    run_for(sup, clock, 1.0, beating=["planner", "attitude"])
+    run_for(sup, clock, REMOTE_BEAT_SILENCE_S - 0.15, beating=["planner"])
+    assert sup.remote["attitude"].state == "running"
+    run_for(sup, clock, 0.3, beating=["planner"])   # its beats stopped coming across the link
+    assert sup.remote["attitude"].state == "stuck" and "attitude no beat from its host for 0.6" in said[-1], said
+    assert launcher.killed == [] and launcher.restarted == []   # its own host's supervisor acts
+    assert sup.health_message()["rejected"] == {"stuck_remote_attitude": 1}
+    assert "attitude stuck (remote)" in sup.health_message()["detail"]
+    run_for(sup, clock, 0.5, beating=["planner", "attitude"])
+    assert sup.remote["attitude"].state == "running" and "beats again" in said[-1]
+    assert json.loads((tmp_path / "supervisor.json").read_text())["remote"]["attitude"]["stucks"] == 1
+    lockstep = Supervisor(launcher, ["planner"], False, say=said.append, clock=clock, remote=["attitude"])
+    assert lockstep.remote == {}   # no beats in lockstep
