@@ -196,3 +196,15 @@ def test_a_missions_flip_item_is_predicted_once_when_the_ground_stations_is_the_
     monkeypatch.setattr(planner, "flip_controllers", lambda io, methods: {m: FakeController(m) for m in methods})
     loop_for("flip")   # its item: ilqr-project from 5 m, what a command flies too
     assert refusing_predictor == [("ilqr-project", 5.0)]
+
+
+def test_an_uploaded_flip_item_flies_the_ground_stations_method():
+    """A MAVLink mission's flip item names no method: it flies the one flip_methods names first
+    (not the item's default, ilqr-project)."""
+    from services.mavlink_logic import mission_fields
+    io, loop = loop_for("none", flip_methods=["baseline"])
+    io.received(schemas.PLANNER_MISSION, "mavlink").push(0.0, mission_fields(
+        [("takeoff", [0.0, 0.0, 5.0], 0.0, 0.0, 0.3), ("flip", [0.0, 0.0, 5.0], 0.0, 0.0, 0.3)], "test"))
+    loop.step(0.0)
+    assert io.rejected == {} and [i["method"] for i in loop.planner.runner.mission.items if i["type"] == "flip"] \
+        == ["baseline"]
