@@ -22,7 +22,8 @@ class ParamError(ValueError):
 class Param:
     """One parameter. `min`/`max` bound a number, or each element of a list of numbers
     (inclusive; `min_exclusive`: the value must be above `min`); a float must be finite.
-    `choices`: the strings it may be. `mavlink`: its MAVLink parameter name for in-flight tuning,
+    `choices`: the strings it may be (with a list default: the strings its elements may be, any
+    number of them). `mavlink`: its MAVLink parameter name for in-flight tuning,
     "NAME" or, for a vector, ("NAME_{}", "RPY"): one MAVLink parameter per axis letter (NAME_R,
     NAME_P, NAME_Y). `per_axis`: one number stands for every element of a list. `table`: a
     nested table's owner, a `Declared` dataclass whose fields are its keys."""
@@ -85,6 +86,14 @@ class Param:
             if self.table is not None:
                 from_table(self.table, value, where)
             return value
+        elif isinstance(default, (list, tuple)) and self.choices:   # any number of the choices (no bounds)
+            if isinstance(value, str):   # `--set KEY=NAME`: say how a list is written
+                raise ParamError(f'{where}: expected a list, e.g. ["{value}"], got {value!r}')
+            value = _expect(value, (list, tuple), where)
+            for v in value:
+                if not isinstance(v, str) or v not in self.choices:
+                    raise ParamError(f"{where}: {v!r} not one of {self.choices} (in {list(value)!r})")
+            return type(default)(value)
         elif isinstance(default, (list, tuple)):
             if self.per_axis and _is_number(value):
                 value = [value] * len(default)

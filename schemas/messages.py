@@ -406,8 +406,9 @@ PLANNER_PLAN = Message(
 
 PLANNER_FLIP_PREDICTION = Message(
     "planner_flip_prediction", "planner/flip_prediction", 1,
-    "A flip item's predicted envelope (flight/control/predict.py), sent once on the planner's first "
-    "tick for each iLQR flip item of its mission: N closed-loop rollouts of the planner's plans "
+    "A flip's predicted envelope (flight/control/predict.py), sent once on the planner's first "
+    "tick for each iLQR flip item of its mission and for the flip a command would fly "
+    "(planner/flip_status), where that is another: N closed-loop rollouts of the planner's plans "
     "and gains over drawn mass, inertia, thrust, motor lag, wind, gusts, delay and start error. "
     "Each figure is [p5, p50, p95], or [] where no case defines it (none turned, none "
     "recovered). refused: the planner will not start the item (reason says why).",
@@ -432,6 +433,24 @@ PLANNER_FLIP_PREDICTION = Message(
                                       "recovery_s") if len(doc[k]) not in (0, 3)), None),
 )
 
+PLANNER_FLIP_STATUS = Message(
+    "planner_flip_status", "planner/flip_status", 1,
+    "The flip a command (planner/command `flip`) or an uploaded item (planner/mission `flip`) "
+    "would fly, once a second on the planner's clock, only while the planner has a flip "
+    "controller (built at start-up: its mission's flip items and its `flip_methods` parameter): "
+    "no message, no flip. Such a flip starts from a hover at altitude_m (where the flip "
+    "climbs or descends first); refused: its prediction (planner/flip_prediction) says it "
+    "should not be flown, and the planner will not start it. The MAVLink bridge accepts a "
+    "flip only while this is fresh and not refused.",
+    (
+        F("methods", "str[]", "the flip methods built", choices=FLIP_METHODS),
+        F("method", "str", "the method a commanded or uploaded flip flies", choices=FLIP_METHODS),
+        F("altitude_m", "float", "the altitude it flies from", "m", min=0.0, max=1e4),
+        F("refused", "bool", "its prediction refuses it: a flip would not be started"),
+        F("reason", "str", "why it is refused ('' when it is not)"),
+    ),
+)
+
 PARAM_SET = Message(
     "param_set", "param/set", 1,
     "Set a running service's parameter (the MAVLink parameter protocol): the "
@@ -450,6 +469,7 @@ ALL = (
     CLOCK, SYNC_DONE, IMU, BARO, MAG, CAMERA, CAMERA_IMAGE, TRUTH, VISION_POSE, PLANNER_SETPOINT,
     POSITION_SETPOINT, POSITION_STATE, POSITION_EKF_HEALTH, ATTITUDE_COMMAND, ATTITUDE_STATE, MOTOR_PWM, HEALTH, BEAT,
     BATTERY, PLANNER_COMMAND, PARAM_SET, PLANNER_PLAN, PLANNER_MISSION, PLANNER_FLIP_PREDICTION,
+    PLANNER_FLIP_STATUS,
 )
 
 BY_NAME = {m.name: m for m in ALL}

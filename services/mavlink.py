@@ -33,6 +33,7 @@ NAME = "mavlink"
 INPUTS = {  # bridge input name -> (message, upstream)
     "att": (schemas.ATTITUDE_STATE, "attitude"), "pos": (schemas.POSITION_STATE, "position"),
     "battery": (schemas.BATTERY, "sim"), "setpoint": (schemas.PLANNER_SETPOINT, "planner"),
+    "flip": (schemas.PLANNER_FLIP_STATUS, "planner"),   # once a second while the planner can flip
 }
 
 

@@ -15,7 +15,10 @@ sub), which MAVSDK and QGroundControl decode: hold = AUTO.LOITER, position =
 POSCTL, mission = AUTO.MISSION, takeoff = AUTO.TAKEOFF, land = AUTO.LAND, return
 = AUTO.RTL, offboard = OFFBOARD; the flip shows as ACRO and attitude steps as
 STABILIZED (reported, not settable). The flip is the custom command
-MAV_CMD_USER_1 (31010), as a command (flying) or a mission item.
+MAV_CMD_USER_1 (31010), as a command (flying) or a mission item, accepted only while
+the planner says it can fly one (planner/flip_status: it has a flip controller, built
+for its mission's flip items or its `flip_methods`, and the flip's prediction does not
+refuse it); otherwise DENIED (an upload: MAV_MISSION_UNSUPPORTED) with the reason.
 
 Missions (MISSION_INT): NAV_WAYPOINT, NAV_TAKEOFF, NAV_LAND, NAV_LOITER_TIME,
 NAV_LOITER_UNLIM, NAV_DELAY (seconds), NAV_RETURN_TO_LAUNCH, MAV_CMD_USER_1 (flip); DO_CHANGE_SPEED
@@ -242,7 +245,7 @@ class Bridge:
         self.counts = counts  # bad input by reason (the service's health "rejected")
         self.t_origin_s = t_origin_s  # stack time of boot: time_boot_ms = (t - origin) * 1000
         self.problem = problem
-        self.inputs: dict[str, dict | None] = {}  # att, pos, imu, baro, mag, battery, setpoint
+        self.inputs: dict[str, dict | None] = {}  # att, pos, imu, baro, mag, battery, setpoint, flip
         self.health: dict[str, tuple[float, dict]] = {}  # service -> (arrival wall time, message)
         self.health_on_stack_clock = False   # lockstep: health judged by its sample time (set by the shell)
         self._now_stack = 0.0
@@ -688,6 +691,9 @@ class Bridge:
             self._ack(msg, command, R.MAV_RESULT_ACCEPTED)
             return self.set_current(int(p[0]), origin, wall)
         if command == MAV_CMD_FLIP:
+            result, why = self.flip_refusal(now)
+            if why:   # never ACCEPTED for a flip the planner would refuse
+                return self._deny(msg, command, result, why)
             if not self.flying():
                 return self._deny(msg, command, R.MAV_RESULT_TEMPORARILY_REJECTED, "not flying")
             self._ack(msg, command, R.MAV_RESULT_ACCEPTED)
@@ -726,6 +732,19 @@ class Bridge:
         self._ack(msg, command, result, reason)
         self.problem(f"command {command} from {msg.get_srcSystem()}: {reason}")
         return []
+
+    def flip_refusal(self, now: float) -> tuple[int, str]:
+        """(MAV_RESULT, why) when the planner cannot fly a flip now, (ACCEPTED, "") when it can: from
+        its planner/flip_status, sent once a second only while it has a flip controller (the
+        texts fit a STATUSTEXT after "cmd 31010: ")."""
+        status = self.inputs.get("flip")
+        if status is None:   # never heard: no flip controller was built
+            return mavlink.MAV_RESULT_DENIED, "no flip: set planner.flip_methods"
+        if now - status["header"]["t_s"] > self.cfg.health_timeout_s:   # the planner stopped saying so
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED, "planner's flip status is stale"
+        if status["refused"]:   # its prediction: the planner would not start it (its log says why)
+            return mavlink.MAV_RESULT_DENIED, "flip predicted unsafe: see planner log"
+        return mavlink.MAV_RESULT_ACCEPTED, ""
 
     def arming_blocker(self, now: float, wall: float) -> str:
         """Why arming is refused now ('' if it is not): the pre-arm checks."""
@@ -1067,11 +1086,17 @@ class Bridge:
             if msg.seq > expected:
                 self.send(self.mav.mission_request_int_encode(*up["peer"], expected, mavlink.MAV_MISSION_TYPE_MISSION))
             return []
-        result = self.check_item(msg)
+        result, why = self.check_item(msg), ""
+        if result == mavlink.MAV_MISSION_ACCEPTED and msg.command == MAV_CMD_FLIP:
+            flip, why = self.flip_refusal(now)   # a flip the planner cannot fly is refused at upload
+            if why:
+                result = (mavlink.MAV_MISSION_ERROR if flip == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+                          else mavlink.MAV_MISSION_UNSUPPORTED)
         if result != mavlink.MAV_MISSION_ACCEPTED:
             self.mission.upload = None
             self._mission_ack(msg, result)
-            why = f"mission item {msg.seq}: command {msg.command} frame {msg.frame} refused ({result})"
+            why = (f"mission item {msg.seq}: {why}" if why else
+                   f"mission item {msg.seq}: command {msg.command} frame {msg.frame} refused ({result})")
             self.statustext(why)
             self.problem(why)
             return []

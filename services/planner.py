@@ -7,14 +7,17 @@ being flown, and planner/mission (the bridge's uploaded MAVLink mission): a list
 of items flown from the next tick. Mission "none" (or ""): idle on the ground,
 waiting for commands.
 
-Flip items (document 001): when the mission has one, the flip controller of each
-method it names is built at start-up (the iLQR compiled and warmed up before the
-first tick, never in flight; the executable is kept in `compile_cache_dir`, so
-a restart loads it instead of compiling) and the loop runs at least at the re-solve rate
-(`mpc_rate_hz`, 0: the method's default, see flight/control/flip_runner.py). While a flip
-item runs, the setpoint's mode is `plan` and every re-solve from the latest
-estimate (pos/state + att/state, and the rotor forces implied by motors/pwm)
-goes out on planner/plan for the motor driver.
+Flip items (document 001): the flip controller of each method the mission's flip
+items name, and of each in `flip_methods` (for a ground station's flips, which
+need no flip item: a MAVLink command or uploaded item flies the first), is built at
+start-up (the iLQR compiled and warmed up before the first tick, never in flight; the
+executable is kept in `compile_cache_dir`, so a restart loads it instead of compiling)
+and the loop runs at least at the re-solve rate (`mpc_rate_hz`, 0: the method's default,
+see flight/control/flip_runner.py). With a flip controller, planner/flip_status says once
+a second which flip a command would fly and whether its prediction refuses it (the MAVLink
+bridge accepts a flip only then). While a flip item runs, the setpoint's mode is `plan`
+and every re-solve from the latest estimate (pos/state + att/state, and the rotor forces
+implied by motors/pwm) goes out on planner/plan for the motor driver.
 
 Real time (bench/flip_realtime.py): the stack gives the planner a real-time priority below
 the control loops and vision; the solver is built at normal scheduling and then runs on one
@@ -24,13 +27,14 @@ level's rate the loop runs on each new position state.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import replace
 
 import numpy as np
 
 import schemas
-from flight.control.mission import MissionError, MissionPlanner, mission_items
+from flight.control.mission import ITEM_KEYS, MissionError, MissionPlanner, mission_items
 from flight.control.plan import body_state, scale_collective_floats
 from flight.motor_model import decay, thrust_step_floats
 from services.params.planner import PARAMS  # every parameter: default, unit, bounds, doc
@@ -44,9 +48,24 @@ NO_MISSION = ("", "none")
 WAKE_MIN_GAP = 0.25
 
 
-def flip_controllers(rt: Runtime, mission) -> dict:
-    """One FlipController per flip method the mission names (compiled now)."""
-    methods = sorted({item["method"] for item in mission.items if item["type"] == "flip"}) if mission else []
+def flip_methods(mission, params: dict) -> tuple[list[str], str | None]:
+    """The flip methods to build, sorted, and the one a MAVLink flip (a command or an uploaded
+    item, which name none) flies, None without a flip: the mission's flip items' and the
+    `flip_methods` parameter's (the first flies MAVLink's; without it the item's default method
+    if built, else the first built); only `flip_method` when it is set, as it flies every flip."""
+    named = {item["method"] for item in mission.items if item["type"] == "flip"} if mission else set()
+    extra = list(params["flip_methods"])
+    if not named and not extra:
+        return [], None
+    if params["flip_method"]:
+        return [params["flip_method"]], params["flip_method"]
+    methods = sorted(named | set(extra))
+    default = ITEM_KEYS["flip"]["method"]
+    return methods, extra[0] if extra else default if default in methods else methods[0]
+
+
+def flip_controllers(rt: Runtime, methods: list[str]) -> dict:
+    """One FlipController per flip method (compiled now)."""
     if not methods:
         return {}
     from flight.control.flip_runner import FlipController, loop_rate_hz
@@ -79,16 +98,20 @@ def flip_controllers(rt: Runtime, mission) -> dict:
     return controllers
 
 
-def predict_flips(rt: Runtime, mission, controllers: dict) -> tuple[dict, list]:
-    """The flip items this vehicle should not fly, {(method, altitude_m): reason}, from each
-    iLQR item's predicted envelope (the controllers' own solvers fly the nominal), and the
-    planner/flip_prediction messages that say so."""
+def predict_flips(rt: Runtime, mission, controllers: dict, command_method: str | None = None) -> tuple[dict, list]:
+    """The flips this vehicle should not fly, {(method, altitude_m): reason}, from each iLQR
+    flip's predicted envelope (the controllers' own solvers fly the nominal), and the
+    planner/flip_prediction messages that say so: the mission's flip items and the MAVLink
+    flip (`command_method` from the flip item's default altitude, where every MAVLink flip
+    starts: it is known before any is commanded)."""
     n = rt.params["flip_predict_rollouts"]
     if n == 0 or not controllers:
         return {}, []
     from flight.control.predict import FIGURES, PredictError, build_predictor
     refused, messages = {}, []
-    items = {(i["method"], float(i["altitude_m"])) for i in mission.items if i["type"] == "flip"}
+    items = {(i["method"], float(i["altitude_m"])) for i in mission.items if i["type"] == "flip"} if mission else set()
+    if command_method is not None:
+        items.add((command_method, float(ITEM_KEYS["flip"]["altitude_m"])))
     for method, altitude in sorted(items):
         if method == "baseline":
             continue
@@ -129,8 +152,9 @@ class PlannerLoop:
             method = io.params["flip_method"]
             mission = replace(mission, items=tuple({**i, "method": method} if i["type"] == "flip" else i
                                                    for i in mission.items))
-        self.controllers = flip_controllers(io, mission)   # at normal scheduling: the runtime raises it for the loop
-        self.refused, self.predictions = predict_flips(io, mission, self.controllers)
+        methods, self.flip_command_method = flip_methods(mission, io.params)
+        self.controllers = flip_controllers(io, methods)   # at normal scheduling: the runtime raises it for the loop
+        self.refused, self.predictions = predict_flips(io, mission, self.controllers, self.flip_command_method)
         self.state = io.inbox(schemas.POSITION_STATE, "position")
         self.commands = io.inbox(schemas.PLANNER_COMMAND, "mavlink", keep=16)
         self.missions = io.inbox(schemas.PLANNER_MISSION, "mavlink", keep=4)
@@ -145,23 +169,31 @@ class PlannerLoop:
             self.pwm = io.inbox(schemas.MOTOR_PWM, "motors", keep=32)
             self.plan_out = io.publisher(schemas.PLANNER_PLAN)
             self.prediction_out = io.publisher(schemas.PLANNER_FLIP_PREDICTION)
+            self.flip_status_out = io.publisher(schemas.PLANNER_FLIP_STATUS)
+            self.flip_status_due = -math.inf
             from flight.vehicle import load_vehicle
             self.vehicle = load_vehicle(io.vehicle_name)
             self.forces = None   # the rotor forces the motor driver's commands imply (floats)
             self.forces_decay = decay(1.0 / io.tick_rate, self.vehicle.motor_time_constant_s)   # their lag's, per tick
-            self.planner = MissionPlanner(mission, self.fly_flip)
+            self.planner = MissionPlanner(mission, self.fly_flip, self.flip_command_method)
         else:
             self.planner = MissionPlanner(mission)
 
+    def flip_status(self) -> dict:
+        """planner/flip_status: the flip a command or an uploaded item flies, and whether it is refused."""
+        key = (self.flip_command_method, float(ITEM_KEYS["flip"]["altitude_m"]))
+        return {"methods": sorted(self.controllers), "method": key[0], "altitude_m": key[1],
+                "refused": key in self.refused, "reason": self.refused.get(key, "")}
+
     def fly_flip(self, item, t, starting):
         """MissionRunner's flip hook: one controller step on the state of this run."""
-        c = self.controllers.get(item["method"])
-        if c is None:  # cannot happen for a mission's items; a MAVLink flip names the project's
-            c = next(iter(self.controllers.values()))
+        # the mission's items name built methods; a commanded or uploaded flip names the one it flies
+        method = item["method"] if item["method"] in self.controllers else self.flip_command_method
+        c = self.controllers[method]
         if self.flip_x is None:  # no attitude state yet: wait (the fallback laws hold)
             return "takeoff", False, False, self.flip_pos
         x = self.flip_x if c.state_dim == 17 else self.flip_x[:13]
-        if (item["method"], float(item["altitude_m"])) in self.refused:  # predicted unsafe: never started
+        if (method, float(item["altitude_m"])) in self.refused:  # predicted unsafe: never started
             return "refused", False, True, self.flip_pos
         if starting:
             c.start(t, x, item["altitude_m"], item["baseline_climb_m"])
@@ -213,6 +245,9 @@ class PlannerLoop:
         """One run at time t: commands and missions in, the setpoint (and a flip's plan) out."""
         while self.predictions:  # on the first tick: on the stack's clock, in the log before the flip
             self.prediction_out.put(self.predictions.pop(0), t_s=t)
+        if self.controllers and t >= self.flip_status_due:  # once a second: a bridge started late hears it
+            self.flip_status_out.put(self.flip_status(), t_s=t)
+            self.flip_status_due = math.floor(t) + 1.0
         self.follow_commands()
         s = self.state.latest()
         if s is None:  # the mission starts once the position level reports a state

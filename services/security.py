@@ -45,7 +45,7 @@ PUBLISHES: dict[str, tuple[str, ...]] = {
     "attitude": ("att/command", "att/state"),
     "position": ("pos/setpoint", "pos/state", "pos/ekf_health"),
     "vision": ("vision/pose",),
-    "planner": ("planner/setpoint", "planner/plan", "planner/flip_prediction"),
+    "planner": ("planner/setpoint", "planner/plan", "planner/flip_prediction", "planner/flip_status"),
     "recorder": (),
     "mavlink": ("planner/command", "planner/mission", "param/set"),
 }

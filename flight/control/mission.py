@@ -306,8 +306,9 @@ class MissionPlanner:
     """A mission file (or none: idle, waiting for commands) plus commands from
     outside (MAVLink) that replace whatever is being flown."""
 
-    def __init__(self, mission: Mission | None, flip=None):
+    def __init__(self, mission: Mission | None, flip=None, flip_method: str | None = None):
         self.flip = flip  # the flip controller for flip items (see MissionRunner.flip)
+        self.flip_method = flip_method  # the method a commanded or uploaded flip flies (their items name none)
         self.runner = MissionRunner(mission, flip) if mission is not None else None
         self.sp = self.runner.sp if self.runner else Setpoint()
         self.last_command = ""
@@ -322,8 +323,10 @@ class MissionPlanner:
         else:
             if command == "flip" and self.flip is None:
                 raise MissionError("command 'flip': this planner has no flip controller "
-                                   "(fly a mission with a flip item)")
+                                   "(the planner's flip_methods parameter builds one)")
             items = command_items(command, altitude_m, position_m, yaw_rad)
+            if self.flip_method:
+                items = tuple({**i, "method": self.flip_method} if i["type"] == "flip" else i for i in items)
             runner = MissionRunner(Mission(f"command-{command}", "", "", math.inf, items), self.flip)
             if prev is not None:
                 runner.yaw = prev.yaw
@@ -342,11 +345,13 @@ class MissionPlanner:
             if kind not in ITEM_KEYS:
                 raise MissionError(f"{name}: item {i}: type {kind!r} not one of {', '.join(ITEM_KEYS)}")
             if kind == "flip" and self.flip is None:
-                raise MissionError(f"{name}: item {i}: this planner has no flip controller")
+                raise MissionError(f"{name}: item {i}: this planner has no flip controller "
+                                   f"(the planner's flip_methods parameter builds one)")
             unknown = set(raw) - set(ITEM_KEYS[kind]) - {"type"}
             if unknown:
                 raise MissionError(f"{name}: item {i}: unknown keys {sorted(unknown)} for {kind}")
-            checked.append({"type": kind, **ITEM_KEYS[kind], **raw})
+            method = {"method": self.flip_method} if kind == "flip" and self.flip_method else {}
+            checked.append({"type": kind, **ITEM_KEYS[kind], **method, **raw})
         if not checked:
             raise MissionError(f"{name}: no items")
         prev = self.runner

@@ -11,12 +11,18 @@ PARAMS = {
     "mpc_rate_hz": Param(0.0, "Hz", 0.0, doc="the flip's re-solve rate; 0: the method's default "
                                              "(project 100, thesis 20, baseline 200)"),
     "flip_method": Param("", choices=("", *FLIP_METHODS),
-                         doc="fly every flip item with this method; \"\": as the mission says"),
+                         doc="fly every flip with this method (the mission's items, a ground station's); "
+                             "\"\": as the mission says"),
+    # a MAVLink flip (command or mission item) needs a controller built before the first tick
+    "flip_methods": Param([], choices=FLIP_METHODS,
+                          doc="flip controllers built at start-up besides those of the mission's flip items, "
+                              "e.g. [\"ilqr-project\"]: a MAVLink flip flies the first; []: only the mission's"),
     "compile_cache_dir": Param("~/.cache/zenpilot/jax",
                                doc="where compiled iLQR solvers are kept between starts; \"\": compile every start"),
     # flight/control/predict.py; `zenpilot predict` prints the same
-    "flip_predict_rollouts": Param(256, "", 0, doc="before the first tick, each iLQR flip item is predicted over "
-                                                   "this many uncertain cases; 0: no check"),
+    "flip_predict_rollouts": Param(256, "", 0, doc="before the first tick, each iLQR flip (the mission's items, "
+                                                   "a ground station's) is predicted over this many uncertain "
+                                                   "cases; 0: no check"),
     "flip_clearance_m": Param(0.5, "m", doc="... and refused when its 95th-percentile loss from the hover leaves "
                                             "less than this"),
 }

@@ -404,6 +404,67 @@ def test_mission_upload_refuses_what_it_cannot_fly(link):
     assert len(bridge.mission.items) == 1  # the mission before the failed upload is kept
 
 
+def flip_status(t=NOW, refused=False):
+    """planner/flip_status as the planner sends it once a second while it has a flip controller."""
+    return {"header": header(t), "methods": ["ilqr-project"], "method": "ilqr-project", "altitude_m": 5.0,
+            "refused": refused, "reason": "predicted 95th-percentile altitude loss ..." if refused else ""}
+
+
+def texts(msgs):
+    return [m.text for m in msgs if m.get_type() == "STATUSTEXT"]
+
+
+def test_a_flip_is_accepted_only_when_the_planner_can_fly_it(link):
+    """MAV_CMD_USER_1 (the flip): DENIED, with how to enable it, while the planner has said nothing
+    of flips (no flip controller: its flip_methods); DENIED when its prediction refuses the flip;
+    TEMPORARILY_REJECTED when what it said is stale; ACCEPTED (flying) only with a fresh status."""
+    bridge, gcs, send, received, _ = link
+    bridge.inputs["setpoint"] = setpoint(armed=True, phase="hold", z=5.0)
+    bridge.inputs["pos"]["position_m"] = [0.0, 0.0, 5.0]
+    assert bridge.flying()
+    flip = long(gcs, mavlink.MAV_CMD_USER_1)
+    assert send(flip) == []
+    msgs = received()
+    assert acks(msgs)[0].result == mavlink.MAV_RESULT_DENIED
+    assert texts(msgs) == ["cmd 31010: no flip: set planner.flip_methods"]
+    bridge.inputs["flip"] = flip_status(refused=True)
+    assert send(flip) == []
+    msgs = received()
+    assert acks(msgs)[0].result == mavlink.MAV_RESULT_DENIED and "predicted unsafe" in texts(msgs)[0]
+    bridge.inputs["flip"] = flip_status(t=NOW - 10.0)   # the planner stopped saying it (3 s: health_timeout_s)
+    assert send(flip) == []
+    assert acks(received())[0].result == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    bridge.inputs["flip"] = flip_status(t=NOW - 1.0)
+    assert send(flip) == [("command", {"command": "flip", "altitude_m": 0.0, "position_m": [0.0, 0.0, 0.0],
+                                       "yaw_rad": 0.0, "origin": "mavlink:255/190"})]
+    assert acks(received())[0].result == mavlink.MAV_RESULT_ACCEPTED and bridge.mode == "hold"
+    bridge.inputs["setpoint"] = setpoint(armed=True, phase="arm")   # on the ground: not now
+    bridge.inputs["pos"]["position_m"] = [0.0, 0.0, 0.0]
+    assert send(flip) == []
+    assert acks(received())[0].result == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+
+
+def test_a_mission_with_a_flip_the_planner_cannot_fly_is_refused_at_upload(link):
+    bridge, gcs, send, received, _ = link
+    items = [waypoint(gcs, 0, 0.0, 0.0, 5.0),
+             gcs.mission_item_int_encode(1, 1, 1, mavlink.MAV_FRAME_MISSION, mavlink.MAV_CMD_USER_1, 0, 1,
+                                         0, 0, 0, 0, 0, 0, 0, 0)]
+    send(gcs.mission_count_encode(1, 1, 2, 0))
+    send(items[0])
+    received()
+    send(items[1])   # refused as it arrives, with the reason and how to enable it
+    msgs = received()
+    assert [m.type for m in msgs if m.get_type() == "MISSION_ACK"] == [mavlink.MAV_MISSION_UNSUPPORTED]
+    assert texts(msgs) == ["mission item 1: no flip: set planner.flip_methods"]
+    assert bridge.mission.items == [] and bridge.mission.upload is None
+    bridge.inputs["flip"] = flip_status()
+    assert upload(send, received, gcs, items).type == mavlink.MAV_MISSION_ACCEPTED
+    assert len(bridge.mission.items) == 2
+    bridge.inputs["flip"] = flip_status(refused=True)
+    assert upload(send, received, gcs, items).type == mavlink.MAV_MISSION_UNSUPPORTED
+    assert len(bridge.mission.items) == 2   # the mission before the refused upload is kept
+
+
 def test_is_armable_follows_estimates_and_checks(link):
     """SYS_STATUS's PREARM_CHECK bit (MAVSDK's health.is_armable): services healthy, estimates fresh and
     converged; a failure is said in STATUSTEXT."""

@@ -46,7 +46,8 @@ def test_every_service_declares_every_parameter_with_a_doc():
         for key, p in params.items():
             assert isinstance(p, Param), f"{service}.{key}"
             assert p.doc and "\n" not in p.doc, f"{service}.{key}: a one-line doc"
-            assert not p.choices or p.default in p.choices, f"{service}.{key}"
+            listed = p.default if isinstance(p.default, list) else [p.default]   # a list: each element
+            assert not p.choices or all(v in p.choices for v in listed), f"{service}.{key}"
             assert resolve_params(params, {key: p.value()}, service)[key] == p.default   # within its own bounds
 
 

@@ -63,3 +63,148 @@ def test_an_unknown_mission_or_flip_method_is_refused_at_start():
         loop_for("nonesuch")
     with pytest.raises(ValueError, match="services.planner.params.*flip_method"):
         loop_for("flip", flip_method="cartwheel")
+
+
+def attitude():
+    return {"quaternion_wxyz": [1.0, 0.0, 0.0, 0.0], "euler_rad": [0.0, 0.0, 0.0], "rate_rad_s": [0.0, 0.0, 0.0],
+            "euler_ref_rad": [0.0, 0.0, 0.0], "euler_var_rad2": [0.0] * 3, "rate_var_rad2_s2": [0.0] * 3,
+            "state_source": "truth"}
+
+
+@pytest.mark.parametrize("mission, params, expected", [
+    ("hover", {}, ([], None)),                                              # the default: nothing built
+    ("flip", {}, (["ilqr-project"], "ilqr-project")),                      # the mission's item, as before
+    ("none", {"flip_methods": ["ilqr-thesis", "baseline"]}, (["baseline", "ilqr-thesis"], "ilqr-thesis")),
+    ("flip", {"flip_methods": ["baseline"]}, (["baseline", "ilqr-project"], "baseline")),
+    ("flip", {"flip_method": "baseline", "flip_methods": ["ilqr-thesis"]}, (["baseline"], "baseline")),
+    ("hover", {"flip_method": "baseline"}, ([], None)),                    # an override builds no flip
+])
+def test_flip_methods_are_the_missions_and_the_parameters(mission, params, expected):
+    from services.planner import flip_methods
+    from services.stack import load_mission
+    io = FakeIO("planner", PARAMS, params)
+    assert flip_methods(None if mission == "none" else load_mission(mission), io.params) == expected
+
+
+def test_flip_methods_build_a_flip_for_a_ground_station_without_a_flip_item():
+    """A stack that wants MAVLink flips on any mission: the baseline built (no JAX) for a planner
+    waiting for commands, its flip status said once a second, a commanded flip flown with it."""
+    io, loop = loop_for("none", flip_methods=["baseline"])
+    assert list(loop.controllers) == ["baseline"] and loop.flip_command_method == "baseline"
+    states, commands = io.received(schemas.POSITION_STATE, "position"), io.received(schemas.PLANNER_COMMAND, "mavlink")
+    atts = io.received(schemas.ATTITUDE_STATE, "attitude")
+    commands.push(0.0, command("arm"))
+    commands.push(0.0, command("takeoff", altitude_m=2.0))
+    for n in range(0, 101):
+        states.push(n / 50, state((0.0, 0.0, min(2.0, n / 25))))
+        atts.push(n / 50, attitude())
+        if n == 75:
+            commands.push(n / 50, command("flip"))
+        loop.step(n / 50)
+    assert io.rejected == {} and not io.problems, io.problems
+    status = io.sent(schemas.PLANNER_FLIP_STATUS)
+    assert [t for t, _ in status] == [0.0, 1.0, 2.0]   # once a second, on the stack's clock
+    assert status[0][1] == {"methods": ["baseline"], "method": "baseline", "altitude_m": 5.0, "refused": False,
+                            "reason": ""}
+    _, sp = io.sent(schemas.PLANNER_SETPOINT)[-1]
+    assert sp["phase"].startswith("flip") and sp["mode"] == "plan" and sp["mission_state"] == "running", sp
+    plans = io.sent(schemas.PLANNER_PLAN)
+    assert plans and all(p["method"] == "baseline" for _, p in plans)
+
+
+def test_the_default_planner_says_nothing_of_flips():
+    io, loop = loop_for("hover")
+    loop.step(0.0)
+    assert loop.controllers == {} and io.sent(schemas.PLANNER_FLIP_STATUS) == []
+
+
+@pytest.mark.parametrize("given, needle", [
+    (["ilqr-project", "cartwheel"], "flip_methods: 'cartwheel' not one of ('ilqr-project', 'ilqr-thesis', 'baseline')"),
+    ("ilqr-project", 'flip_methods: expected a list, e.g. ["ilqr-project"]'),
+    ([3], "flip_methods: 3 not one of"),
+])
+def test_a_bad_flip_methods_value_is_refused_at_start_naming_the_parameter(given, needle):
+    with pytest.raises(ValueError) as err:
+        loop_for("none", flip_methods=given)
+    assert "[services.planner.params]." + needle in str(err.value), str(err.value)
+
+
+class FakeController:
+    """Stands for a built iLQR flip controller (no JAX): what predict_flips and fly_flip read first."""
+    state_dim, solve_rate_hz = 17, 100.0
+
+    def __init__(self, method):
+        from flight.vehicle import load_vehicle
+        self.vehicle, self.method, self.planner = load_vehicle("x250"), method, None
+
+
+class FakePrediction:
+    """A predictor whose flip loses 4.9 m at p95: refused from a 5 m hover."""
+    crash_probability = ground_probability = 0.0
+
+    def __init__(self, altitude_m):
+        self.altitude_m = altitude_m
+
+    def predict(self, n, seed):
+        return self
+
+    def band(self, name):
+        return [0.0, 0.1, 4.9]
+
+    def refusal(self, clearance_m):
+        return f"predicted loss 4.9 m from {self.altitude_m:g} m"
+
+
+@pytest.fixture
+def refusing_predictor(monkeypatch):
+    import flight.control.predict as predict
+    asked = []
+
+    def build(vehicle, method, altitude_m, controller=None):
+        asked.append((method, altitude_m))
+        return FakePrediction(altitude_m)
+    monkeypatch.setattr(predict, "build_predictor", build)
+    return asked
+
+
+def test_the_ground_stations_flip_is_predicted_and_a_refused_prediction_still_refuses(monkeypatch, refusing_predictor):
+    """flip_methods builds an iLQR flip for a mission without a flip item: the flip a command
+    would fly (from the flip item's default 5 m, where every MAVLink flip starts) is predicted at
+    start-up like a mission's item; refused, the status says so and a commanded flip is never
+    started (the phase machine's `flip-refused`, the vehicle held)."""
+    import services.planner as planner
+    monkeypatch.setattr(planner, "flip_controllers", lambda io, methods: {m: FakeController(m) for m in methods})
+    io, loop = loop_for("none", flip_methods=["ilqr-project"])
+    assert refusing_predictor == [("ilqr-project", 5.0)]
+    assert loop.refused == {("ilqr-project", 5.0): "predicted loss 4.9 m from 5 m"}
+    states, commands = io.received(schemas.POSITION_STATE, "position"), io.received(schemas.PLANNER_COMMAND, "mavlink")
+    io.received(schemas.ATTITUDE_STATE, "attitude").push(0.0, attitude())
+    states.push(0.0, state((0.0, 0.0, 5.0)))
+    commands.push(0.0, command("flip"))
+    loop.step(0.0)
+    [(_, prediction)] = io.sent(schemas.PLANNER_FLIP_PREDICTION)
+    assert prediction["method"] == "ilqr-project" and prediction["altitude_m"] == 5.0 and prediction["refused"]
+    [(_, status)] = io.sent(schemas.PLANNER_FLIP_STATUS)
+    assert status["refused"] and status["reason"] == "predicted loss 4.9 m from 5 m"
+    _, sp = io.sent(schemas.PLANNER_SETPOINT)[-1]
+    assert sp["phase"] == "flip-refused" and sp["mode"] == "position", sp
+    assert io.sent(schemas.PLANNER_PLAN) == []
+
+
+def test_a_missions_flip_item_is_predicted_once_when_the_ground_stations_is_the_same(monkeypatch, refusing_predictor):
+    import services.planner as planner
+    monkeypatch.setattr(planner, "flip_controllers", lambda io, methods: {m: FakeController(m) for m in methods})
+    loop_for("flip")   # its item: ilqr-project from 5 m, what a command flies too
+    assert refusing_predictor == [("ilqr-project", 5.0)]
+
+
+def test_an_uploaded_flip_item_flies_the_ground_stations_method():
+    """A MAVLink mission's flip item names no method: it flies the one flip_methods names first
+    (not the item's default, ilqr-project)."""
+    from services.mavlink_logic import mission_fields
+    io, loop = loop_for("none", flip_methods=["baseline"])
+    io.received(schemas.PLANNER_MISSION, "mavlink").push(0.0, mission_fields(
+        [("takeoff", [0.0, 0.0, 5.0], 0.0, 0.0, 0.3), ("flip", [0.0, 0.0, 5.0], 0.0, 0.0, 0.3)], "test"))
+    loop.step(0.0)
+    assert io.rejected == {} and [i["method"] for i in loop.planner.runner.mission.items if i["type"] == "flip"] \
+        == ["baseline"]
