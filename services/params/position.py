@@ -28,6 +28,11 @@ PARAMS = {
                      doc="integral gain on the horizontal position error while the planner holds (phase "
                          "\"hold\"); 0: laws (10) as 000 has them"),
     "hold_integral_limit_m_s2": Param(2.0, "m/s^2", 0.0, doc="the most acceleration the hold integral may ask for"),
+    "disturbance_bandwidth_rad_s": Param(0.0, "rad/s", 0.0, doc="the horizontal disturbance observer's bandwidth "
+                                         "(flight/control/laws.py DisturbanceObserver), its estimate fed forward in "
+                                         "the position mode; 0: off"),
+    "disturbance_limit_m_s2": Param(3.0, "m/s^2", 0.0, doc="the most acceleration the disturbance feed-forward may "
+                                    "ask for"),
     "setpoint_timeout_s": Param(0.5, "s", 0.0, min_exclusive=True,
                                 doc="a planner setpoint older than this: hold where we are"),
     "planner_loss_land_after_s": Param(5.0, "s", 0.0, doc="... and after holding this long, land there"),
