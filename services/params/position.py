@@ -25,8 +25,8 @@ PARAMS = {
     # a steady wind otherwise leaves an offset of a_wind / (alpha k); 8 puts the closed loop's
     # poles at -5.2, -2 and -0.76 rad/s with k = alpha = 4
     "hold_ki": Param(0.0, "1/s^3", 0.0,
-                     doc="integral gain on the horizontal position error while the planner holds (phase "
-                         "\"hold\"); 0: laws (10) as 000 has them"),
+                     doc="integral gain on the horizontal position error while the planner holds (phases "
+                         "\"settle\" and \"hold\"); 0: laws (10) as 000 has them"),
     "hold_integral_limit_m_s2": Param(2.0, "m/s^2", 0.0, doc="the most acceleration the hold integral may ask for"),
     "disturbance_bandwidth_rad_s": Param(0.0, "rad/s", 0.0, doc="the horizontal disturbance observer's bandwidth "
                                          "(flight/control/laws.py DisturbanceObserver), its estimate fed forward in "
