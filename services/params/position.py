@@ -28,7 +28,9 @@ PARAMS = {
                      doc="integral gain on the horizontal position error while the planner holds (phases "
                          "\"settle\" and \"hold\"); 0: laws (10) as 000 has them"),
     "hold_integral_limit_m_s2": Param(2.0, "m/s^2", 0.0, doc="the most acceleration the hold integral may ask for"),
-    "disturbance_bandwidth_rad_s": Param(0.0, "rad/s", 0.0, doc="the horizontal disturbance observer's bandwidth "
+    # the forward-Euler observer at the loop's 100 Hz is stable to 200 rad/s; the EKF's velocity is
+    # not worth reading past a few rad/s: 3 in wind (docs/results.md, "The wind settings")
+    "disturbance_bandwidth_rad_s": Param(0.0, "rad/s", 0.0, 50.0, doc="the horizontal disturbance observer's bandwidth "
                                          "(flight/control/laws.py DisturbanceObserver), its estimate fed forward in "
                                          "the position mode; 0: off"),
     "disturbance_limit_m_s2": Param(3.0, "m/s^2", 0.0, doc="the most acceleration the disturbance feed-forward may "
