@@ -29,7 +29,8 @@ from collections import deque
 import numpy as np
 
 import schemas
-from flight.control.laws import altitude_law, hold_integral_update, position_law
+from flight.control.laws import (DisturbanceObserver, altitude_law, hold_integral_update, position_law,
+                                 thrust_accel_xy)
 from flight.estimation.camera_delay import CameraDelayEstimator, CameraDelayParams
 from flight.estimation.position_ekf import LaggedMotorInput, PositionEKF, PositionEKFParams
 from flight.quat import quat_tilt, quat_to_euler
@@ -47,6 +48,11 @@ LANDED_SPEED_M_S = 0.2
 LANDED_FOR_S = 1.0
 VISION_MIN_HEIGHT_M = 0.3   # below this the camera's silence is not a loss (too close to the markers)
 EKF_HEALTH_PERIOD_S = 1.0   # pos/ekf_health, beside the service's own health
+# the planner's phases where the integral learns: a hold and the settling before it (a take-off's
+# wind offset is gone before the hold's measurement starts)
+HOLD_PHASES = ("hold", "settle")
+# the disturbance observer's model (the thrust's tilt) is trusted to here (45 degrees)
+OBSERVER_MIN_TILT_COS = math.cos(math.radians(45.0))
 # after the attitude was pinned (a flip) the EKF has coasted, after a position reset it starts
 # again: its first fixes' innovations are that error, not the camera's timing, and stay out of
 # the delay's fit this long
@@ -93,6 +99,11 @@ class PositionLoop:
         self.vision_lost = False
         self.integral = np.zeros(2)  # hold_ki's integral of the position error
         self.bias = None
+        self.observer = (DisturbanceObserver(p["disturbance_bandwidth_rad_s"], p["disturbance_limit_m_s2"],
+                                             vehicle.drag_n_per_m_s / vehicle.mass_kg)
+                         if p["disturbance_bandwidth_rad_s"] > 0.0 else None)
+        self.collective_n = None    # the rotors' collective force the EKF last predicted with
+        self.thrust_n = None        # the collective last asked for
         self.tilt_deg, self.tilt_rad = None, 0.0  # vehicle.tilt_limit_rad of the (live) max_tilt_deg
         self.velocities: deque = deque(maxlen=max(2, round(ACCEL_WINDOW_S * io.rate_hz) + 1))
 
@@ -115,7 +126,9 @@ class PositionLoop:
         for out in self.motors.take():  # what the mixer really asked of the motors (after saturation)
             self.rotor_forces.add(out["header"]["t_s"], out["thrust_n"])
         if t > ekf.t:
-            ekf.predict(t, self.allocation @ self.rotor_forces.mean_to(t))
+            u = self.allocation @ self.rotor_forces.mean_to(t)
+            self.collective_n = float(u[0])
+            ekf.predict(t, u)
         att = self.attitude.latest()
         if att is not None and t - att["header"]["t_s"] > p["attitude_timeout_s"]:
             if att["header"]["t_s"] != self.stale_att_t:   # counted once per message
@@ -227,7 +240,11 @@ class PositionLoop:
         if sp is not None and not stale and (sp["mode"] == "idle" or not sp["armed"]):
             ref_pos, att_ref, thrust = pos, [0.0, 0.0, yaw], 0.0
             self.integral, self.bias = np.zeros(2), None   # on the ground: nothing learnt stays
+            if self.observer is not None:
+                self.observer.reset()
         elif sp is not None and not stale and sp["mode"] == "attitude":
+            if self.observer is not None:
+                self.observer.hold()
             ref_pos, att_ref = np.asarray(sp["position_m"]), list(sp["attitude_rad"])
             thrust = altitude_law(m_eff, g, pos[2], vel[2], ref_pos[2], k[2], alpha[2], roll, pitch)
         else:
@@ -237,14 +254,32 @@ class PositionLoop:
                 self.tilt_deg = p["max_tilt_deg"]
                 self.tilt_rad = vehicle.tilt_limit_rad(self.tilt_deg)
             if p["hold_ki"] > 0.0:   # the integral learns while holding and is kept between holds
-                holding = not stale and sp["phase"] == "hold"
+                holding = not stale and sp["phase"] in HOLD_PHASES
                 error = (pos[:2] - ref_pos[:2]) if holding else np.zeros(2)
                 self.integral, self.bias = hold_integral_update(
                     self.integral, error, self.dt, p["hold_ki"], p["hold_integral_limit_m_s2"])
+            bias = self.bias
+            if self.observer is not None:
+                # the thrust the EKF predicted with (estimate), else the last one asked for (truth)
+                collective = self.collective_n if self.estimate else self.thrust_n
+                # a flip's phases: the attitude level flies it and the EKF coasts (pinned): hold the estimate
+                # near the ground (resting on it, no camera fix) and without fresh fixes the
+                # velocity does not say what the air does: hold
+                if collective is None or (not stale and sp["phase"].startswith("flip")) \
+                        or math.cos(roll) * math.cos(pitch) < OBSERVER_MIN_TILT_COS \
+                        or pos[2] < p["home_position_m"][2] + VISION_MIN_HEIGHT_M \
+                        or (self.estimate and (self.fused_t is None or t - self.fused_t > p["pose_timeout_s"])):
+                    self.observer.hold()
+                else:
+                    self.observer.update(vel[:2], thrust_accel_xy(
+                        collective * thrust_scale, vehicle.mass_kg, roll, pitch, yaw), self.dt)
+                d0, d1 = self.observer.d
+                bias = np.array([-d0, -d1]) if bias is None else bias - (d0, d1)
             r, pt, thrust = position_law(m_eff, g, pos, vel, ref_pos, k, alpha, yaw_ref,
-                                         max_tilt_rad=self.tilt_rad, accel_bias_xy=self.bias)
+                                         max_tilt_rad=self.tilt_rad, accel_bias_xy=bias)
             att_ref = [r, pt, yaw_ref]
         thrust = float(min(thrust, 4 * vehicle.max_thrust_n))
+        self.thrust_n = thrust
         self.setpoint_out.put({"attitude_ref_rad": att_ref, "thrust_n": thrust}, t_s=t)
         self.publish_state(t, pos, vel, ref_pos, cov, thrust_scale)
 

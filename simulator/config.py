@@ -75,6 +75,16 @@ class SimConfig(Declared):
     wind_m_s: Vec3 = _field((0.0, 0.0, 0.0), "constant wind, world ENU", "m/s")
     gust_std_m_s: float = _field(0.0, "Gauss-Markov gust std per axis", "m/s", 0.0)
     gust_tau_s: float = _field(2.0, "gust correlation time", "s", 0.0, min_exclusive=True)
+    # Dryden (simulator/turbulence.py): MIL-F-8785C's low-altitude shaping filters, their length
+    # scales and intensities from the altitude and W20, swept past at the mean wind's speed
+    gust_model: str = declared("gauss-markov", "", None, None, "the gusts: \"gauss-markov\" (gust_std_m_s, "
+                               "gust_tau_s per axis) or \"dryden\" (MIL-F-8785C low altitude: gust_altitude_m, "
+                               "gust_w20_m_s; needs a mean wind)", choices=("gauss-markov", "dryden"))
+    gust_altitude_m: float = _field(1.0, "Dryden: the height its length scales and intensities are taken at "
+                                    "(the missions hover at 1 m)", "m", 0.0, 304.8, min_exclusive=True)
+    gust_w20_m_s: float = _field(0.0, "Dryden: wind speed 20 ft above ground, sigma_w = 0.1 W20 (MIL-F-8785C light "
+                                 "7.72, moderate 15.4, severe 23.2); 0: the mean wind's, by the spec's log "
+                                 "profile from gust_altitude_m", "m/s", 0.0)
     initial_position_m: Vec3 = _field((0.0, 0.0, 0.0), "where the vehicle starts, world ENU (z >= 0: the ground "
                                       "is z = 0)", "m")
     initial_yaw_rad: float = _field(0.0, "heading at the start", "rad")
@@ -86,6 +96,9 @@ class SimConfig(Declared):
             raise ValueError("simulator.marker_size_m: markers would overlap (must be < marker_spacing_m)")
         if self.initial_position_m[2] < 0:
             raise ValueError("simulator.initial_position_m: z must be >= 0 (ground is z = 0)")
+        if self.gust_model == "dryden" and not any(self.wind_m_s):
+            raise ValueError("simulator.gust_model: \"dryden\" needs a mean wind (its length scales are swept "
+                             "past at the wind's speed): set wind_m_s")
         for key in ("imu_rate_hz", "baro_rate_hz", "mag_rate_hz", "camera_rate_hz", "truth_rate_hz",
                     "battery_rate_hz"):
             self.ticks_per_sample(key)  # raises if not an integer ratio

@@ -15,6 +15,7 @@ from simulator.battery import Battery
 from simulator.config import SimConfig
 from simulator.plant import Plant, rotation_rows
 from simulator.sensors import Barometer, ImageCamera, Imu, Magnetometer, MarkerCamera
+from simulator.turbulence import DrydenTurbulence, w20_from_wind
 
 _RATE_KEYS = {"imu": "imu_rate_hz", "baro": "baro_rate_hz", "mag": "mag_rate_hz",
               "camera": "camera_rate_hz", "truth": "truth_rate_hz", "battery": "battery_rate_hz"}
@@ -56,10 +57,17 @@ class Simulator:
 
         self._wind_const = np.asarray(cfg.wind_m_s, dtype=np.float64)
         self._wind_const_f = self._wind_const.tolist()
-        self._gust = self._wind_rng.normal(0.0, cfg.gust_std_m_s, 3)  # stationary start
-        # Gauss-Markov gust, exact discretisation over one tick: g <- a g + b n
-        self._gust_a = a = math.exp(-self._dt_tick_s / cfg.gust_tau_s)
-        self._gust_b = cfg.gust_std_m_s * math.sqrt(1.0 - a * a)
+        self._dryden = None
+        if cfg.gust_model == "dryden":
+            w20 = cfg.gust_w20_m_s or w20_from_wind(float(np.linalg.norm(self._wind_const)), cfg.gust_altitude_m)
+            self._dryden = DrydenTurbulence(self._wind_const_f, cfg.gust_altitude_m, w20, self._dt_tick_s)
+            self._gust = self._dryden.start(self._wind_rng)   # stationary start
+            self._gust_a = self._gust_b = 0.0
+        else:
+            self._gust = self._wind_rng.normal(0.0, cfg.gust_std_m_s, 3)  # stationary start
+            # Gauss-Markov gust, exact discretisation over one tick: g <- a g + b n
+            self._gust_a = a = math.exp(-self._dt_tick_s / cfg.gust_tau_s)
+            self._gust_b = cfg.gust_std_m_s * math.sqrt(1.0 - a * a)
         self._divisors = tuple(self._divisor[topic] for topic in self.TOPICS)
         self._g = float(vehicle.gravity_m_s2)
         self._pending_frames: deque = deque()   # (publish_tick, exposure_t_s, fields)
@@ -196,7 +204,9 @@ class Simulator:
         self.plant._advance(self._dt_tick_s / n, n, cmd, self._wind)
         self.battery.step(self._dt_tick_s, self.plant.motor_thrust_floats())
         self.tick += 1
-        if self._gust_b != 0.0:
+        if self._dryden is not None:
+            self._gust_f = self._dryden.step(self._wind_rng)
+        elif self._gust_b != 0.0:
             # (with no gust, the wind's own generator is not drawn from: nothing else uses it)
             a, b = self._gust_a, self._gust_b
             n0, n1, n2 = self._wind_rng.normal(0.0, 1.0, 3).tolist()

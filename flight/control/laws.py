@@ -161,6 +161,51 @@ def hold_integral_update(integral_xy, error_xy, dt: float, ki: float, limit_m_s2
     return integral, bias
 
 
+def thrust_accel_xy(thrust_n: float, mass: float, roll: float, pitch: float, yaw: float) -> tuple[float, float]:
+    """The horizontal acceleration (world) a collective thrust_n gives at (roll, pitch, yaw), ZYX:
+    (thrust / mass) (R e3)_xy."""
+    sr, cr, sp, sy, cy = math.sin(roll), math.cos(roll), math.sin(pitch), math.sin(yaw), math.cos(yaw)
+    a = thrust_n / mass
+    return a * (sy * sr + cy * cr * sp), a * (-cy * sr + sy * cr * sp)
+
+
+class DisturbanceObserver:
+    """A horizontal disturbance-acceleration observer (wind, a payload's pull, a tilt bias): what
+    the velocity does beyond the model, d = v' - (thrust (R e3)_xy / m - drag v / m), low-passed at
+    bandwidth_rad_s without differentiating v: z' = a_model + d_hat, d_hat = L (v - z), so
+    d_hat = L / (s + L) d. The position law subtracts d_hat from H (a feed-forward: a steady wind
+    leaves no offset and a gust is met as it builds, not once the position has moved). Its norm is
+    clamped to limit_m_s2; hold() freezes it (a flip, the attitude mode: the model does not hold)."""
+
+    def __init__(self, bandwidth_rad_s: float, limit_m_s2: float, drag_per_s: float):
+        self.bandwidth, self.limit, self.drag = float(bandwidth_rad_s), float(limit_m_s2), float(drag_per_s)
+        self.reset()
+
+    def reset(self) -> None:
+        self.d = (0.0, 0.0)
+        self.z = None     # None: (re)started at the next update, d kept
+
+    def hold(self) -> None:
+        self.z = None
+
+    def update(self, velocity_xy, accel_thrust_xy, dt: float) -> tuple[float, float]:
+        """One step: the estimate (2 floats) from the velocity now and the thrust's acceleration."""
+        v0, v1 = float(velocity_xy[0]), float(velocity_xy[1])
+        L = self.bandwidth
+        if self.z is None:   # start where d_hat is what it was
+            self.z = (v0 - self.d[0] / L, v1 - self.d[1] / L)
+        z0, z1 = self.z
+        d0, d1 = L * (v0 - z0), L * (v1 - z1)
+        norm = math.hypot(d0, d1)
+        if norm > self.limit:   # no wind-up: z follows the clamped estimate
+            d0, d1 = d0 * self.limit / norm, d1 * self.limit / norm
+            z0, z1 = v0 - d0 / L, v1 - d1 / L
+        self.d = (d0, d1)
+        a0, a1 = accel_thrust_xy
+        self.z = (z0 + dt * (a0 - self.drag * v0 + d0), z1 + dt * (a1 - self.drag * v1 + d1))
+        return self.d
+
+
 def altitude_law(mass, g, z, vz, z_ref, k, alpha, roll, pitch,
                  min_tilt_cos: float = 0.5) -> float:
     """Collective thrust holding altitude while tilted (for attitude-step missions).

@@ -25,9 +25,16 @@ PARAMS = {
     # a steady wind otherwise leaves an offset of a_wind / (alpha k); 8 puts the closed loop's
     # poles at -5.2, -2 and -0.76 rad/s with k = alpha = 4
     "hold_ki": Param(0.0, "1/s^3", 0.0,
-                     doc="integral gain on the horizontal position error while the planner holds (phase "
-                         "\"hold\"); 0: laws (10) as 000 has them"),
+                     doc="integral gain on the horizontal position error while the planner holds (phases "
+                         "\"settle\" and \"hold\"); 0: laws (10) as 000 has them"),
     "hold_integral_limit_m_s2": Param(2.0, "m/s^2", 0.0, doc="the most acceleration the hold integral may ask for"),
+    # the forward-Euler observer at the loop's 100 Hz is stable to 200 rad/s; the EKF's velocity is
+    # not worth reading past a few rad/s: 3 in wind (docs/results.md, "The wind settings")
+    "disturbance_bandwidth_rad_s": Param(0.0, "rad/s", 0.0, 50.0, doc="the horizontal disturbance observer's bandwidth "
+                                         "(flight/control/laws.py DisturbanceObserver), its estimate fed forward in "
+                                         "the position mode; 0: off"),
+    "disturbance_limit_m_s2": Param(3.0, "m/s^2", 0.0, doc="the most acceleration the disturbance feed-forward may "
+                                    "ask for"),
     "setpoint_timeout_s": Param(0.5, "s", 0.0, min_exclusive=True,
                                 doc="a planner setpoint older than this: hold where we are"),
     "planner_loss_land_after_s": Param(5.0, "s", 0.0, doc="... and after holding this long, land there"),

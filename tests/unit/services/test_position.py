@@ -117,3 +117,29 @@ def test_bad_parameters_are_refused_naming_the_key():
         PositionLoop(FakeIO("position", PARAMS, {"ekf": {"no_such_key": 1.0}}, rate_hz=100.0))
     with pytest.raises(ValueError, match="services.position.params.*camera_delay.*window"):
         PositionLoop(FakeIO("position", PARAMS, {"camera_delay": {"window": 1}}, rate_hz=100.0))
+
+
+def test_disturbance_observer_learns_holds_through_a_flip_and_resets_on_the_ground():
+    # the vehicle pitched 0.05 rad (its thrust pushing to +x) and not moving: something pulls it
+    # back with (T / m) sin(0.05), and the observer's estimate comes to that within 3 s (3 rad/s)
+    io, loop = truth_loop(disturbance_bandwidth_rad_s=3.0)
+    truths, planner = io.received(schemas.TRUTH, "sim"), io.received(schemas.PLANNER_SETPOINT, "planner")
+    tilted = {**truth([0.0, 0.0, 1.0]), "quaternion_wxyz": list(quat_from_euler(0.0, 0.05, 0.0))}
+
+    def step(t, phase="hold", mode="position", armed=True):
+        truths.push(t, tilted)
+        planner.push(t, setpoint([0.0, 0.0, 1.0], phase=phase, mode=mode, armed=armed))
+        loop.step(t)
+
+    for i in range(300):
+        step(0.01 * i)
+    d = loop.observer.d
+    pull = -loop.thrust_n / X250.mass_kg * np.sin(0.05)
+    assert d[0] == pytest.approx(pull, rel=0.02) and abs(d[1]) < 1e-9
+    _, sp = io.sent(schemas.POSITION_SETPOINT)[-1]
+    assert sp["attitude_ref_rad"][1] > 0.04   # the feed-forward: pitched on against the pull
+    for i in range(300, 350):
+        step(0.01 * i, phase="flip")
+    assert loop.observer.d == d   # a flip's phases: held
+    step(3.5, mode="idle", armed=False)
+    assert loop.observer.d == (0.0, 0.0)

@@ -159,3 +159,44 @@ def test_hold_integral_removes_a_steady_wind_offset_and_does_not_wind_up():
     assert abs(position_law(*args)[1]) > 0.1   # 0.1 m off: it tilts back
     # a bias that cancels the offset's pull levels it: the bias enters H as an acceleration
     assert np.allclose(position_law(*args, accel_bias_xy=np.array([1.6, 0.0]))[:2], 0.0, atol=1e-12)
+
+
+def test_disturbance_observer_converges_to_a_constant_wind_and_the_law_holds_without_offset():
+    # a point mass under laws (10) with the observer's feed-forward, in a steady wind: the
+    # observer's estimate is the wind's drag k w (to 1 %), the position offset it leaves is
+    # under 1 mm where laws (10) alone hold a_wind / (alpha k) = 31 mm off
+    from flight.control.laws import DisturbanceObserver, thrust_accel_xy
+    mass, drag, g, dt = 0.4, 0.1, 9.81, 0.01
+    k_drag = drag / mass
+    wind = np.array([2.0, -1.0])
+
+    def fly(observer):
+        p, v = np.zeros(3), np.zeros(3)
+        for _ in range(1500):   # 15 s
+            bias = None if observer is None else -np.asarray(observer.d)
+            r, pt, thrust = position_law(mass, g, p, v, [0, 0, 0], 4.0, 4.0, 0.0, accel_bias_xy=bias)
+            a_xy = np.array(thrust_accel_xy(thrust, mass, r, pt, 0.0))
+            if observer is not None:
+                observer.update(v[:2], a_xy, dt)
+            acc = np.r_[a_xy - k_drag * (v[:2] - wind), 0.0]
+            v = v + dt * acc
+            p = p + dt * v
+        return p
+    offset = fly(None)
+    assert np.linalg.norm(offset[:2]) == pytest.approx(k_drag * np.linalg.norm(wind) / 16, rel=0.05)
+    obs = DisturbanceObserver(3.0, 3.0, k_drag)
+    held = fly(obs)
+    np.testing.assert_allclose(obs.d, k_drag * wind, rtol=0.01)
+    assert np.linalg.norm(held[:2]) < 1e-3
+
+
+def test_disturbance_observer_clamps_and_resumes_where_it_held():
+    from flight.control.laws import DisturbanceObserver
+    obs = DisturbanceObserver(2.0, 1.0, 0.0)
+    for _ in range(2000):   # a 5 m/s^2 pull: the estimate stops at the limit, no wind-up past it
+        obs.update([0.0, 0.0], [-5.0, 0.0], 0.01)
+    assert obs.d == pytest.approx((1.0, 0.0))
+    obs.hold()
+    assert obs.update([3.0, 1.0], [-1.0, 0.0], 0.01) == pytest.approx((1.0, 0.0))   # restarted where it was
+    obs.reset()
+    assert obs.d == (0.0, 0.0)
