@@ -105,7 +105,8 @@ def fly(args, out: Path) -> tuple[dict[str, float], float, int]:
         time.sleep(0.2)
     if args.flood:   # from the start: the whole flight flies through it
         size, hz, priority = args.flood
-        cap = [] if args.rogue else ["--max-hz", str(load_stack(args.stack).machines["vehicle"].bulk_max_hz)]
+        stack = load_stack(args.stack)   # capped as the camera's machine (the simulator's) caps its services
+        cap = [] if args.rogue else ["--max-hz", str(stack.machines[stack.service("sim").machine].bulk_max_hz)]
         flooder = subprocess.Popen([sys.executable, "-m", "bench.support.flooder", "--connect", f"tcp/127.0.0.1:{port}",
                                     "--bytes", str(size), "--hz", str(hz), *cap] + (["--priority", priority] if priority else []),
                                    cwd=ROOT, stdout=subprocess.PIPE, text=True)

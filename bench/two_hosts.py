@@ -562,7 +562,7 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
     if not args.lockstep:   # arrival - header time is a latency only when headers are wall-clock times
         probes.start("ground", router, incoming_keys(split, {"ground"}))
         probes.start("vehicle", router, incoming_keys(split, {"vehicle", "vehicle-router"}))
-    cap = 0.0 if args.rogue else split.machines["vehicle"].bulk_max_hz
+    cap = 0.0 if args.rogue else split.machines[split.service("sim").machine].bulk_max_hz   # the camera's machine
     flood = start_flood(hosts, out, args.flood, router, cap) if args.flood else {}
     t_fly = time.monotonic()
     _, timing["up vehicle s"] = zenpilot(hosts, "vehicle", out, "up", "-d", "--stack", stack, "--machine", "vehicle",
