@@ -40,10 +40,57 @@ def training_flights(vehicle_name: str, seed: int, flights: int, duration_s: flo
     return out
 
 
-def sequences_of(flights: list[FlightData], bias_deg_s: float) -> list[TrainingSequence]:
+# The acceleration compensation as the attitude service feeds it: the position level's velocity
+# change over accel_window_s (0.1 s), ending at its newest pos/state (100 Hz) before the IMU sample
+# (1 to 4 samples before; 2 here).  Its velocity error, as the flip mission's pos/state shows it
+# against the truth: ~0.009 m/s horizontal, ~0.004 vertical (up to 0.026 and 0.02 through the
+# flip), correlated over ~0.04 s; drawn somewhat larger here so that training does not over-trust it.
+COMPENSATION_WINDOW = 40          # samples of DT_REF: 0.1 s
+COMPENSATION_DELAY = 2            # samples
+VELOCITY_NOISE_M_S = (0.012, 0.012, 0.006)
+VELOCITY_NOISE_TAU_S = 0.04
+# The heading that turns it into the gyro-vertical's frame: the attitude filter's yaw, 0.2 deg RMS
+# from the truth through the flip mission (1.5 deg at most, in the flip); drawn larger here too.
+HEADING_NOISE_RAD = math.radians(0.5)
+HEADING_NOISE_TAU_S = 1.0
+
+
+def _markov(rng, n: int, std, tau_s: float):
+    """n samples (DT_REF apart) of a first-order Gauss-Markov process of stationary ``std``."""
+    import numpy as np
+
+    std = np.atleast_1d(np.asarray(std, dtype=np.float64))
+    phi = math.exp(-DT_REF / tau_s)
+    w = rng.standard_normal((n, std.size)) * std * math.sqrt(1.0 - phi * phi)
+    e = np.empty_like(w)
+    e[0] = rng.standard_normal(std.size) * std
+    for i in range(1, n):
+        e[i] = phi * e[i - 1] + w[i]
+    return e
+
+
+def reference_accelerations(flight: FlightData, seed: int):
+    """((t, t0, t1, a), heading): the compensation's reference at every sample as
+    :func:`flight.estimation.gyrovertical.fixed_windows` gives it, from the flight's true velocity plus
+    a position estimate's error, and the vehicle's yaw plus an attitude filter's error (both
+    first-order Gauss-Markov: VELOCITY_NOISE_*, HEADING_NOISE_*; seeded)."""
+    import numpy as np
+
+    from flight.estimation.gyrovertical import fixed_windows
+    v = np.gradient(flight.position_m, DT_REF, axis=0)
+    rng = np.random.default_rng([seed, 26])
+    v = v + _markov(rng, len(v), VELOCITY_NOISE_M_S, VELOCITY_NOISE_TAU_S)
+    heading = flight.yaw_rad + _markov(rng, len(v), HEADING_NOISE_RAD, HEADING_NOISE_TAU_S)[:, 0]
+    return fixed_windows(v, DT_REF, COMPENSATION_WINDOW, COMPENSATION_DELAY), heading
+
+
+def sequences_of(flights: list[FlightData], bias_deg_s: float, compensation: bool = False,
+                 seed: int = 0) -> list[TrainingSequence]:
     seqs: list[TrainingSequence] = []
-    for f in flights:
-        seqs += make_training_sequences(f.gyro_rad_s, f.accel_m_s2, f.roll_rad, f.pitch_rad, bias_deg_s=bias_deg_s)
+    for i, f in enumerate(flights):
+        ref, heading = reference_accelerations(f, seed * 1000 + i) if compensation else ((None,) * 4, None)
+        seqs += make_training_sequences(f.gyro_rad_s, f.accel_m_s2, f.roll_rad, f.pitch_rad, bias_deg_s=bias_deg_s,
+                                        accel_ref=ref[3], heading=heading)
     return seqs
 
 
@@ -66,14 +113,15 @@ def save(path: Path, trained: TrainedParams) -> None:
 
 
 def run_training(vehicle: str, seed: int, flights: int, duration_s: float, bias_deg_s: float,
-                 maxiter: int, log=print) -> TrainedParams:
+                 maxiter: int, log=print, compensation: str = "none") -> TrainedParams:
     # imported here: it brings scipy.optimize and JAX (seconds), which every `zenpilot`
     # command would pay for at start-up (deploy/cli.py imports this module for its parser)
     from flight.estimation.gyrovertical_training import train
     t0 = time.monotonic()
     log(f"recording {flights} training flight(s) of {duration_s:g} s ({vehicle}, seed {seed}) ...")
     data = training_flights(vehicle, seed, flights, duration_s)
-    seqs = sequences_of(data, bias_deg_s)
+    comp = (COMPENSATION_WINDOW, COMPENSATION_DELAY) if compensation == "window" else None
+    seqs = sequences_of(data, bias_deg_s, comp is not None, seed)
     log(f"  {len(seqs)} sequences of {len(seqs[0].roll)} samples ({time.monotonic() - t0:.1f} s)")
     results = {}
     for adaptive in (True, False):
@@ -86,10 +134,10 @@ def run_training(vehicle: str, seed: int, flights: int, duration_s: float, bias_
 
         log(f"training the {name} filter (up to {maxiter} iterations) ...")
         results[adaptive] = train(seqs, GyroVerticalParams(), DT_REF, maxiter=maxiter, seed=seed,
-                                  progress=progress, adaptive=adaptive)
+                                  progress=progress, adaptive=adaptive, compensation=comp)
     from flight.estimation.gyrovertical_jax import BatchEvaluator
-    costs = {a: BatchEvaluator(seqs, adaptive=a)(results[a].to_vector()) for a in (True, False)}
-    default_cost = BatchEvaluator(seqs)(GyroVerticalParams().to_vector())
+    costs = {a: BatchEvaluator(seqs, adaptive=a, compensation=comp)(results[a].to_vector()) for a in (True, False)}
+    default_cost = BatchEvaluator(seqs, compensation=comp)(GyroVerticalParams().to_vector())
     log(f"criterion (10) on the training sequences: default {default_cost:.4f}, "
         f"adaptive {costs[True]:.4f}, fixed {costs[False]:.4f} deg")
     meta = {"vehicle": vehicle, "seed": seed, "flights": flights, "duration_s": float(duration_s),
@@ -97,7 +145,10 @@ def run_training(vehicle: str, seed: int, flights: int, duration_s: float, bias_
             "training_cost_deg": round(float(costs[True]), 6),
             "fixed_training_cost_deg": round(float(costs[False]), 6),
             "command": (f"zenpilot train-gyrovertical --vehicle {vehicle} --seed {seed} --flights {flights} "
-                        f"--duration-s {duration_s:g} --bias-deg-s {bias_deg_s:g} --maxiter {maxiter}")}
+                        f"--duration-s {duration_s:g} --bias-deg-s {bias_deg_s:g} --maxiter {maxiter}"
+                        + (f" --compensation {compensation}" if compensation != "none" else ""))}
+    if compensation != "none":   # the attitude service compensates a file trained so (gyrovertical_compensation)
+        meta["compensation"] = compensation
     return TrainedParams(results[True], results[False], meta)
 
 
@@ -110,6 +161,10 @@ def add_parser(sub) -> None:
     p.add_argument("--duration-s", type=float, default=300.0, help="length of each flight, s (default 300)")
     p.add_argument("--bias-deg-s", type=float, default=0.05, help="gyro bias of the sequences, deg/s (default 0.05)")
     p.add_argument("--maxiter", type=int, default=250, help="optimiser iterations per filter (default 250)")
+    p.add_argument("--compensation", choices=("none", "window"), default="none",
+                   help="window: train the filter with the acceleration compensation, fed the flights' "
+                        "velocity change over 0.1 s with a position estimate's error (the file says so; "
+                        "the attitude service then compensates it); none: 004's filter (default)")
     p.add_argument("--out", help="parameter file to write (default runs/gyrovertical-<vehicle>-seed<N>.toml)")
     p.set_defaults(func=cmd_train)
 
@@ -125,7 +180,7 @@ def cmd_train(args) -> int:
     load_vehicle(args.vehicle)   # refuse a bad vehicle before minutes of flying
     out = Path(args.out or f"runs/gyrovertical-{args.vehicle}-seed{args.seed}.toml")
     trained = run_training(args.vehicle, args.seed, args.flights, args.duration_s, args.bias_deg_s,
-                           args.maxiter, log=lambda s: print(s, flush=True))
+                           args.maxiter, log=lambda s: print(s, flush=True), compensation=args.compensation)
     save(out, trained)
     print(f"wrote {out}; fly it with --set attitude.gyrovertical_params={out}, or copy it into flight/params/ "
           f"and name it in flight/vehicles/{args.vehicle}.toml (gyrovertical_params = \"NAME.toml\")", file=sys.stdout)
@@ -143,9 +198,12 @@ def control_flight(vehicle_name: str, seed: int, duration_s: float) -> FlightDat
 
 
 def estimate(flight: FlightData, estimator: str, trained: TrainedParams,
-             bias_rad_s=(0.0, 0.0, 0.0), vehicle_name: str = "x250"):
+             bias_rad_s=(0.0, 0.0, 0.0), vehicle_name: str = "x250", compensation: bool | None = None,
+             seed: int = 0):
     """(roll, pitch) estimates (N,) of one estimator on a flight whose gyros carry ``bias_rad_s``.
 
+    compensation ('fixed', 'adaptive'): the acceleration compensation fed :func:`reference_accelerations`
+    (its error drawn from ``seed``); None: as the file was trained (its meta's compensation).
     Every estimator starts from the true attitude and sees the same samples;
     'kalman-000' is the attitude filter of 000 as printed (raw accelerometer
     angles, the recorded torques, 200 Hz calls with the two samples since the last).
@@ -164,9 +222,16 @@ def estimate(flight: FlightData, estimator: str, trained: TrainedParams,
 
         from flight.estimation.gyrovertical_jax import run_batch
         params = trained.adaptive if estimator == "adaptive" else trained.fixed
+        if compensation is None:
+            compensation = trained.meta.get("compensation", "none") == "window"
+        ref = heading = None
+        if compensation:
+            (_, _, _, ref), heading = reference_accelerations(flight, seed)
+            ref, heading = jnp.asarray(ref[None]), jnp.asarray(heading[None])
         r, p = run_batch(jnp.asarray(params.to_vector()), jnp.asarray(gyro[None]),
-                         jnp.asarray(flight.accel_m_s2[None]), jnp.asarray(q0[None]),
-                         adaptive=estimator == "adaptive")
+                         jnp.asarray(flight.accel_m_s2[None]), jnp.asarray(q0[None]), ref, heading,
+                         adaptive=estimator == "adaptive", window=COMPENSATION_WINDOW if compensation else 0,
+                         delay=COMPENSATION_DELAY if compensation else 0)
         return np.asarray(r[0], dtype=np.float64), np.asarray(p[0], dtype=np.float64)
     if estimator == "kalman-000":
         from flight.estimation.attitude_filter import AttitudeFilter

@@ -39,7 +39,7 @@ from flight.control.laws import attitude_law_floats, stopping_accel
 from flight.estimation.attitude_filter import AttitudeFilter, AttitudeFilterParams, accel_roll_pitch
 from flight.estimation.camera_level import CameraLevel, CameraLevelParams
 from flight.estimation.gyro_carrier import GyroCarrier, GyroCarrierParams
-from flight.estimation.gyrovertical import DEFAULT_PARAMS_FILE, GyroVertical, load_trained
+from flight.estimation.gyrovertical import DEFAULT_PARAMS_FILE, GyroVertical, load_trained, yaw_of
 from flight.quat import quat_from_euler, quat_from_euler_floats, quat_to_euler, quat_to_rotation, rotate_vector
 from flight.vehicle import load_vehicle
 from services.params.attitude import PARAMS  # every parameter: default, unit, bounds, doc
@@ -67,7 +67,8 @@ def gyrovertical_params_file(io, vehicle) -> tuple[Path, str]:
 
 
 def load_gyrovertical(io, vehicle):
-    """A maker of the gyro-vertical (trained parameters, IMU period) from an initial quaternion.
+    """(maker, compensated): a maker of the gyro-vertical (trained parameters, IMU period) from an
+    initial quaternion, and whether it gets the acceleration compensation (gyrovertical_compensation).
 
     A missing or bad parameter file is refused at start-up with its name and who named it."""
     path, named_by = gyrovertical_params_file(io, vehicle)
@@ -76,7 +77,12 @@ def load_gyrovertical(io, vehicle):
     except ValueError as exc:
         raise ValueError(f"{named_by}: {exc}") from None
     rate = io.params["imu_rate_hz"]
-    return lambda q0: GyroVertical(trained.adaptive, dt=1.0 / rate, q0=q0)
+    mode = io.params["gyrovertical_compensation"]
+    if mode == "file":
+        mode = trained.meta.get("compensation", "none")
+        if mode not in ("window", "none"):
+            raise ValueError(f"{named_by}: {path}: [meta] compensation must be \"window\" or \"none\", got {mode!r}")
+    return (lambda q0: GyroVertical(trained.adaptive, dt=1.0 / rate, q0=q0)), mode == "window"
 
 
 class AttitudeLoop:
@@ -104,14 +110,17 @@ class AttitudeLoop:
             self.imu = io.inbox(schemas.IMU, "sim", keep=32)
             self.mag = io.inbox(schemas.MAG, "sim", keep=8)
             self.motors = io.inbox(schemas.MOTOR_PWM, "motors")
-            gv_file = None
+            gv_file, self.gv_compensated = None, False
             if p["estimator"] == "gyro-vertical":
-                self.make_gyrovertical = load_gyrovertical(io, vehicle)
+                self.make_gyrovertical, self.gv_compensated = load_gyrovertical(io, vehicle)
                 gv_file = gyrovertical_params_file(io, vehicle)[0]
-            compensate = p["compensate_acceleration"] and self.make_gyrovertical is None
-            print(f"zenpilot-attitude: estimator {p['estimator']}" + (f" ({gv_file.name})" if gv_file else ""),
-                  flush=True)
-            self.motion = io.inbox(schemas.POSITION_STATE, "position") if compensate else None
+            # the 000 filter's own compensation (not with the gyro-vertical: its angles come compensated or not)
+            self.compensate_000 = p["compensate_acceleration"] and self.make_gyrovertical is None
+            print(f"zenpilot-attitude: estimator {p['estimator']}"
+                  + (f" ({gv_file.name}, acceleration compensation "
+                     f"{'window' if self.gv_compensated else 'none'})" if gv_file else ""), flush=True)
+            self.motion = (io.inbox(schemas.POSITION_STATE, "position")
+                           if self.compensate_000 or self.gv_compensated else None)
             self.windowed = p["acceleration_compensation"] == "window"
             self.accel_window_s = p["accel_window_s"]
             self.velocities: deque = deque()   # (t, velocity) of the position level's estimate, newest last
@@ -146,15 +155,24 @@ class AttitudeLoop:
     def _gains_changed(self, _value) -> None:
         self.gains = (tuple(self.k.tolist()), tuple(self.alpha.tolist()))
 
-    def gyrovertical_update(self, t_s: float, gyro, accel) -> tuple[float, float]:
-        """Feed one raw IMU sample to the gyro-vertical (once, in time order); its (roll, pitch)."""
+    def gyrovertical_update(self, t_s: float, gyro, accel, moving=None) -> tuple[float, float]:
+        """Feed one raw IMU sample to the gyro-vertical (once, in time order); its (roll, pitch).
+
+        moving: the newest pos/state when the gyro-vertical is compensated: its velocity window that
+        ends before this sample is the reference (none yet, or stale: the accelerometer alone), turned
+        into the gyro-vertical's frame by the heading of the stack's last estimate (the gyro-vertical's
+        own yaw is the gyros' alone, from 0 at its start)."""
         gv = self.gyrovertical
         if gv is None:   # start from the accelerometer's vertical, as the 000 filter does
             gv = self.gyrovertical = self.make_gyrovertical(quat_from_euler(*accel_roll_pitch(accel), 0.0))
         elif t_s <= self.gyrovertical_t:
             return gv.roll, gv.pitch
         self.gyrovertical_t = t_s
-        return gv.update(gyro, accel)
+        if not self.gv_compensated:
+            return gv.update(gyro, accel)
+        # a window ending before the sample: the gyro-vertical keeps forces only up to the previous one
+        ref = self.velocity_window(moving, t_s - 0.5 * gv.dt) if moving is not None else None
+        return gv.update(gyro, accel, t_s, ref, yaw_of(tuple(self.filt_q)) if ref is not None else None)
 
     def velocity_window(self, moving, until: float):
         """(t0, t1, mean acceleration) from the position level's velocities over accel_window_s,
@@ -195,12 +213,13 @@ class AttitudeLoop:
         if len(samples) > 1:
             samples.sort(key=_sample_time)
         self.accel_samples = [(ts, acc) for ts, _, acc in samples]   # raw: the descent's vertical speed
-        if self.make_gyrovertical is not None:
-            samples = [(ts, gyro, acc, self.gyrovertical_update(ts, np.asarray(gyro), np.asarray(acc)))
-                       for ts, gyro, acc in samples]
         moving = self.motion.latest() if self.motion is not None else None
+        if self.make_gyrovertical is not None:
+            samples = [(ts, gyro, acc, self.gyrovertical_update(ts, np.asarray(gyro), np.asarray(acc), moving))
+                       for ts, gyro, acc in samples]
         accel_ref = None
-        if moving is not None and moving["state_source"] == "estimate" and filt.initialized:
+        if (self.compensate_000 and moving is not None and moving["state_source"] == "estimate"
+                and filt.initialized):
             if self.windowed:
                 newest_imu_t = samples[-1][0] if samples else filt.last_sample_t
                 accel_ref = self.velocity_window(moving, newest_imu_t)

@@ -96,11 +96,14 @@ at ``dt == DT_REF`` this is exactly 004.
 """
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import math
+from collections import deque
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
+from operator import itemgetter
 from types import SimpleNamespace
 from typing import NamedTuple, Sequence
 
@@ -418,17 +421,44 @@ def _correct(q, V, P, gyro, Z, sn, g, ops):
     return apply_tilt(q, d_theta, d_gamma, heading, ops), V + dV, P
 
 
-def step(state, gyro, accel, c: StepConstants, ops=FLOAT_OPS):
+def body_from_world(q, v):
+    """R(q)^T v: a world-frame vector in body axes (q = (w, x, y, z) body->world)."""
+    w, x, y, z = q
+    v0, v1, v2 = v
+    return ((1 - 2 * (y * y + z * z)) * v0 + 2 * (x * y + w * z) * v1 + 2 * (x * z - w * y) * v2,
+            2 * (x * y - w * z) * v0 + (1 - 2 * (x * x + z * z)) * v1 + 2 * (y * z + w * x) * v2,
+            2 * (x * z + w * y) * v0 + 2 * (y * z - w * x) * v1 + (1 - 2 * (x * x + y * y)) * v2)
+
+
+def world_from_body(q, v):
+    """R(q) v: a body-frame vector in world axes."""
+    w, x, y, z = q
+    v0, v1, v2 = v
+    return ((1 - 2 * (y * y + z * z)) * v0 + 2 * (x * y - w * z) * v1 + 2 * (x * z + w * y) * v2,
+            2 * (x * y + w * z) * v0 + (1 - 2 * (x * x + z * z)) * v1 + 2 * (y * z - w * x) * v2,
+            2 * (x * z - w * y) * v0 + 2 * (y * z + w * x) * v1 + (1 - 2 * (x * x + y * y)) * v2)
+
+
+def step(state, gyro, accel, c: StepConstants, ops=FLOAT_OPS, gravity=None):
     """One sample: model 1 with the gyro (body FLU, rad/s), then (8) with the accel (m/s^2).
 
     state = (q, V, P, n*): q = (w, x, y, z) body->world, V, the 3x3 covariance of
     [d_theta, d_gamma, V], the low-passed n*.  Returns (state, variances, corrected):
     the new state, the Q diagonal and sigma_n^2 used (:func:`scaled_variances`), and
     whether the accelerometer was used (not with |n| < min_load_factor or non-finite).
+
+    gravity: None (004: the accelerometer sample is the observation), or (use, (g0, g1, g2)): where
+    ``use`` holds, the observation is that world-frame vector (m/s^2) turned into body axes at the
+    propagated attitude in place of the sample -- the acceleration compensation's measured gravity
+    (:func:`compensated_gravity`); elsewhere the sample.
     """
     q, V, P, n_star = state
     q = propagate(q, gyro, c.half_dt, ops)
     a0, a1, a2 = accel
+    if gravity is not None:   # a Python-level choice: None traces no compensation at all
+        use_gravity, g_world = gravity
+        b0, b1, b2 = body_from_world(q, g_world)
+        a0, a1, a2 = ops.where(use_gravity, b0, a0), ops.where(use_gravity, b1, a1), ops.where(use_gravity, b2, a2)
     Z = ops.array([a0, a2, -a1]) / c.g       # load factor, doc axes
     n = ops.sqrt(Z @ Z)
     finite = ops.isfinite(n)
@@ -443,6 +473,40 @@ def step(state, gyro, accel, c: StepConstants, ops=FLOAT_OPS):
 
 def _same3(q, V, P, *_):
     return q, V, P
+
+
+def yaw_of(q, ops=FLOAT_OPS):
+    """ZYX yaw of q = (w, x, y, z)."""
+    w, x, y, z = q
+    return ops.atan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z))
+
+
+def compensated_gravity(mean_specific_force, mean_acceleration, g: float = G, ops=FLOAT_OPS, heading_offset=0.0):
+    """(use, gravity) for :func:`step`: the mean world-frame specific force over a window (the IMU's
+    samples turned by the filter's own attitude at each) less the vehicle's mean acceleration over the
+    same window (the position estimate's velocity change), both world ENU, m/s^2.
+
+    The filter's world frame is turned from the true one by its yaw error (its yaw is the gyros'
+    alone, from wherever it started): ``heading_offset`` (rad, the filter's yaw less the vehicle's)
+    turns the acceleration into the filter's frame.  A horizontal acceleration a read with a yaw
+    error e is a tilt of ~ e |a| / g: 0.1 rad of error in a 3 m/s^2 turn, 1.8 deg.
+
+    Right attitude: gravity, [0, 0, g]; a tilt error turns it away from the vertical, the error the
+    correction removes.  Comparing the two over one window removes the lag of the velocity slope
+    (a published acceleration subtracted from each sample would be ~0.05 s late: through a flip's
+    thrust changes, a worse reference than none).  ``use`` is false where either is not finite or
+    the result is under a fifth of g (free fall: nothing to measure the vertical by)."""
+    m0, m1, m2 = mean_specific_force
+    a0, a1, a2 = mean_acceleration
+    ch, sh = ops.cos(heading_offset), ops.sin(heading_offset)
+    a0, a1 = ch * a0 - sh * a1, sh * a0 + ch * a1
+    v = (m0 - a0, m1 - a1, m2 - a2)
+    n = ops.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    use = ops.both(ops.isfinite(n), n >= 0.2 * g)
+    return use, tuple(ops.where(use, e, 0.0) for e in v)
+
+
+_time = itemgetter(0)
 
 
 def _floats3(v, what: str) -> list:
@@ -505,7 +569,7 @@ class GyroVertical(GyroIntegrator):
 
     def __init__(self, params: GyroVerticalParams | None = None, dt: float = DT_REF, q0=None, P0=None,
                  adaptive: bool = True, min_load_factor: float = 0.2, n_star_tau_s: float = 0.05,
-                 g: float = G):
+                 g: float = G, max_ref_age_s: float = 0.25, history_s: float = 1.0):
         super().__init__(dt, q0)
         self.params = params if params is not None else GyroVerticalParams()
         self.adaptive = bool(adaptive)
@@ -520,6 +584,15 @@ class GyroVertical(GyroIntegrator):
         self.n_star = 0.0
         self.variances = scaled_variances(0.0, self._c)
         self.corrected = False
+        self.compensated = False
+        if not (max_ref_age_s > 0 and history_s > 0):
+            raise ValueError(f"gyrovertical: max_ref_age_s and history_s must be > 0, got {max_ref_age_s!r}, "
+                             f"{history_s!r}")
+        self.max_ref_age_s = float(max_ref_age_s)
+        self.history_s = float(history_s)
+        self._history: deque = deque()     # (t, world-frame specific force) of the samples, oldest first
+        self._window_key = None            # the (t0, t1) whose mean force is _window_mean
+        self._window_mean = None
 
     @property
     def P(self) -> np.ndarray:
@@ -535,17 +608,75 @@ class GyroVertical(GyroIntegrator):
         zbar, H, _ = observe(self._q, self.V, _floats3(gyro_rad_s, "gyro"), self.g)
         return zbar, H
 
-    def update(self, gyro_rad_s, accel_m_s2) -> tuple[float, float]:
-        """One sample: model 1 with the gyro (body FLU, rad/s), then (8) with the accel (m/s^2)."""
-        state, self.variances, self.corrected = step(
-            (self._q, self.V, self._P, self.n_star), _floats3(gyro_rad_s, "gyro"),
-            _floats3(accel_m_s2, "accel"), self._c)
+    def update(self, gyro_rad_s, accel_m_s2, t_s: float | None = None, accel_ref=None,
+               heading_rad: float | None = None) -> tuple[float, float]:
+        """One sample: model 1 with the gyro (body FLU, rad/s), then (8) with the accel (m/s^2).
+
+        Acceleration compensation (:func:`compensated_gravity`): with the sample's time ``t_s`` (s)
+        the filter keeps its samples' world-frame specific forces (``history_s`` of them); with
+        ``accel_ref`` = (t0, t1, a), the vehicle's mean acceleration a (world ENU, m/s^2) over
+        (t0, t1] from the position estimate, the observation is the gravity that window measures,
+        when the kept samples cover it and t1 is at most ``max_ref_age_s`` old.  Otherwise (no
+        reference, stale, not covered, not finite) the accelerometer sample, as 004.
+        ``.compensated`` says which the last sample used.  ``heading_rad``: the vehicle's yaw (world,
+        e.g. the attitude filter's, magnetometer-held): the reference is turned into this filter's
+        frame by its yaw error (:func:`compensated_gravity`); None (or not finite): this filter's
+        own yaw taken as right (true only for a start at the true yaw and a short flight)."""
+        gyro = _floats3(gyro_rad_s, "gyro")
+        accel = _floats3(accel_m_s2, "accel")
+        gravity = None
+        if t_s is not None and accel_ref is not None:
+            offset = 0.0
+            if heading_rad is not None and math.isfinite(heading_rad):
+                offset = yaw_of(self._q) - float(heading_rad)
+            gravity = self._window_gravity(float(t_s), accel_ref, offset)
+        state, self.variances, self.corrected = step((self._q, self.V, self._P, self.n_star), gyro, accel,
+                                                     self._c, gravity=gravity)
+        self.compensated = gravity is not None and gravity[0]
         self._q, self.V, self._P, self.n_star = state
+        if t_s is not None:
+            self._record(float(t_s), accel)
         return euler_rp(self._q)
 
+    def _record(self, t_s: float, accel) -> None:
+        hist = self._history
+        if hist and t_s <= hist[-1][0]:   # time went back (a restart): the kept forces are another flight's
+            hist.clear()
+        hist.append((t_s, world_from_body(self._q, accel)))
+        while hist[0][0] < t_s - self.history_s:
+            hist.popleft()
 
-def run_sequence(filt, gyro, accel) -> tuple[np.ndarray, np.ndarray]:
-    """Feed (N, 3) gyro (rad/s) and accel (m/s^2) samples; returns (roll (N,), pitch (N,))."""
+    def _window_gravity(self, t_s: float, accel_ref, heading_offset: float):
+        """(use, gravity) from a reference (t0, t1, a) and the kept forces, or None (not usable)."""
+        try:
+            t0, t1 = float(accel_ref[0]), float(accel_ref[1])
+            a = _floats3(accel_ref[2], "accel_ref acceleration")
+        except (TypeError, ValueError, IndexError):
+            return None
+        hist, eps = self._history, 0.25 * self.dt
+        if not (math.isfinite(t0) and math.isfinite(t1) and t1 > t0 and t_s - t1 <= self.max_ref_age_s
+                and hist and hist[0][0] <= t0 + eps and hist[-1][0] >= t1 - eps):
+            return None
+        key = (t0, t1)
+        if key != self._window_key:
+            # samples in (t0, t1]: their mean is the specific force's over the velocity change's window
+            lo = bisect.bisect_right(hist, t0 + eps, key=_time)
+            hi = bisect.bisect_right(hist, t1 + eps, key=_time)
+            if hi <= lo:
+                return None
+            n = hi - lo
+            m = [sum(hist[i][1][k] for i in range(lo, hi)) / n for k in range(3)]
+            self._window_key, self._window_mean = key, m
+        return compensated_gravity(self._window_mean, a, self.g, heading_offset=heading_offset)
+
+
+def run_sequence(filt, gyro, accel, reference=None, heading=None) -> tuple[np.ndarray, np.ndarray]:
+    """Feed (N, 3) gyro (rad/s) and accel (m/s^2) samples; returns (roll (N,), pitch (N,)).
+
+    reference (a :class:`GyroVertical` only): (t, t0, t1, a), the samples' times (N,) and at each
+    the acceleration reference of :meth:`GyroVertical.update`: window (t0, t1] (N,) and mean
+    acceleration (N, 3), world ENU (NaN: none at that sample), e.g. from :func:`fixed_windows`;
+    heading (N,): the vehicle's yaw at each sample, rad (None: the filter's own)."""
     gyro = np.asarray(gyro, dtype=np.float64)
     accel = np.asarray(accel, dtype=np.float64)
     if gyro.ndim != 2 or gyro.shape[1] != 3 or accel.shape != gyro.shape:
@@ -553,9 +684,34 @@ def run_sequence(filt, gyro, accel) -> tuple[np.ndarray, np.ndarray]:
     n = gyro.shape[0]
     roll = np.empty(n)
     pitch = np.empty(n)
+    if reference is None:
+        for i in range(n):
+            roll[i], pitch[i] = filt.update(gyro[i], accel[i])
+        return roll, pitch
+    t, t0, t1, a = (np.asarray(x, dtype=np.float64) for x in reference)
+    if t.shape != (n,) or t0.shape != (n,) or t1.shape != (n,) or a.shape != (n, 3):
+        raise ValueError("gyrovertical: reference must be (t, t0, t1) of (N,) and a of (N, 3)")
+    psi = [None] * n if heading is None else np.asarray(heading, dtype=np.float64).tolist()
     for i in range(n):
-        roll[i], pitch[i] = filt.update(gyro[i], accel[i])
+        ref = (t0[i], t1[i], a[i]) if np.all(np.isfinite(a[i])) else None
+        roll[i], pitch[i] = filt.update(gyro[i], accel[i], t[i], ref, psi[i])
     return roll, pitch
+
+
+def fixed_windows(velocity, dt: float, window: int, delay: int):
+    """The acceleration reference of every sample from velocities (N, 3) at the samples (world, m/s):
+    (t, t0, t1, a) for :func:`run_sequence`, a = the mean acceleration over the ``window`` sample
+    intervals ending ``delay`` samples before each sample (NaN before there is one).  The batched
+    filter (:mod:`flight.estimation.gyrovertical_jax`) takes ``a`` with the same window and delay."""
+    v = np.asarray(velocity, dtype=np.float64)
+    n = v.shape[0]
+    if window < 1 or delay < 1:
+        raise ValueError(f"gyrovertical: window and delay must be >= 1 sample, got {window}, {delay}")
+    t = np.arange(n) * dt
+    a = np.full((n, 3), np.nan)
+    k = np.arange(window + delay, n)
+    a[k] = (v[k - delay] - v[k - delay - window]) / (window * dt)
+    return t, t - (window + delay) * dt, t - delay * dt, a
 
 
 def rms_error_deg(est, truth) -> float:
@@ -579,15 +735,23 @@ class TrainingSequence:
     roll0: float
     pitch0: float
     label: str = ""
+    accel_ref: np.ndarray | None = None   # (N, 3) the compensation's reference, `a` of fixed_windows
+    heading: np.ndarray | None = None     # (N,) the vehicle's yaw, rad, that turns it into the filter's frame
 
 
 def make_training_sequences(gyro, accel, truth_roll, truth_pitch, bias_deg_s: float = 0.05,
-                            roll0: float | None = None, pitch0: float | None = None
-                            ) -> list[TrainingSequence]:
+                            roll0: float | None = None, pitch0: float | None = None, accel_ref=None,
+                            heading=None) -> list[TrainingSequence]:
     """The 9 sequences of 004: 8 sign combinations of +-bias on the three gyros, plus the exact one.
 
-    roll0/pitch0: initial attitude (default the first truth sample).
+    roll0/pitch0: initial attitude (default the first truth sample); accel_ref: (N, 3), the
+    acceleration compensation's reference of every sample (``a`` of :func:`fixed_windows`), or None;
+    heading: (N,) the vehicle's yaw with it (the filters start at yaw 0), or None.
     """
+    if accel_ref is not None:
+        accel_ref = np.asarray(accel_ref, dtype=np.float64)
+    if heading is not None:
+        heading = np.asarray(heading, dtype=np.float64)
     gyro = np.asarray(gyro, dtype=np.float64)
     accel = np.asarray(accel, dtype=np.float64)
     roll = np.asarray(truth_roll, dtype=np.float64)
@@ -601,18 +765,25 @@ def make_training_sequences(gyro, accel, truth_roll, truth_pitch, bias_deg_s: fl
             for sz in (1, -1):
                 bias = b * np.array([sx, sy, sz], dtype=np.float64)
                 label = "bias " + "".join("+" if e > 0 else "-" for e in (sx, sy, sz))
-                out.append(TrainingSequence(gyro + bias, accel, roll, pitch, r0, p0, label))
-    out.append(TrainingSequence(gyro.copy(), accel, roll, pitch, r0, p0, "exact"))
+                out.append(TrainingSequence(gyro + bias, accel, roll, pitch, r0, p0, label, accel_ref, heading))
+    out.append(TrainingSequence(gyro.copy(), accel, roll, pitch, r0, p0, "exact", accel_ref, heading))
     return out
 
 
 def evaluate(params: GyroVerticalParams, sequences: Sequence[TrainingSequence], dt: float,
-             weights: tuple[float, float] = (0.5, 0.5), adaptive: bool = True) -> float:
-    """Criterion (10): a_theta * mean RMS pitch error + a_gamma * mean RMS roll error, degrees."""
+             weights: tuple[float, float] = (0.5, 0.5), adaptive: bool = True,
+             compensation: tuple[int, int] | None = None) -> float:
+    """Criterion (10): a_theta * mean RMS pitch error + a_gamma * mean RMS roll error, degrees.
+
+    compensation: (window, delay) in samples of the sequences' accel_ref, or None (004's filter)."""
     ep, er = [], []
     for s in sequences:
         f = GyroVertical(params, dt, q0=quat_from_euler(s.roll0, s.pitch0, 0.0), adaptive=adaptive)
-        r, p = run_sequence(f, s.gyro, s.accel)
+        ref = None
+        if compensation is not None:
+            t = np.arange(len(s.roll)) * dt
+            ref = (t, t - sum(compensation) * dt, t - compensation[1] * dt, s.accel_ref)
+        r, p = run_sequence(f, s.gyro, s.accel, ref, s.heading if ref is not None else None)
         ep.append(rms_error_deg(p, s.pitch))
         er.append(rms_error_deg(r, s.roll))
     cost = weights[0] * float(np.mean(ep)) + weights[1] * float(np.mean(er))

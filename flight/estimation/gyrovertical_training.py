@@ -29,7 +29,8 @@ def train(sequences: Sequence[TrainingSequence], initial: GyroVerticalParams | N
           dt: float = DT_REF, maxiter: int = 100, seed: int = 0,
           progress: Callable[[int, float, GyroVerticalParams], None] | None = None,
           weights: tuple[float, float] = (0.5, 0.5), method: str = "Nelder-Mead",
-          step: float = 0.7, adaptive: bool = True) -> GyroVerticalParams:
+          step: float = 0.7, adaptive: bool = True,
+          compensation: tuple[int, int] | None = None) -> GyroVerticalParams:
     """Minimise (10) over the log-parameters with scipy.optimize (Nelder-Mead or Powell).
 
     adaptive=True: the 12 parameters of (7).  adaptive=False: the fixed-variance
@@ -42,6 +43,8 @@ def train(sequences: Sequence[TrainingSequence], initial: GyroVerticalParams | N
     ``seed``, so the result is deterministic for a seed.  ``progress(k,
     best_cost, best_params)`` is called after every iteration.  Returns the
     best parameters evaluated (never worse than ``initial`` on these sequences).
+    compensation: (window, delay) in samples: the filter with the acceleration compensation fed
+    the sequences' accel_ref (:func:`flight.estimation.gyrovertical_jax.run_batch`); None: 004's.
     """
     initial = initial if initial is not None else GyroVerticalParams()
     if not adaptive:
@@ -57,11 +60,11 @@ def train(sequences: Sequence[TrainingSequence], initial: GyroVerticalParams | N
         return full
 
     if len({len(s.roll) for s in sequences}) == 1:
-        batch = BatchEvaluator(sequences, dt, weights, adaptive)
+        batch = BatchEvaluator(sequences, dt, weights, adaptive, compensation)
         evaluate_full = batch
     else:
         def evaluate_full(full):
-            return evaluate(GyroVerticalParams.from_vector(full), sequences, dt, weights, adaptive)
+            return evaluate(GyroVerticalParams.from_vector(full), sequences, dt, weights, adaptive, compensation)
 
     x0 = full0[free]
     best = {"cost": math.inf, "x": x0.copy()}

@@ -12,6 +12,7 @@ from services.params import Param
 STATE_SOURCES = ("truth", "estimate")
 COMPENSATIONS = ("window", "slope")
 ESTIMATORS = ("kalman-000", "gyro-vertical")
+GV_COMPENSATIONS = ("file", "window", "none")
 
 PARAMS = {
     "state_source": Param("estimate", choices=STATE_SOURCES,
@@ -56,10 +57,18 @@ PARAMS = {
     "estimator": Param("kalman-000", choices=ESTIMATORS,
                        doc="the filter's angle measurement: kalman-000, the accelerometer angles of 000; "
                            "gyro-vertical, the adaptive gyro-vertical of 004 (raw IMU, its own accelerometer "
-                           "trust; compensate_acceleration does not apply)"),
+                           "trust; compensate_acceleration does not apply, gyrovertical_compensation does)"),
     "gyrovertical_params": Param("", doc="the gyro-vertical's trained parameter file (`zenpilot "
                                          "train-gyrovertical`); \"\": the one the vehicle file names (its "
                                          "gyrovertical_params), else the shipped x250 file"),
+    # a filter trained without it trusts the accelerometer as a manoeuvre leaves it; one trained with it,
+    # as the compensated one (docs/gyrovertical.md): so by default the file decides
+    "gyrovertical_compensation": Param("file", choices=GV_COMPENSATIONS,
+                                       doc="the gyro-vertical's acceleration compensation: window, the position "
+                                           "level's velocity change over accel_window_s against the IMU's "
+                                           "specific force at the gyro-vertical's attitude (its gravity the "
+                                           "observation); none: the accelerometer (004); file: as the parameter "
+                                           "file was trained (its [meta] compensation, none if absent)"),
     "imu_rate_hz": Param(400.0, "Hz", 0.0, min_exclusive=True,
                          doc="the gyro-vertical's sample rate (its variances are per sample)"),
     "camera_level": Param(True, doc="remove the accelerometer bias's tilt with the camera's attitude (vision/pose, "

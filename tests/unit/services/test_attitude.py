@@ -169,3 +169,67 @@ def test_a_bad_gyrovertical_file_named_by_the_airframe_is_refused_naming_both(tm
     with pytest.raises(ValueError, match=r"vehicle q820's gyrovertical_params: .*nonesuch\.toml: cannot read"):
         AttitudeLoop(FakeIO("attitude", PARAMS, GV, vehicle=str(frame)))
     AttitudeLoop(FakeIO("attitude", PARAMS, {}, vehicle=str(frame)))   # kalman-000 never opens it
+
+
+# ---------------------------------------------------------------- the gyro-vertical's acceleration compensation
+def pos_state(v=(0.0, 0.0, 0.0)):
+    return {"position_m": [0.0, 0.0, 1.0], "velocity_m_s": list(v), "position_ref_m": [0.0, 0.0, 1.0],
+            "position_cov_m2": [0.0] * 9, "acceleration_m_s2": [0.0, 0.0, 0.0], "state_source": "estimate",
+            "thrust_scale": 1.0}
+
+
+def fly_at_rest(io, loop, t_from, t_to, pos_until=None):
+    """IMU at 400 Hz (a run every second sample), pos/state at 100 Hz until pos_until; the
+    gyro-vertical's compensated flag after each run."""
+    imu, pos = io.received(schemas.IMU, "sim"), io.received(schemas.POSITION_STATE, "position")
+    flags = []
+    for n in range(round(t_from * 400), round(t_to * 400) + 1):
+        t = n / 400
+        if n % 4 == 0 and (pos_until is None or t <= pos_until):
+            pos.push(t, pos_state())
+        imu.push(t, {"gyro_rad_s": [0.0, 0.0, 0.0], "accel_m_s2": [0.0, 0.0, X250.gravity_m_s2]})
+        if n % 2 == 0:
+            loop.step(t)
+            flags.append((t, loop.gyrovertical.compensated))
+    return flags
+
+
+def test_the_compensated_gyrovertical_takes_the_position_levels_velocity_and_falls_back_without_it():
+    io = FakeIO("attitude", PARAMS, {**GV, "gyrovertical_compensation": "window", "camera_level": False})
+    loop = AttitudeLoop(io)
+    assert loop.gv_compensated and loop.motion is not None
+    flags = fly_at_rest(io, loop, 0.0025, 1.0, pos_until=0.5)
+    on = [t for t, c in flags if c]
+    # from its first full window (0.1 s of pos/state kept) to 0.25 s after the last pos/state
+    assert on and min(on) < 0.2 and 0.7 < max(on) <= 0.76 and all(not c for t, c in flags if t > 0.76)
+    _, state = io.sent(schemas.ATTITUDE_STATE)[-1]
+    assert all(math.isfinite(v) for v in state["euler_rad"]) and max(map(abs, state["euler_rad"][:2])) < 0.01
+
+
+def test_without_pos_state_the_compensated_gyrovertical_is_the_accelerometers():
+    io = FakeIO("attitude", PARAMS, {**GV, "gyrovertical_compensation": "window", "camera_level": False})
+    loop = AttitudeLoop(io)
+    flags = fly_at_rest(io, loop, 0.0025, 0.5, pos_until=-1.0)
+    assert not any(c for _, c in flags)
+    plain_io = FakeIO("attitude", PARAMS, {**GV, "gyrovertical_compensation": "none", "camera_level": False})
+    plain = AttitudeLoop(plain_io)
+    assert not plain.gv_compensated and plain.motion is None
+    fly_at_rest(plain_io, plain, 0.0025, 0.5, pos_until=-1.0)
+    assert io.sent(schemas.ATTITUDE_STATE) == plain_io.sent(schemas.ATTITUDE_STATE)
+
+
+def test_by_default_the_file_says_whether_the_gyrovertical_is_compensated(tmp_path):
+    from flight.estimation.gyrovertical import PAPER_PARAMS_FILE
+    text = PAPER_PARAMS_FILE.read_text()
+    assert "compensation" not in text   # trained without it: flown without it
+    assert not AttitudeLoop(FakeIO("attitude", PARAMS, {**GV, "gyrovertical_params": str(PAPER_PARAMS_FILE)})).gv_compensated
+    f = tmp_path / "comp.toml"
+    f.write_text(text.replace("[meta]\n", '[meta]\ncompensation = "window"\n'))
+    assert AttitudeLoop(FakeIO("attitude", PARAMS, {**GV, "gyrovertical_params": str(f)})).gv_compensated
+    assert not AttitudeLoop(FakeIO("attitude", PARAMS, {**GV, "gyrovertical_params": str(f),
+                                                        "gyrovertical_compensation": "none"})).gv_compensated
+    f.write_text(text.replace("[meta]\n", '[meta]\ncompensation = "slope"\n'))
+    with pytest.raises(ValueError, match=r"gyrovertical_params: .*comp\.toml: \[meta\] compensation .*'slope'"):
+        AttitudeLoop(FakeIO("attitude", PARAMS, {**GV, "gyrovertical_params": str(f)}))
+    with pytest.raises(ValueError, match="services.attitude.params.*gyrovertical_compensation"):
+        AttitudeLoop(FakeIO("attitude", PARAMS, {**GV, "gyrovertical_compensation": "slope"}))
