@@ -14,10 +14,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from deploy.gyrovertical_training import (control_flight, estimate, manoeuvring, run_training, save,
-                                          tilt_error_deg)
-from flight.estimation.gyrovertical import (PAPER_PARAMS_FILE, GyroVertical, GyroVerticalParams, load_trained,
-                                 run_sequence)
+from deploy.gyrovertical_training import (control_flight, estimate, manoeuvring, reference_accelerations,
+                                          run_training, save, tilt_error_deg)
+from flight.estimation.gyrovertical import (PAPER_PARAMS_FILE, GyroVertical, GyroVerticalParams, TrainedParams,
+                                            load_trained, run_sequence)
 from flight.estimation.gyrovertical_jax import run_batch
 from flight.quat import quat_from_euler
 from flight.vehicle import load_vehicle
@@ -96,6 +96,37 @@ def test_training_is_reproducible_and_the_file_round_trips(tmp_path):
     save(tmp_path / "p.toml", a)
     back = load_trained(tmp_path / "p.toml")
     assert back.adaptive == a.adaptive and back.fixed == a.fixed and back.meta["seed"] == 4
+
+
+def test_compensated_training_is_reproducible_and_the_file_says_so(tmp_path):
+    kw = dict(vehicle="x250", seed=4, flights=1, duration_s=8.0, bias_deg_s=0.05, maxiter=6, log=lambda s: None,
+              compensation="window")
+    a, b = run_training(**kw), run_training(**kw)
+    assert a.adaptive == b.adaptive and a.fixed == b.fixed
+    assert a.meta["compensation"] == "window" and a.meta["command"].endswith("--compensation window")
+    save(tmp_path / "p.toml", a)
+    assert load_trained(tmp_path / "p.toml").meta["compensation"] == "window"
+    assert "compensation" not in run_training(**{**kw, "compensation": "none"}).meta
+
+
+def test_the_reference_is_the_flights_acceleration_and_the_compensation_helps_through_a_flip(flip_flight):
+    f = flip_flight
+    (t, t0, t1, a), heading = reference_accelerations(f, 0)
+    truth = np.gradient(np.gradient(f.position_m, t, axis=0), t, axis=0)
+    k = np.arange(200, len(t))
+    mean_truth = np.array([truth[i - 41:i - 1].mean(axis=0) for i in k])   # the window (t0, t1]
+    err = np.linalg.norm(a[k] - mean_truth, axis=1)
+    assert np.all(np.isnan(a[:42])) and np.sqrt(np.mean(err ** 2)) < 0.5   # the position estimate's error
+    assert np.degrees(np.max(np.abs(heading - f.yaw_rad))) < 3.0
+    # a filter that trusts its accelerometer (a 0.8 s correction), as the compensation lets it
+    fast = GyroVerticalParams(n_var0=1e-3)
+    trained = TrainedParams(fast, fast, {})
+    tilt = {}
+    for comp in (False, True):
+        er, ep = tilt_error_deg(f, *estimate(f, "fixed", trained, BIAS, compensation=comp))
+        tilt[comp] = float(np.sqrt(np.mean(er ** 2 + ep ** 2)))
+    print("\nx250 flip flight, RMS tilt error without / with the compensation, deg:", tilt)
+    assert tilt[True] < 0.5 * tilt[False], tilt
 
 
 def test_bad_parameter_files_are_refused_by_name(tmp_path):
