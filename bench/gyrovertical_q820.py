@@ -36,7 +36,7 @@ from flight.quat import quats_to_euler, wrap_angle
 from flight.vehicle import PARAMS_DIR
 
 BIAS_DEG_S = 0.05
-FILES = ("gyrovertical_q820_mems.toml", "gyrovertical_q820.toml", "gyrovertical_x250_mems.toml", "gyrovertical_x250.toml")
+FILES = ("gyrovertical_q820_compensated.toml", "gyrovertical_q820_mems.toml", "gyrovertical_q820.toml", "gyrovertical_x250_mems.toml", "gyrovertical_x250.toml")
 
 
 def rms(x) -> float:

@@ -215,7 +215,7 @@ def test_every_airframe_number_of_the_pack_is_in_its_vehicle_file_only():
 @pytest.mark.parametrize("value, why", [('"../vehicles/x250.toml"', "no folders"), ('"/etc/x.toml"', "no folders"),
                                         ('"params.json"', "a .toml file"), ("3", "no folders")])
 def test_a_bad_gyrovertical_file_name_is_refused_naming_the_field(tmp_path, value, why):
-    src = (VEHICLES_DIR / "q820.toml").read_text().replace('"gyrovertical_q820_mems.toml"', value)
+    src = (VEHICLES_DIR / "q820.toml").read_text().replace('"gyrovertical_q820_compensated.toml"', value)
     p = tmp_path / "bad.toml"
     p.write_text(src)
     with pytest.raises(VehicleError, match=f"bad.toml: field 'gyrovertical_params': .*{why}"):

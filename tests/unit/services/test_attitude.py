@@ -138,14 +138,17 @@ def gyrovertical_of(loop):
     return loop.make_gyrovertical([1.0, 0.0, 0.0, 0.0]).params
 
 
-@pytest.mark.parametrize("vehicle, file", [("q820", "gyrovertical_q820_mems.toml"), ("x250", "gyrovertical_x250_mems.toml")])
-def test_each_vehicle_flies_the_gyrovertical_file_its_airframe_names(vehicle, file):
-    """q820.toml names the file trained on q820 flights; the x250 keeps the one it flew before."""
+@pytest.mark.parametrize("vehicle, file, compensated", [("q820", "gyrovertical_q820_compensated.toml", True),
+                                                       ("x250", "gyrovertical_x250_mems.toml", False)])
+def test_each_vehicle_flies_the_gyrovertical_file_its_airframe_names(vehicle, file, compensated):
+    """q820.toml names the file trained on q820 flights with the acceleration compensation (flown with it);
+    the x250 keeps the one it flew before (without)."""
     from flight.estimation.gyrovertical import load_trained
     from flight.vehicle import PARAMS_DIR
     loop = AttitudeLoop(FakeIO("attitude", PARAMS, GV, vehicle=vehicle))
     assert load_vehicle(vehicle).gyrovertical_params == file
     assert gyrovertical_of(loop) == load_trained(PARAMS_DIR / file).adaptive
+    assert loop.gv_compensated is compensated
 
 
 def test_the_services_gyrovertical_params_overrides_the_airframes():
@@ -162,10 +165,10 @@ def test_a_bad_gyrovertical_file_named_by_the_airframe_is_refused_naming_both(tm
     monkeypatch.setattr(vehicle_module, "PARAMS_DIR", tmp_path)
     (tmp_path / "broken.toml").write_text("[adaptive]\npitch_var0 = 'x'\n")
     frame = tmp_path / "frame.toml"
-    frame.write_text((VEHICLES_DIR / "q820.toml").read_text().replace("gyrovertical_q820_mems.toml", "broken.toml"))
+    frame.write_text((VEHICLES_DIR / "q820.toml").read_text().replace("gyrovertical_q820_compensated.toml", "broken.toml"))
     with pytest.raises(ValueError, match=r"vehicle q820's gyrovertical_params: .*broken\.toml: .*pitch_var0"):
         AttitudeLoop(FakeIO("attitude", PARAMS, GV, vehicle=str(frame)))
-    frame.write_text((VEHICLES_DIR / "q820.toml").read_text().replace("gyrovertical_q820_mems.toml", "nonesuch.toml"))
+    frame.write_text((VEHICLES_DIR / "q820.toml").read_text().replace("gyrovertical_q820_compensated.toml", "nonesuch.toml"))
     with pytest.raises(ValueError, match=r"vehicle q820's gyrovertical_params: .*nonesuch\.toml: cannot read"):
         AttitudeLoop(FakeIO("attitude", PARAMS, GV, vehicle=str(frame)))
     AttitudeLoop(FakeIO("attitude", PARAMS, {}, vehicle=str(frame)))   # kalman-000 never opens it
