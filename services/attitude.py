@@ -8,7 +8,9 @@ extrapolator (15) carries the estimate over the measured transport delay
 `estimator = "gyro-vertical"` the adaptive gyro-vertical of 004 runs on every
 raw IMU sample and its roll/pitch replace the accelerometer angles as the
 filter's angle measurement (trained parameters from `gyrovertical_params`,
-written by `zenpilot train-gyrovertical`). State source
+written by `zenpilot train-gyrovertical`), with the acceleration compensation
+(`gyrovertical_compensation`, by default as the file was trained: the position level's velocity
+change over accel_window_s and the estimate's heading; the accelerometer alone without them). State source
 `truth`: the simulator's ground truth (an explicit ablation setting).
 Law (8) u = I [-(alpha+k) w - alpha k (angle - ref)] tracks the position
 level's reference; the collective thrust is passed on to the motor driver.

@@ -83,6 +83,14 @@ taken lazily): the attitude service's 200-400 Hz path, where the per-call cost
 counts.  :mod:`flight.estimation.gyrovertical_jax` runs it with ``JAX_OPS``
 (jax.numpy, branch-free) under ``lax.scan`` and ``vmap`` for training.
 
+Acceleration compensation (an option, not in 004).  The accelerometer of a multirotor reads thrust
+along body z plus drag, "level" through any coordinated acceleration.  Given the vehicle's mean
+acceleration over a past window (the position estimate's velocity change) and the heading, the
+observation of (8) becomes the gravity that window measures: the mean over it of the IMU's specific
+force turned into the world by the filter's own attitude, less that acceleration
+(:func:`compensated_gravity`, :meth:`GyroVertical.update`); without a usable one, the accelerometer
+sample as 004.  Trained alike (:mod:`flight.estimation.gyrovertical_jax`, ``accel_ref``).
+
 Baselines: :class:`GyroIntegrator` (model 1 alone) and
 ``GyroVertical(..., adaptive=False)`` (every variance fixed at its n* = 0 value).
 Helpers: :func:`run_sequence`, :func:`rms_error_deg` (wrapped), :func:`evaluate`
