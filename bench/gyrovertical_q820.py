@@ -110,8 +110,9 @@ def flip_log(path: str, files, mode: str = "file") -> None:
     for f in files:
         trained = load_trained(f)
         comp = compensated(trained, mode)
-        r, pch = run_sequence(GyroVertical(trained.adaptive, dt=float(np.median(np.diff(it))), q0=q0), gyro, accel,
-                              reference if comp else None, heading if comp else None)
+        params, fallback = trained.flown(comp)
+        r, pch = run_sequence(GyroVertical(params, dt=float(np.median(np.diff(it))), q0=q0, fallback=fallback),
+                              gyro, accel, reference if comp else None, heading if comp else None)
         print(f"| gyro-vertical {Path(f).name}{' (compensated)' if comp else ''} " + row % errors(it, r, pch))
 
 

@@ -105,15 +105,26 @@ def save(path: Path, trained: TrainedParams) -> None:
     text = "\n\n".join([
         "# Adaptive gyro-vertical (004), trained by `zenpilot train-gyrovertical`.\n"
         "# [adaptive]: the 12 parameters of (7), read by the attitude service.\n"
-        "# [fixed]: the fixed-variance baseline trained on the same data (comparison only).",
+        "# [fixed]: the fixed-variance baseline trained on the same data (comparison only)."
+        + ("\n# [fallback]: with the compensation, the variances of a sample without a reference (not trained here)."
+           if trained.fallback is not None else ""),
         table("meta", trained.meta), table("adaptive", trained.adaptive.to_dict()),
-        table("fixed", trained.fixed.to_dict())]) + "\n"
+        table("fixed", trained.fixed.to_dict())]
+        + ([table("fallback", trained.fallback.to_dict())] if trained.fallback is not None else [])) + "\n"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text)
 
 
 def run_training(vehicle: str, seed: int, flights: int, duration_s: float, bias_deg_s: float,
-                 maxiter: int, log=print, compensation: str = "none") -> TrainedParams:
+                 maxiter: int, log=print, compensation: str = "none", fallback: str | None = None) -> TrainedParams:
+    """Train a file; ``fallback`` (with compensation): a parameter file whose [adaptive] becomes this
+    one's [fallback], the variances of a sample without a reference (not trained here)."""
+    fallback_params = None
+    if fallback is not None:
+        if compensation == "none":
+            raise ValueError("train-gyrovertical: --fallback is for a compensated filter (--compensation window)")
+        from flight.estimation.gyrovertical import load_trained
+        fallback_params = load_trained(fallback).adaptive
     # imported here: it brings scipy.optimize and JAX (seconds), which every `zenpilot`
     # command would pay for at start-up (deploy/cli.py imports this module for its parser)
     from flight.estimation.gyrovertical_training import train
@@ -146,10 +157,11 @@ def run_training(vehicle: str, seed: int, flights: int, duration_s: float, bias_
             "fixed_training_cost_deg": round(float(costs[False]), 6),
             "command": (f"zenpilot train-gyrovertical --vehicle {vehicle} --seed {seed} --flights {flights} "
                         f"--duration-s {duration_s:g} --bias-deg-s {bias_deg_s:g} --maxiter {maxiter}"
-                        + (f" --compensation {compensation}" if compensation != "none" else ""))}
+                        + (f" --compensation {compensation}" if compensation != "none" else "")
+                        + (f" --fallback {fallback}" if fallback is not None else ""))}
     if compensation != "none":   # the attitude service compensates a file trained so (gyrovertical_compensation)
         meta["compensation"] = compensation
-    return TrainedParams(results[True], results[False], meta)
+    return TrainedParams(results[True], results[False], meta, fallback_params)
 
 
 def add_parser(sub) -> None:
@@ -165,6 +177,8 @@ def add_parser(sub) -> None:
                    help="window: train the filter with the acceleration compensation, fed the flights' "
                         "velocity change over 0.1 s with a position estimate's error (the file says so; "
                         "the attitude service then compensates it); none: 004's filter (default)")
+    p.add_argument("--fallback", help="with --compensation window: a parameter file whose [adaptive] the filter "
+                                      "uses for samples without a reference (written as [fallback]; not trained)")
     p.add_argument("--out", help="parameter file to write (default runs/gyrovertical-<vehicle>-seed<N>.toml)")
     p.set_defaults(func=cmd_train)
 
@@ -178,9 +192,15 @@ def cmd_train(args) -> int:
             raise ValueError(f"train-gyrovertical: {name} {value!r} is out of range "
                              "(flights >= 1, duration >= 5 s, bias >= 0, maxiter >= 1)")
     load_vehicle(args.vehicle)   # refuse a bad vehicle before minutes of flying
+    if args.fallback is not None:   # and a bad fallback
+        if args.compensation == "none":
+            raise ValueError("train-gyrovertical: --fallback is for a compensated filter (--compensation window)")
+        from flight.estimation.gyrovertical import load_trained
+        load_trained(args.fallback)
     out = Path(args.out or f"runs/gyrovertical-{args.vehicle}-seed{args.seed}.toml")
     trained = run_training(args.vehicle, args.seed, args.flights, args.duration_s, args.bias_deg_s,
-                           args.maxiter, log=lambda s: print(s, flush=True), compensation=args.compensation)
+                           args.maxiter, log=lambda s: print(s, flush=True), compensation=args.compensation,
+                           fallback=args.fallback)
     save(out, trained)
     print(f"wrote {out}; fly it with --set attitude.gyrovertical_params={out}, or copy it into flight/params/ "
           f"and name it in flight/vehicles/{args.vehicle}.toml (gyrovertical_params = \"NAME.toml\")", file=sys.stdout)
@@ -221,15 +241,18 @@ def estimate(flight: FlightData, estimator: str, trained: TrainedParams,
         import jax.numpy as jnp
 
         from flight.estimation.gyrovertical_jax import run_batch
-        params = trained.adaptive if estimator == "adaptive" else trained.fixed
         if compensation is None:
             compensation = trained.meta.get("compensation", "none") == "window"
+        params, fallback = trained.flown(compensation)
+        if estimator == "fixed":
+            params, fallback = trained.fixed, None
         ref = heading = None
         if compensation:
             (_, _, _, ref), heading = reference_accelerations(flight, seed)
             ref, heading = jnp.asarray(ref[None]), jnp.asarray(heading[None])
+        fallback = jnp.asarray(fallback.to_vector()) if fallback is not None else None
         r, p = run_batch(jnp.asarray(params.to_vector()), jnp.asarray(gyro[None]),
-                         jnp.asarray(flight.accel_m_s2[None]), jnp.asarray(q0[None]), ref, heading,
+                         jnp.asarray(flight.accel_m_s2[None]), jnp.asarray(q0[None]), ref, heading, fallback,
                          adaptive=estimator == "adaptive", window=COMPENSATION_WINDOW if compensation else 0,
                          delay=COMPENSATION_DELAY if compensation else 0)
         return np.asarray(r[0], dtype=np.float64), np.asarray(p[0], dtype=np.float64)

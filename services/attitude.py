@@ -84,7 +84,8 @@ def load_gyrovertical(io, vehicle):
         mode = trained.meta.get("compensation", "none")
         if mode not in ("window", "none"):
             raise ValueError(f"{named_by}: {path}: [meta] compensation must be \"window\" or \"none\", got {mode!r}")
-    return (lambda q0: GyroVertical(trained.adaptive, dt=1.0 / rate, q0=q0)), mode == "window"
+    params, fallback = trained.flown(mode == "window")   # the file's [fallback] where there is no reference
+    return (lambda q0: GyroVertical(params, dt=1.0 / rate, q0=q0, fallback=fallback)), mode == "window"
 
 
 class AttitudeLoop:

@@ -306,12 +306,14 @@ class StepConstants(NamedTuple):
     g: float
     adaptive: bool          # False: every variance at its n* = 0 value
     nodes: tuple            # (var0, n2, var2) of (7)'s pitch, roll, speed and n functions
+    # the same of the variances used where a compensated step has no reference (None: nodes)
+    fallback_nodes: tuple | None = None
 
 
 def step_constants(nodes, dt: float, adaptive: bool = True, min_load_factor: float = 0.2,
-                   n_star_tau_s: float = 0.05, g: float = G) -> StepConstants:
+                   n_star_tau_s: float = 0.05, g: float = G, fallback_nodes=None) -> StepConstants:
     """The constants of :func:`step`; ``nodes`` as :meth:`GyroVerticalParams.function` for
-    pitch, roll, speed, n (floats, or JAX scalars when traced)."""
+    pitch, roll, speed, n (floats, or JAX scalars when traced); ``fallback_nodes`` alike or None."""
     if not dt > 0:
         raise ValueError(f"gyrovertical: dt must be > 0, got {dt!r}")
     if not n_star_tau_s >= 0:
@@ -319,7 +321,8 @@ def step_constants(nodes, dt: float, adaptive: bool = True, min_load_factor: flo
     dt = float(dt)
     n_alpha = 1.0 if n_star_tau_s == 0 else 1.0 - math.exp(-dt / n_star_tau_s)
     return StepConstants(0.5 * dt, dt / DT_REF, DT_REF / dt, n_alpha, float(min_load_factor), float(g),
-                         bool(adaptive), tuple(tuple(node) for node in nodes))
+                         bool(adaptive), tuple(tuple(node) for node in nodes),
+                         None if fallback_nodes is None else tuple(tuple(node) for node in fallback_nodes))
 
 
 def euler_rp(q, ops=FLOAT_OPS):
@@ -343,10 +346,11 @@ def propagate(q, gyro, half_dt, ops=FLOAT_OPS):
     return (w * s, x * s, y * s, z * s)
 
 
-def scaled_variances(n_star, c: StepConstants, ops=FLOAT_OPS):
-    """(sigma_theta^2, sigma_gamma^2, sigma_V^2) of Q and sigma_n^2 of R at n*, per sample at the step's dt."""
+def scaled_variances(n_star, c: StepConstants, ops=FLOAT_OPS, nodes=None):
+    """(sigma_theta^2, sigma_gamma^2, sigma_V^2) of Q and sigma_n^2 of R at n*, per sample at the step's dt
+    (of ``nodes``, default the constants')."""
     n = n_star if c.adaptive else 0.0
-    pitch, roll, speed, load = c.nodes
+    pitch, roll, speed, load = c.nodes if nodes is None else nodes
     return (piecewise_variance(n, *pitch, ops) * c.q_scale, piecewise_variance(n, *roll, ops) * c.q_scale,
             piecewise_variance(n, *speed, ops) * c.q_scale, piecewise_variance(n, *load, ops) * c.r_scale)
 
@@ -458,7 +462,9 @@ def step(state, gyro, accel, c: StepConstants, ops=FLOAT_OPS, gravity=None):
     gravity: None (004: the accelerometer sample is the observation), or (use, (g0, g1, g2)): where
     ``use`` holds, the observation is that world-frame vector (m/s^2) turned into body axes at the
     propagated attitude in place of the sample -- the acceleration compensation's measured gravity
-    (:func:`compensated_gravity`); elsewhere the sample.
+    (:func:`compensated_gravity`); elsewhere the sample, with the variances of ``c.fallback_nodes``
+    when there are some (a filter trained to trust the compensated observation trusts a bare
+    accelerometer as much: a manoeuvre would pull it toward level).
     """
     q, V, P, n_star = state
     q = propagate(q, gyro, c.half_dt, ops)
@@ -472,6 +478,9 @@ def step(state, gyro, accel, c: StepConstants, ops=FLOAT_OPS, gravity=None):
     finite = ops.isfinite(n)
     n_star = ops.where(finite, n_star + c.n_alpha * ((n - 1.0) - n_star), n_star)
     variances = scaled_variances(n_star, c, ops)
+    if gravity is not None and c.fallback_nodes is not None:
+        plain = scaled_variances(n_star, c, ops, c.fallback_nodes)
+        variances = tuple(ops.where(use_gravity, v, f) for v, f in zip(variances, plain))
     sq, sg, sv, sn = variances
     P = ops.add_diag(P, sq, sg, sv)
     use = ops.both(finite, n >= c.min_load_factor)
@@ -515,6 +524,7 @@ def compensated_gravity(mean_specific_force, mean_acceleration, g: float = G, op
 
 
 _time = itemgetter(0)
+_NO_GRAVITY = (False, (0.0, 0.0, 0.0))
 
 
 def _floats3(v, what: str) -> list:
@@ -557,6 +567,8 @@ class GyroVertical(GyroIntegrator):
 
     params: :class:`GyroVerticalParams`; dt: gyro/accelerometer sample period, s.
     adaptive=False gives the fixed-variance baseline (every variance at n* = 0).
+    fallback: the parameters used for a sample without a usable acceleration reference (update's
+    accel_ref), e.g. a compensated file's uncompensated counterpart; None: ``params`` throughout.
     q0: initial quaternion [w,x,y,z] body->world (default level, yaw 0).
     P0: initial 3x3 covariance of [d_theta, d_gamma, V] (default diag(0.2^2, 0.2^2, 1)).
     min_load_factor: below this |n| the accelerometer is not used.
@@ -577,7 +589,8 @@ class GyroVertical(GyroIntegrator):
 
     def __init__(self, params: GyroVerticalParams | None = None, dt: float = DT_REF, q0=None, P0=None,
                  adaptive: bool = True, min_load_factor: float = 0.2, n_star_tau_s: float = 0.05,
-                 g: float = G, max_ref_age_s: float = 0.25, history_s: float = 1.0):
+                 g: float = G, max_ref_age_s: float = 0.25, history_s: float = 1.0,
+                 fallback: GyroVerticalParams | None = None):
         super().__init__(dt, q0)
         self.params = params if params is not None else GyroVerticalParams()
         self.adaptive = bool(adaptive)
@@ -587,8 +600,10 @@ class GyroVertical(GyroIntegrator):
         self._P = np.diag(P0_DIAG) if P0 is None else np.array(P0, dtype=np.float64)
         if self._P.shape != (3, 3):
             raise ValueError("gyrovertical: P0 must be 3x3")
+        self.fallback = fallback
         self._c = step_constants([self.params.function(fn) for fn in _FUNCS], self.dt, self.adaptive,
-                                 self.min_load_factor, n_star_tau_s, self.g)
+                                 self.min_load_factor, n_star_tau_s, self.g,
+                                 None if fallback is None else [fallback.function(fn) for fn in _FUNCS])
         self.n_star = 0.0
         self.variances = scaled_variances(0.0, self._c)
         self.corrected = False
@@ -638,6 +653,8 @@ class GyroVertical(GyroIntegrator):
             if heading_rad is not None and math.isfinite(heading_rad):
                 offset = yaw_of(self._q) - float(heading_rad)
             gravity = self._window_gravity(float(t_s), accel_ref, offset)
+        if gravity is None and self.fallback is not None:   # no reference: the fallback's variances
+            gravity = _NO_GRAVITY
         state, self.variances, self.corrected = step((self._q, self.V, self._P, self.n_star), gyro, accel,
                                                      self._c, gravity=gravity)
         self.compensated = gravity is not None and gravity[0]
@@ -806,6 +823,16 @@ class TrainedParams:
     adaptive: GyroVerticalParams
     fixed: GyroVerticalParams
     meta: dict
+    # a compensated file's parameters for samples without a reference ([fallback]; None: adaptive's)
+    fallback: GyroVerticalParams | None = None
+
+    def flown(self, compensated: bool) -> tuple[GyroVerticalParams, GyroVerticalParams | None]:
+        """(params, fallback) of the GyroVertical that flies this file: compensated, the adaptive
+        parameters with the fallback for samples without a reference; not, the fallback when there is
+        one (the filter trusting a bare accelerometer as a manoeuvre leaves it), else the adaptive."""
+        if compensated:
+            return self.adaptive, self.fallback
+        return (self.fallback if self.fallback is not None else self.adaptive), None
 
 
 def load_trained(path: str | Path = DEFAULT_PARAMS_FILE) -> TrainedParams:
@@ -817,6 +844,7 @@ def load_trained(path: str | Path = DEFAULT_PARAMS_FILE) -> TrainedParams:
         raise ValueError(f"{path}: cannot read gyro-vertical parameters: {exc}") from None
     try:
         return TrainedParams(GyroVerticalParams.from_dict(data.get("adaptive", {})),
-                             GyroVerticalParams.from_dict(data.get("fixed", {})), dict(data.get("meta", {})))
+                             GyroVerticalParams.from_dict(data.get("fixed", {})), dict(data.get("meta", {})),
+                             GyroVerticalParams.from_dict(data["fallback"]) if "fallback" in data else None)
     except ValueError as exc:
         raise ValueError(f"{path}: {exc}") from None

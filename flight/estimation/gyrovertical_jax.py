@@ -69,7 +69,7 @@ def _scan_step_compensated(c, window, delay, carry, sample):
 
 
 @partial(jax.jit, static_argnames=("dt", "adaptive", "min_load_factor", "n_star_tau_s", "g", "window", "delay"))
-def run_batch(log_params, gyro, accel, q0, accel_ref=None, heading=None, *, dt: float = DT_REF, adaptive: bool = True,
+def run_batch(log_params, gyro, accel, q0, accel_ref=None, heading=None, fallback_log_params=None, *, dt: float = DT_REF, adaptive: bool = True,
               min_load_factor: float = 0.2, n_star_tau_s: float = 0.05, g: float = G, window: int = 0,
               delay: int = 0):
     """(roll, pitch), each (S, N), for S sequences of N samples: gyro, accel (S, N, 3), q0 (S, 4).
@@ -80,10 +80,16 @@ def run_batch(log_params, gyro, accel, q0, accel_ref=None, heading=None, *, dt: 
     acceleration (world ENU) over the ``window`` sample intervals ending ``delay`` samples earlier
     (``a`` of :func:`flight.estimation.gyrovertical.fixed_windows`; NaN: none); None: the filter of 004.
     heading (S, N): the vehicle's yaw at each sample (GyroVertical.update's heading_rad; NaN or None:
-    the filter's own).
+    the filter's own).  fallback_log_params: GyroVertical's ``fallback`` (the variances of a sample
+    without a reference), as log_params; None: log_params throughout.
     """
     nodes = jnp.exp(jnp.clip(log_params, *LOG_CLIP)).reshape(4, 3)   # rows pitch, roll, speed, n
-    c = step_constants([tuple(row) for row in nodes], dt, adaptive, min_load_factor, n_star_tau_s, g)
+    fallback = None
+    if fallback_log_params is not None:
+        fallback = [tuple(row) for row in jnp.exp(jnp.clip(fallback_log_params, *LOG_CLIP)).reshape(4, 3)]
+        if accel_ref is None:   # no reference at any sample: the fallback's variances throughout
+            nodes, fallback = jnp.stack([jnp.stack(row) for row in fallback]), None
+    c = step_constants([tuple(row) for row in nodes], dt, adaptive, min_load_factor, n_star_tau_s, g, fallback)
     if accel_ref is not None and not (window >= 1 and delay >= 1):
         raise ValueError(f"gyrovertical: window and delay must be >= 1 sample, got {window}, {delay}")
 

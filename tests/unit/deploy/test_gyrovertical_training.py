@@ -107,6 +107,14 @@ def test_compensated_training_is_reproducible_and_the_file_says_so(tmp_path):
     save(tmp_path / "p.toml", a)
     assert load_trained(tmp_path / "p.toml").meta["compensation"] == "window"
     assert "compensation" not in run_training(**{**kw, "compensation": "none"}).meta
+    # --fallback: another file's [adaptive] as [fallback], the training itself the same
+    c = run_training(**kw, fallback=str(PAPER_PARAMS_FILE))
+    assert c.adaptive == a.adaptive and c.fallback == load_trained(PAPER_PARAMS_FILE).adaptive
+    assert c.meta["command"].endswith(f"--fallback {PAPER_PARAMS_FILE}")
+    save(tmp_path / "f.toml", c)
+    back = load_trained(tmp_path / "f.toml")
+    assert back.fallback == c.fallback and back.flown(True) == (c.adaptive, c.fallback)
+    assert back.flown(False) == (c.fallback, None) and a.flown(False) == (a.adaptive, None)
 
 
 def test_the_reference_is_the_flights_acceleration_and_the_compensation_helps_through_a_flip(flip_flight):
@@ -146,6 +154,9 @@ def test_cli_refuses_bad_training_arguments():
     out = subprocess.run([sys.executable, "-m", "deploy.cli", "train-gyrovertical", "--flights", "0"],
                          capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert out.returncode == 2 and "--flights" in out.stderr and "Traceback" not in out.stderr
+    out = subprocess.run([sys.executable, "-m", "deploy.cli", "train-gyrovertical", "--fallback", str(PAPER_PARAMS_FILE)],
+                         capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert out.returncode == 2 and "--compensation window" in out.stderr and "Traceback" not in out.stderr
 
 
 @pytest.fixture(scope="module")

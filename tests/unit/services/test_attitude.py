@@ -147,8 +147,15 @@ def test_each_vehicle_flies_the_gyrovertical_file_its_airframe_names(vehicle, fi
     from flight.vehicle import PARAMS_DIR
     loop = AttitudeLoop(FakeIO("attitude", PARAMS, GV, vehicle=vehicle))
     assert load_vehicle(vehicle).gyrovertical_params == file
-    assert gyrovertical_of(loop) == load_trained(PARAMS_DIR / file).adaptive
+    trained = load_trained(PARAMS_DIR / file)
+    assert gyrovertical_of(loop) == trained.adaptive
     assert loop.gv_compensated is compensated
+    # compensated, the file's [fallback] for samples without a reference (the q820's: its uncompensated file's)
+    assert loop.make_gyrovertical([1.0, 0.0, 0.0, 0.0]).fallback == (trained.fallback if compensated else None)
+    if compensated:
+        assert trained.fallback == load_trained(PARAMS_DIR / "gyrovertical_q820_mems.toml").adaptive
+        off = AttitudeLoop(FakeIO("attitude", PARAMS, {**GV, "gyrovertical_compensation": "none"}, vehicle=vehicle))
+        assert gyrovertical_of(off) == trained.fallback   # flown without: the uncompensated filter
 
 
 def test_the_services_gyrovertical_params_overrides_the_airframes():

@@ -394,6 +394,12 @@ def test_without_a_usable_reference_the_filter_is_004s():
         assert not f.compensated, name
         np.testing.assert_array_equal(out[0], plain[0], err_msg=name)
         np.testing.assert_array_equal(out[1], plain[1], err_msg=name)
+    # with fallback parameters, a sample without a reference is the filter of those, bit for bit
+    fast, slow = GyroVerticalParams(n_var0=1e-3), GyroVerticalParams(n_var0=1.0)
+    f = GyroVertical(fast, dt=DT_REF, q0=q0, fallback=slow)
+    out = run_sequence(f, gyro, accel, cases["stale"], heading)
+    np.testing.assert_array_equal(out, run_sequence(GyroVertical(slow, dt=DT_REF, q0=q0), gyro, accel))
+    assert not np.array_equal(out, run_sequence(GyroVertical(fast, dt=DT_REF, q0=q0), gyro, accel))
     # a reference that goes bad mid-flight: from then on the accelerometer, and finite throughout
     a_bad = a.copy()
     a_bad[800:] = np.nan
@@ -422,14 +428,17 @@ def test_the_compensated_step_gives_the_same_filter_on_floats_and_in_jax():
     a = ref[3].copy()
     a[1200:1300] = np.nan                   # a gap in the reference: the accelerometer there, on both
     ref = (*ref[:3], a)
-    params = GyroVerticalParams(n_var0=1e-3)
+    params, fallback = GyroVerticalParams(n_var0=1e-3), GyroVerticalParams(n_var0=1.0)
     q0_yaw0 = quat_from_euler(*quat_to_euler(q0)[:2], 0.0)
-    r, p = run_sequence(GyroVertical(params, DT_REF, q0=q0_yaw0, adaptive=False), gyro, accel, ref, heading)
+    r, p = run_sequence(GyroVertical(params, DT_REF, q0=q0_yaw0, adaptive=False, fallback=fallback), gyro, accel,
+                        ref, heading)
     rj, pj = run_batch(jnp.asarray(params.to_vector()), jnp.asarray(gyro[None]), jnp.asarray(accel[None]),
                        jnp.asarray(q0_yaw0[None]), jnp.asarray(a[None]), jnp.asarray(heading[None]),
-                       window=40, delay=2, adaptive=False)
+                       jnp.asarray(fallback.to_vector()), window=40, delay=2, adaptive=False)
     # JAX in float32 here (measured 5e-7 rad apart; 1e-13 with jax_enable_x64)
     np.testing.assert_allclose(np.asarray(rj[0]), r, atol=2e-5)
     np.testing.assert_allclose(np.asarray(pj[0]), p, atol=2e-5)
     r0, _ = run_sequence(GyroVertical(params, DT_REF, q0=q0_yaw0, adaptive=False), gyro, accel)
     assert np.abs(r0 - r).max() > math.radians(1)   # the compensation did something
+    r1, _ = run_sequence(GyroVertical(params, DT_REF, q0=q0_yaw0, adaptive=False), gyro, accel, ref, heading)
+    assert np.abs(r1 - r).max() > 1e-4              # and the fallback's variances in the gap
