@@ -647,6 +647,10 @@ class GyroVertical(GyroIntegrator):
         own yaw taken as right (true only for a start at the true yaw and a short flight)."""
         gyro = _floats3(gyro_rad_s, "gyro")
         accel = _floats3(accel_m_s2, "accel")
+        if t_s is None and self.fallback is None:   # 004's filter (no compensation): the shortest way
+            state, self.variances, self.corrected = step((self._q, self.V, self._P, self.n_star), gyro, accel, self._c)
+            self._q, self.V, self._P, self.n_star = state
+            return euler_rp(self._q)
         gravity = None
         if t_s is not None and accel_ref is not None:
             offset = 0.0
