@@ -187,16 +187,21 @@ def lead_commands_floats(desired_n: list, roots: list, gain: float, lo: float, h
     it never shifts the collective or the torques' balance that the mixer chose. NaN stays NaN."""
     led = []
     scale = 1.0
+    sqrt = math.sqrt
     for f, s in zip(desired_n, roots):
-        sd = math.sqrt(f) if f > 0.0 else 0.0
+        sd = sqrt(f) if f > 0.0 else 0.0
         sc = sd + (sd - s) * gain
-        c = sc * abs(sc)          # a speed below zero as a negative force: scaled back below
-        if c > hi and c > f:
-            scale = min(scale, max(hi - f, 0.0) / (c - f))
+        c = sc * sc if sc >= 0.0 else -sc * sc   # a speed below zero as a negative force: scaled back below
+        if c > hi:
+            if c > f:
+                scale = min(scale, max(hi - f, 0.0) / (c - f))
         elif c < lo and c < f:
             scale = min(scale, max(f - lo, 0.0) / (f - c))
         led.append(c)
     if scale == 1.0:
+        if desired_n[0] == desired_n[0] and desired_n[1] == desired_n[1] and desired_n[2] == desired_n[2] \
+                and desired_n[3] == desired_n[3]:
+            return led
         return [c if f == f else f for c, f in zip(led, desired_n)]   # NaN stays NaN
     return [f + scale * (c - f) if f == f else f for c, f in zip(led, desired_n)]
 

@@ -5,6 +5,14 @@ mixer F = M^-1 u (saturation keeps attitude authority before collective
 thrust), then into PWM through the motor map of 000. Disarmed (or with no
 command yet) it holds every motor at the minimum pulse.
 
+The rotors lag their speed commands by the vehicle's motor_time_constant_s (20 ms on x250), a
+lag law (8) does not see. The driver carries each rotor's speed as flight/motor_model.py has it
+(from what it sent) and leads the attitude command's forces: it commands the speeds that make
+the rotors follow the mixer's forces with `lag_compensation_tau_s` (10 ms) instead
+(flight/motor_model.lead_gain, lead_commands_floats; the feed-forward of an actuator's known
+lag). A lead that would leave the rotors' range is scaled back, alike on all four, until it fits.
+Plans carry the lag in their own model and the failsafe flies as it was: neither is led.
+
 Plans (the flip of 001): while the planner's setpoint is in mode `plan` and a
 plan (planner/plan) is valid at t (t0_s <= t < t0_s + horizon dt_s), the driver
 applies u = u_plan(t) + K(t) (x - x_plan(t)) (flight/control/plan.py) on the latest
@@ -198,12 +206,15 @@ class MotorDriver:
                  "armed": True, "saturated": bool(saturated), "imu_t_s": cmd["imu_t_s"]}, t_s=t)
 
     def rotors_at(self, t: float) -> None:
-        """The lead's model of the rotor speeds carried to t under the speeds last commanded."""
+        """The lead's model of the rotor speeds carried to t under the speeds last commanded
+        (root_step, written out for the four rotors: this runs every 400 Hz step)."""
         t0 = self.roots_t
         if t0 is not None and t > t0:
             dt = t - t0
-            d = self.decay if abs(dt - self.dt_tick) < 1e-9 else decay(dt, self.tau)
-            self.roots = [c + (s - c) * d for s, c in zip(self.roots, self.sent_roots)]
+            d = self.decay if -1e-9 < dt - self.dt_tick < 1e-9 else decay(dt, self.tau)
+            s0, s1, s2, s3 = self.roots
+            c0, c1, c2, c3 = self.sent_roots
+            self.roots = [c0 + (s0 - c0) * d, c1 + (s1 - c1) * d, c2 + (s2 - c2) * d, c3 + (s3 - c3) * d]
         self.roots_t = t
 
     def sent(self, forces) -> None:
