@@ -184,7 +184,8 @@ def lead_commands_floats(desired_n: list, roots: list, gain: float, lo: float, h
     s_d + g (s_d - s) drive the rotors, now at roots = sqrt(f), towards the desired forces
     (s_d = sqrt(desired), within [lo, hi]). Where a command would leave [lo, hi] the lead (what it
     adds to the desired forces) is scaled back, the same fraction on every rotor, until all fit:
-    it never shifts the collective or the torques' balance that the mixer chose. NaN stays NaN."""
+    no rotor is pushed past its range and the lead keeps its direction (a rotor already at a
+    limit, where the mixer put it, leaves no room for it). NaN stays NaN."""
     led = []
     scale = 1.0
     sqrt = math.sqrt
