@@ -1,21 +1,22 @@
 """How the suite runs on two workers (pytest-xdist, `-n 2 --dist loadgroup` in pyproject.toml).
 
-Tests marked `realtime` fly on the wall clock: they run one at a time, all on one worker, first,
-and each has the machine to itself: it takes an exclusive lock that every other test takes
-shared, so the other worker waits while a real-time flight runs (under a lockstep flight or a
-JAX compile on the other core, a real-time stack's timing is not what the test judges). The
-rest runs on both workers, the unit modules first. A unit module stays on one worker (its
-module fixtures: an iLQR solver compiled once), and so do the integration tests that read one
-module- or session-scoped flight (flown once, not once per worker).
+Tests marked `realtime` fly on the wall clock: they run one at a time, all on one worker, first.
+Every other test runs at the OS's idle scheduling class (SCHED_IDLE, its processes too), so it
+takes only the CPU a real-time flight leaves: the stack's loops run SCHED_FIFO, its router and
+tools at normal priority, and each wakes ahead of idle work (under a lockstep flight or a JAX
+compile at normal priority on the other core, a real-time stack's timing is not what the test
+judges). The unit modules come next, then the other integration tests. A unit module stays on one
+worker (its module fixtures: an iLQR solver compiled once), and so do the integration tests that
+read one module- or session-scoped flight (flown once, not once per worker).
 """
 
-import fcntl
 import os
-import tempfile
+import warnings
 
 import pytest
 
 REALTIME = "realtime"
+UNDER_XDIST = "PYTEST_XDIST_TESTRUNUID" in os.environ
 
 
 def pytest_itemcollected(item):   # as collected: xdist names the groups before other hooks see the items
@@ -43,24 +44,28 @@ def _shared_flight(item) -> str | None:
     return None
 
 
-def _run_lock():
-    """The lock file the workers of this run share (None: not under xdist)."""
-    run = os.environ.get("PYTEST_XDIST_TESTRUNUID")
-    if run is None:
-        return None
-    return open(os.path.join(tempfile.gettempdir(), f"zenpilot-tests-{run}.lock"), "a")
-
-
-_LOCK = _run_lock()
-
-
-@pytest.hookimpl(hookwrapper=True)   # setup, call and teardown: a real-time test alone on the machine
-def pytest_runtest_protocol(item, nextitem):
-    if _LOCK is None:
-        yield
-        return
-    fcntl.flock(_LOCK, fcntl.LOCK_EX if item.get_closest_marker(REALTIME) else fcntl.LOCK_SH)
+def _schedule_worker(policy: int) -> bool:
+    """Every thread of this worker at `policy` (the processes it starts inherit it); False where
+    the OS refuses (leaving SCHED_IDLE needs privilege)."""
+    if os.sched_getscheduler(0) == policy:
+        return True
     try:
-        yield
-    finally:
-        fcntl.flock(_LOCK, fcntl.LOCK_UN)
+        for tid in os.listdir("/proc/self/task"):
+            try:
+                os.sched_setscheduler(int(tid), policy, os.sched_param(0))
+            except ProcessLookupError:   # a thread that ended meanwhile
+                pass
+    except PermissionError:
+        return False
+    return True
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_setup(item):
+    if not UNDER_XDIST:   # one process: nothing runs beside a test
+        return
+    if item.get_closest_marker(REALTIME):
+        if not _schedule_worker(os.SCHED_OTHER):
+            warnings.warn("a real-time test runs at SCHED_IDLE: the OS refused normal scheduling back")
+    else:
+        _schedule_worker(os.SCHED_IDLE)

@@ -6,7 +6,8 @@ steps / land in one flight; the README's script (examples/mavsdk_mission.py, run
 as it is) flies a 4-waypoint mission and returns to launch in another. The
 stack runs with no mission (the planner waits for commands), twice: in lockstep
 (the bridge lives on the wall clock, so every wait is generous: the simulator runs
-slower than real time on a busy machine), then in real time on the default stack
+slower than real time on a busy machine, and the suite runs it at idle priority beside the
+real-time tests), then in real time on the default stack
 (the estimators, as a user flies it). One stack serves every test of a mode, in
 order: first a plain pymavlink listener checks the messages QGroundControl relies
 on, then MAVSDK binds the same port.
@@ -38,7 +39,7 @@ from mavsdk.asyncio.plugins.offboard import OffboardAsync, PositionNedYaw  # noq
 from mavsdk.asyncio.plugins.param import ParamAsync  # noqa: E402
 from mavsdk.asyncio.plugins.telemetry import FlightMode, LandedState, TelemetryAsync  # noqa: E402
 
-pytestmark = [pytest.mark.integration, pytest.mark.realtime]
+pytestmark = pytest.mark.integration
 mavlink = mavutil.mavlink
 HOME = (47.397742, 8.545594, 488.0)   # the bridge's default home (services/params/mavlink.py)
 
@@ -54,7 +55,9 @@ def zp(*args, env):
                           capture_output=True, text=True, timeout=180)
 
 
-@pytest.fixture(scope="module", params=["lockstep", "real time"])
+# the real-time stack is a real-time test (alone among real-time flights); the lockstep one runs
+# beside them like any lockstep flight
+@pytest.fixture(scope="module", params=["lockstep", pytest.param("real time", marks=pytest.mark.realtime)])
 def stack(request, tmp_path_factory):
     """`zenpilot up` (`--lockstep`, then in real time) with no mission (the planner waits for
     commands); the bridge it starts (on the wall clock, as always) talks to this test's UDP port."""

@@ -139,9 +139,11 @@ def test_scheduling_reports_what_holds_for_every_thread():
 
 
 def test_refused_priority_is_reported_not_fatal():
-    # 100 is beyond SCHED_FIFO's 1..99 for anyone (root included): the OS refuses it
+    # 100 is beyond SCHED_FIFO's 1..99 for anyone (root included): the OS refuses it, and the
+    # policy stays what it was (the suite's workers run at SCHED_IDLE, tests/conftest.py)
+    before = os.sched_getscheduler(0)
     assert "priority 100 refused" in apply_scheduling(100, ())
-    assert os.sched_getscheduler(0) == os.SCHED_OTHER
+    assert os.sched_getscheduler(0) == before
 
 
 def test_an_idle_reader_loses_nothing_it_did_not_ask_for():
