@@ -320,9 +320,32 @@ def step_constants(nodes, dt: float, adaptive: bool = True, min_load_factor: flo
         raise ValueError(f"gyrovertical: n_star_tau_s must be >= 0, got {n_star_tau_s!r}")
     dt = float(dt)
     n_alpha = 1.0 if n_star_tau_s == 0 else 1.0 - math.exp(-dt / n_star_tau_s)
+    nodes = tuple(tuple(node) for node in nodes)
     return StepConstants(0.5 * dt, dt / DT_REF, DT_REF / dt, n_alpha, float(min_load_factor), float(g),
-                         bool(adaptive), tuple(tuple(node) for node in nodes),
-                         None if fallback_nodes is None else tuple(tuple(node) for node in fallback_nodes))
+                         bool(adaptive), nodes,
+                         None if fallback_nodes is None else matched_nodes(nodes, fallback_nodes))
+
+
+def matched_nodes(nodes, fallback_nodes) -> tuple:
+    """The fallback's nodes with every variance times one factor c, so that its covariance lives on
+    the scale of ``nodes``' (c = sqrt(Q R) of nodes over the fallback's, roll and load at n* = 0).
+
+    Only the ratios of Q to R shape a Kalman filter's gains (Q, R and P all times c: the same gains), so
+    the fallback filters as before; but P carries over a switch between the two: unmatched, a P grown
+    under the compensated variances (~1e4 times the fallback's) meets the fallback's small R and the
+    first bare accelerometer sample is taken whole (17 deg of error on a flip's log)."""
+    (_, (r0, _, _), _, (n0, _, _)) = nodes
+    fallback_nodes = tuple(tuple(node) for node in fallback_nodes)
+    (_, (f0, _, _), _, (m0, _, _)) = fallback_nodes
+    c = ((r0 * n0) / (f0 * m0)) ** 0.5   # floats or traced JAX scalars alike
+    return tuple((v0 * c, n2, v2 * c) for v0, n2, v2 in fallback_nodes)
+
+
+def matched_fallback(params: GyroVerticalParams, fallback: GyroVerticalParams) -> GyroVerticalParams:
+    """:func:`matched_nodes` as parameters: the filter a compensated GyroVertical falls back to."""
+    nodes = matched_nodes([params.function(fn) for fn in _FUNCS], [fallback.function(fn) for fn in _FUNCS])
+    return GyroVerticalParams(**{f"{fn}_{k}": float(v) for fn, node in zip(_FUNCS, nodes)
+                                 for k, v in zip(_SUFFIX, node)})
 
 
 def euler_rp(q, ops=FLOAT_OPS):
