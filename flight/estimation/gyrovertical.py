@@ -107,11 +107,11 @@ from __future__ import annotations
 import bisect
 import dataclasses
 import math
-from collections import deque
 import tomllib
+from collections import deque
 from dataclasses import dataclass
-from pathlib import Path
 from operator import itemgetter
+from pathlib import Path
 from types import SimpleNamespace
 from typing import NamedTuple, Sequence
 
