@@ -103,10 +103,10 @@ def _fake_vehicle():
     return SimpleNamespace(mass_kg=1.0, inertia_kg_m2=(0.01, 0.02, 0.03), motor_time_constant_s=0.02)
 
 
-def test_anchor_weights_interpolate_linearly_between_the_knots_on_each_side():
-    """A case's weights put it on the piecewise-linear line through the centre (0) and the knots
-    of its side: at a knot all on that knot's row, between two knots shared, beyond the last
-    extrapolated; each parameter's rows independently of the others'."""
+def test_anchor_weights_interpolate_through_the_knots_on_each_side():
+    """A case's weights are those of the polynomial through the centre (0) and the knots of its
+    side: at a knot all on that knot's row, exact for a parabola on each side (two knots), a
+    line with one; each parameter's rows independently of the others'."""
     knots = [-0.05, -0.1, 0.04, 0.08]
     policy = AnchoredPolicy(None, None, None, [("mass", k) for k in knots] + [("motor_lag", 0.2)])
     e = np.array([-0.12, -0.1, -0.075, -0.05, -0.02, 0.0, 0.02, 0.04, 0.06, 0.08, 0.09])
@@ -115,10 +115,13 @@ def test_anchor_weights_interpolate_linearly_between_the_knots_on_each_side():
              "inertia": np.tile([0.01, 0.02, 0.03], (e.size, 1))}
     w = policy.weights(_fake_vehicle(), Uncertainty(), cases)
     assert w.shape == (e.size, 6) and np.all(w[:, 0] == 1.0)
-    np.testing.assert_allclose(w[:, 1:5] @ np.array(knots), e, atol=1e-6)   # linear in the parameter
+    k = np.array(knots)
+    np.testing.assert_allclose(w[:, 1:5] @ k, e, atol=1e-6)                  # a line
+    left, right = np.where(k < 0, k, 0.0), np.where(k > 0, k, 0.0)
+    np.testing.assert_allclose(w[:, 1:5] @ (3 * left ** 2 - 2 * right ** 2),  # a parabola a side
+                               np.where(e < 0, 3 * e ** 2, -2 * e ** 2), atol=1e-6)
     np.testing.assert_allclose(w[1], [1, 0, 1, 0, 0, 0], atol=1e-6)          # at a knot: its row
-    np.testing.assert_allclose(w[2], [1, 0.5, 0.5, 0, 0, 0], atol=1e-6)      # between two
-    assert w[0, 1] < 0 < w[0, 2]                                             # beyond the last
+    np.testing.assert_allclose(w[5, :5], [1, 0, 0, 0, 0], atol=1e-6)         # the centre (the mass's)
     np.testing.assert_allclose(w[:, 5], np.maximum(lag, 0.0) / 0.2, atol=1e-6)
 
 
