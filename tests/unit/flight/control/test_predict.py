@@ -214,3 +214,24 @@ def test_cli_prints_the_envelope_and_refuses_bad_arguments(tmp_path, jax_compile
     no_flip = subprocess.run([sys.executable, "-m", "deploy.cli", "predict", "--mission", "hover"],
                              cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert no_flip.returncode == 2 and "has no flip item" in no_flip.stderr
+
+
+def test_cli_replay_flag_asks_for_the_nominals_policy_in_every_case(monkeypatch, capsys):
+    """`zenpilot predict --replay` builds the predictor with adapt=False (no flights on the knots);
+    without it, adapt=True. The predictor is stubbed: only what the command asks for is checked."""
+    import argparse
+
+    import flight.control.predict as predict
+    from deploy import predict_cli
+    asked = []
+
+    def build(vehicle, method, altitude_m, uncertainty, adapt=True):
+        asked.append(adapt)
+        raise PredictError("stub")
+    monkeypatch.setattr(predict, "build_predictor", build)
+    parser = argparse.ArgumentParser()
+    predict_cli.add_parser(parser.add_subparsers())
+    for argv, adapt in ((["predict", "--replay"], False), (["predict"], True)):
+        args = parser.parse_args(argv)
+        assert args.func(args) == 0 and asked[-1] is adapt
+    assert "cannot predict: stub" in capsys.readouterr().out
