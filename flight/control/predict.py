@@ -134,7 +134,7 @@ class Prediction:
     rollout_s: float           # wall time of the N rollouts (compiled)
     compile_s: float           # the first call's extra time (compilation)
     nominal_s: float           # wall time of the nominal flight (its iLQR solves)
-    anchor_flights: int = 0    # the controller's flights on the extreme vehicles (AnchoredPolicy)
+    anchor_flights: int = 0    # the controller's flights on the knots' vehicles (AnchoredPolicy)
     anchor_s: float = 0.0      # their wall time
 
     @property
@@ -368,8 +368,8 @@ def case_parameters(vehicle: Vehicle, uncertainty: Uncertainty, cases: dict) -> 
 @dataclass
 class AnchoredPolicy:
     """The policy tables the rollouts replay: row 0 the centre's flight, then per (parameter,
-    side) the change of the flight on that side's extreme vehicle; weights() gives a case its
-    row weights (1 on row 0)."""
+    knot) the change of the flight on that knot's vehicle; weights() gives a case its row
+    weights (1 on row 0)."""
     u_plan: np.ndarray       # (A, T, 4)
     gains: np.ndarray        # (A, T, 4, state_dim)
     x_plan: np.ndarray       # (A, T, state_dim)
