@@ -1,9 +1,11 @@
 """`zenpilot predict`: a mission's flips predicted before they are flown (flight/control/predict.py).
 
 For each flip item of the mission: the flip flown once on the planner's model by the
-planner's own controller, then N closed-loop rollouts of its plans and feedback gains on
-vehicles drawn from the uncertainty (mass, inertia, thrust coefficient, motor lag, wind and
-gusts, control delay, the start state's error), batched in JAX. Prints the predicted
+planner's own controller, and by the same controller on the vehicles at the knots of each drawn
+parameter (20 flights for the default uncertainty), then N closed-loop rollouts on vehicles
+drawn from the uncertainty (mass, inertia, thrust coefficient, motor lag, wind and gusts,
+control delay, the start state's error), batched in JAX, each replaying the plans and feedback
+gains the controller flies on its vehicle (interpolated between the knots). Prints the predicted
 distribution of each flip figure (5th / 50th / 95th percentile), the probabilities of a crash
 and of touching the ground, and whether the planner would refuse the item (its predicted
 95th-percentile loss from the hover leaves less than the clearance). Exit 1 when an item
@@ -47,6 +49,9 @@ def add_parser(sub) -> None:
     p.add_argument("--gust-m-s", type=float, default=d.gust_m_s, help=f"gusts, 1 sigma per axis, m/s (default {d.gust_m_s:g})")
     p.add_argument("--delay-ms", type=float, default=d.delay_max_s * 1e3,
                    help=f"control delay up to, ms (default {d.delay_max_s * 1e3:g})")
+    p.add_argument("--replay", action="store_true",
+                   help="every case replays the nominal's plans and gains: no flights on the knots (faster), "
+                        "pessimistic on a stronger vehicle (the planner's flip_predict_adapt=false)")
     p.add_argument("--json", metavar="FILE", help="also write the summary per flip item as JSON")
     p.add_argument("--compile-cache-dir", metavar="DIR", default="",
                    help="keep the compiled solver and rollouts in DIR (JAX's persistent cache, as the planner's "
@@ -89,7 +94,8 @@ def cmd_predict(args) -> int:
     refused, out = 0, []
     for index, item in flips:
         try:
-            predictor = build_predictor(vehicle, item["method"], item["altitude_m"], uncertainty)
+            predictor = build_predictor(vehicle, item["method"], item["altitude_m"], uncertainty,
+                                        adapt=not args.replay)
         except PredictError as exc:
             print(f"item {index} ({item['method']}): cannot predict: {exc}")
             out.append({"item": index, "method": item["method"], "error": str(exc)})
@@ -99,6 +105,7 @@ def cmd_predict(args) -> int:
         refused += reason is not None
         print(f"\nitem {index}: {item['method']} flip from {item['altitude_m']:g} m "
               f"(nominal flight {predictor.nominal_s:.1f} s, solver compile and {predictor.nominal.solves} iLQR solves; "
+              f"{result.anchor_flights} flights on the knots' vehicles in {result.anchor_s:.1f} s; "
               f"rollouts compiled in {result.compile_s:.2f} s, "
               f"{args.rollouts} rollouts in {result.rollout_s:.2f} s)")
         print(f"  {'figure':<38} {'p5':>8} {'median':>8} {'p95':>8}")

@@ -117,8 +117,8 @@ def predict_flips(rt: Runtime, mission, controllers: dict, command_method: str |
             continue
         t0 = time.monotonic()
         try:
-            result = build_predictor(controllers[method].vehicle, method, altitude,
-                                     controller=controllers[method]).predict(n, seed=0)
+            result = build_predictor(controllers[method].vehicle, method, altitude, controller=controllers[method],
+                                     adapt=bool(rt.params["flip_predict_adapt"])).predict(n, seed=0)
         except PredictError as exc:
             refused[(method, altitude)] = f"no prediction: {exc}"
             rt.problem(f"flip {method} at {altitude:g} m: no prediction: {exc}")

@@ -6,19 +6,25 @@ Two steps, both pure (no I/O):
    controller (flight/control/flip_runner.FlipController: phase machine, adaptive targets, iLQR
    re-solved at its rate), from a hover at the item's altitude. What the motor driver applies
    at each tick, u = u_plan + K (x - x_plan), is kept as a time-varying affine policy
-   (u_plan, K, x_plan per tick).
-2. ``predict``: N closed-loop rollouts of that policy at once (``jax.vmap`` over cases of a
-   ``lax.scan`` over ticks), each on a vehicle drawn from ``Uncertainty``: mass, inertia,
-   thrust coefficient and motor lag, a steady wind with gusts (first-order Gauss-Markov),
-   a control delay, and an error in the state the flip starts from (the estimators'). The
-   controller models its motors from the commands it sent with the file's time constant, as
-   the driver does; the plant has the drawn one.
+   (u_plan, K, x_plan per tick). The same controller also flies the vehicles at the knots of
+   each drawn parameter (``anchored_policy``: mass and inertia over the thrust scale, the
+   motor lag; two knots a side, 20 flights for the default uncertainty).
+2. ``predict``: N closed-loop rollouts at once (``jax.vmap`` over cases of a ``lax.scan`` over
+   ticks), each on a vehicle drawn from ``Uncertainty``: mass, inertia, thrust coefficient
+   and motor lag, a steady wind with gusts (first-order Gauss-Markov), a control delay, and an
+   error in the state the flip starts from (the estimators'). Each case replays the policy the
+   controller flies on its vehicle (the knots' tables interpolated per parameter),
+   its planned positions moved with the start's position error (the phase machine's targets
+   are where the flip starts). The controller models its motors from the commands it sent
+   with the file's time constant, as the driver does; the plant has the drawn one.
 
-The rollouts replay the nominal flight's plans with their feedback gains; in flight the
-planner also re-plans from where the vehicle is, so the prediction is the pessimistic side
-of the stack (it does not re-target a vehicle that fell behind). The metrics are those of
-flight/control/flip.flip_metrics, on the nominal phases' clock, and the loss from the turn's start
-(flight/control/flip.heights: the height where the roll starts, less the lowest point after the peak).
+In flight the planner re-plans from the state at 100 Hz: on a stronger or weaker vehicle it
+flies another trajectory, which one set of gains about the nominal would pull back onto the
+nominal's (the first version of this module did: flown flips fell outside its bands on the
+stronger side, docs/flip-history.md). What is left to the gains is the noise: wind, gusts,
+delay, the start's attitude and rates. The metrics are those of flight/control/flip.flip_metrics,
+on the nominal phases' clock, and the loss from the turn's start (flight/control/flip.heights:
+the height where the roll starts, less the lowest point after the peak).
 """
 from __future__ import annotations
 
@@ -104,6 +110,7 @@ class NominalFlip:
     solves: int = 0
     failed_solves: int = 0
     states: np.ndarray = field(default=None, repr=False)  # (T, state_dim) the nominal flight
+    controller: object = field(default=None, repr=False)  # the FlipController that flew it
 
     @property
     def ticks(self) -> int:
@@ -127,6 +134,8 @@ class Prediction:
     rollout_s: float           # wall time of the N rollouts (compiled)
     compile_s: float           # the first call's extra time (compilation)
     nominal_s: float           # wall time of the nominal flight (its iLQR solves)
+    anchor_flights: int = 0    # the controller's flights on the knots' vehicles (AnchoredPolicy)
+    anchor_s: float = 0.0      # their wall time
 
     @property
     def crash_probability(self) -> float:
@@ -165,7 +174,8 @@ class Prediction:
         out = {"rollouts": self.n, "altitude_m": self.altitude_m,
                "p_crash": self.crash_probability, "p_ground": self.ground_probability,
                "p_recovered": self.recovered_probability,
-               "rollout_s": self.rollout_s, "compile_s": self.compile_s, "nominal_s": self.nominal_s}
+               "rollout_s": self.rollout_s, "compile_s": self.compile_s, "nominal_s": self.nominal_s,
+               "anchor_flights": self.anchor_flights, "anchor_s": self.anchor_s}
         for name in FIGURES:
             p5, p50, p95 = self.band(name)
             out[name] = {"p5": p5, "p50": p50, "p95": p95}
@@ -175,10 +185,12 @@ class Prediction:
 # --- the nominal flight ---------------------------------------------------------------------
 
 def fly_nominal(vehicle: Vehicle, method: str = "ilqr-project", altitude_m: float = 5.0,
-                settle_s: float = 1.0, controller=None) -> NominalFlip:
+                settle_s: float = 1.0, controller=None, plant: dict | None = None) -> NominalFlip:
     """The flip item flown on the planner's model, no uncertainty: its policy per tick.
     controller: a built flight.control.flip_runner.FlipController for this vehicle and method (the
-    planner service passes its own; built here otherwise, which compiles the iLQR)."""
+    planner service passes its own; built here otherwise, which compiles the iLQR).
+    plant: another vehicle under the same controller (nominal_params' keys: mass, inertia,
+    thrust_scale, tau); the controller still models its motors with the file's time constant."""
     from flight.control.flip import Phase
     from flight.control.flip_runner import FlipController
     from flight.control.ilqr import hover_state
@@ -195,10 +207,11 @@ def fly_nominal(vehicle: Vehicle, method: str = "ilqr-project", altitude_m: floa
     kf = vehicle.thrust_coefficient_kf
     u_max = float(vehicle.max_rotor_speed_rad_s)
     step = _plant_step(vehicle, tick_s)
-    params = nominal_params(vehicle)
+    params = nominal_params(vehicle) if plant is None else plant
 
     body = hover_state(np.array([0.0, 0.0, altitude_m]))
     forces = np.full(4, vehicle.hover_thrust_per_motor_n)
+    plant_forces = forces.copy()
     x_full = np.concatenate([body, forces]) if c.state_dim == 17 else body.copy()
     c.start(0.0, x_full, altitude_m)
     rows_u, rows_k, rows_x, phases, states = [], [], [], [], []
@@ -229,13 +242,18 @@ def fly_nominal(vehicle: Vehicle, method: str = "ilqr-project", altitude_m: floa
             aligned[6:10] = -aligned[6:10]
         u = np.clip(plan.controls[k] + plan.gains[k] @ (aligned - x_plan), 0.0, u_max)
         command = kf * u * u
-        # the nominal: the driver's model of its motors is the plant's, so one forces state serves both
-        body, forces = (np.asarray(a, dtype=np.float64) for a in step(body, forces, command, params))
+        if plant is None:
+            # the nominal: the driver's model of its motors is the plant's, so one forces state serves both
+            body, forces = (np.asarray(a, dtype=np.float64) for a in step(body, forces, command, params))
+        else:
+            body, rotors = (np.asarray(a, dtype=np.float64) for a in step(body, plant_forces, command, params))
+            plant_forces = rotors
+            forces = forces if tau is None else motor_model.thrust_step(forces, command, tick_s, tau)
     if flip_tick is None:
         raise PredictError(f"the nominal {method} flip from {altitude_m:g} m never started its turn")
     return NominalFlip(vehicle, method, float(altitude_m), tick_s, x_full,
                        np.array(rows_u), np.array(rows_k), np.array(rows_x), phases, flip_tick, tau,
-                       c.solves, c.failed_solves, np.array(states))
+                       c.solves, c.failed_solves, np.array(states), controller=c)
 
 
 # --- the plant of the rollouts ---------------------------------------------------------------
@@ -283,6 +301,152 @@ def _plant_step(vehicle: Vehicle, dt_s: float):
     return jax.jit(step)
 
 
+# --- the controller's own answer to the vehicle drawn ----------------------------------------
+#
+# The flown controller re-plans from the state at 100 Hz with the file's model; on a vehicle
+# that is stronger or weaker than the file it flies another trajectory (a lighter or more
+# agile one turns ahead of the nominal's clock and recovers higher), which one set of gains
+# about the nominal cannot follow: it pulls every case back onto the nominal's trajectory. So
+# the rollouts replay, per case, the policy the controller flies on that case's vehicle: the
+# nominal's tables plus, per parameter, the change measured by flying the controller on the
+# vehicles at ANCHOR_KNOTS of the way to the extremes the draw allows (four flights a
+# parameter), interpolated on each side (bench/predict_calibration.py measures how close that
+# comes to flown flips).
+# The parameters are the ones the rigid body sees: mass / thrust scale and inertia / thrust
+# scale (the same accelerations up to the drag), and the motors' time constant.
+ANCHOR_PARAMETERS = ("mass", "inertia_x", "inertia_y", "inertia_z", "motor_lag")
+# the anchors' vehicles: these fractions of the way from the centre to each extreme (the
+# response is far from linear: +7 % mass/thrust costs the flip 1.6 deg of overshoot, +15 % 6.7)
+ANCHOR_KNOTS = (0.5, 1.0)
+
+
+def anchor_extents(uncertainty: Uncertainty) -> dict[str, tuple[float, float]]:
+    """Per parameter drawn with a spread: the log of its smallest and largest value the draw
+    allows, about the centre (the file's vehicle, its mass times mass_scale)."""
+    u = uncertainty
+    fs = u.thrust_coefficient_frac
+    out = {"mass": (math.log((1 - u.mass_frac) / (1 + fs)), math.log((1 + u.mass_frac) / (1 - fs)))}
+    for axis in "xyz":
+        out["inertia_" + axis] = (math.log((1 - u.inertia_frac) / (1 + fs)), math.log((1 + u.inertia_frac) / (1 - fs)))
+    out["motor_lag"] = (math.log(1 - u.motor_lag_frac), math.log(1 + u.motor_lag_frac))
+    return {k: v for k, v in out.items() if v[1] - v[0] > 1e-9}
+
+
+def centre_plant(vehicle: Vehicle, uncertainty: Uncertainty) -> dict:
+    """The plant at the draw's centre (nominal_params with the mass times mass_scale)."""
+    return nominal_params(vehicle) | {"mass": np.float32(vehicle.mass_kg * uncertainty.mass_scale)}
+
+
+def anchor_plant(vehicle: Vehicle, uncertainty: Uncertainty, name: str, log_value: float) -> dict:
+    """The centre's plant with one parameter at exp(log_value) times the centre's."""
+    p = centre_plant(vehicle, uncertainty)
+    scale = np.float32(math.exp(log_value))
+    if name == "mass":
+        p["mass"] = np.float32(p["mass"] * scale)
+    elif name.startswith("inertia_"):
+        axis = "xyz".index(name[-1])
+        p["inertia"] = p["inertia"].copy()
+        p["inertia"][axis] *= scale
+    elif name == "motor_lag":
+        p["tau"] = np.float32(p["tau"] * scale)
+    else:
+        raise PredictError(f"no anchor parameter {name!r}")
+    return p
+
+
+def case_parameters(vehicle: Vehicle, uncertainty: Uncertainty, cases: dict) -> dict[str, np.ndarray]:
+    """Per case (N,), the log of each ANCHOR_PARAMETERS about the centre."""
+    s = cases["thrust_scale"].astype(np.float64)
+    inertia = np.asarray(vehicle.inertia_kg_m2, dtype=np.float64)
+    out = {"mass": np.log(cases["mass"] / s / (vehicle.mass_kg * uncertainty.mass_scale)),
+           "motor_lag": np.log(cases["tau"] / np.float64(vehicle.motor_time_constant_s))}
+    for i, axis in enumerate("xyz"):
+        out["inertia_" + axis] = np.log(cases["inertia"][:, i] / s / inertia[i])
+    return out
+
+
+@dataclass
+class AnchoredPolicy:
+    """The policy tables the rollouts replay: row 0 the centre's flight, then per (parameter,
+    knot) the change of the flight on that knot's vehicle; weights() gives a case its row
+    weights (1 on row 0)."""
+    u_plan: np.ndarray       # (A, T, 4)
+    gains: np.ndarray        # (A, T, 4, state_dim)
+    x_plan: np.ndarray       # (A, T, state_dim)
+    columns: list            # per row after the first: (parameter, its knot: log value about the centre)
+    flights: int = 0         # flights flown to build it (the centre's when not the nominal, anchors)
+    flight_s: float = 0.0    # their wall time
+
+    def weights(self, vehicle: Vehicle, uncertainty: Uncertainty, cases: dict) -> np.ndarray:
+        """(N, A): per case, the rows' weights of the polynomial through the centre (the knot at
+        0) and the knots of each parameter's side it is on (Lagrange's basis: with two knots a
+        side a parabola, which follows the response's curvature where a broken line through
+        the knots overshoots it: +7 % of mass / thrust costs 1.6 deg of overshoot, +15 % 6.7)."""
+        n = cases["mass"].shape[0]
+        params = case_parameters(vehicle, uncertainty, cases) if self.columns else {}
+        w = np.zeros((n, 1 + len(self.columns)), dtype=np.float64)
+        w[:, 0] = 1.0
+        for j, (name, knot) in enumerate(self.columns):
+            e = params[name]
+            nodes = [0.0] + [k for other, k in self.columns if other == name and k * knot > 0]
+            basis = np.ones_like(e)
+            for node in nodes:
+                if node != knot:
+                    basis = basis * (e - node) / (knot - node)
+            w[:, 1 + j] = np.where(e * knot > 0, basis, 0.0)   # the other side's knots carry none
+        return w.astype(np.float32)
+
+
+def _tables(flight: NominalFlip, ticks: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A flight's (u_plan, gains, x_plan) over `ticks` rows: its last row held, or cut."""
+    def fit(a):
+        if a.shape[0] >= ticks:
+            return a[:ticks]
+        return np.concatenate([a, np.repeat(a[-1:], ticks - a.shape[0], axis=0)])
+    return fit(flight.u_plan), fit(flight.gains), fit(flight.x_plan)
+
+
+def anchored_policy(nominal: NominalFlip, uncertainty: Uncertainty, controller=None,
+                    adapt: bool = True) -> AnchoredPolicy:
+    """The nominal's tables and, for each parameter drawn with a spread, the flights of the
+    controller on the vehicles at ANCHOR_KNOTS of the way to its extremes (anchor_extents), as
+    changes from the centre's. adapt=False: the nominal's tables alone (no flight; every case
+    replays the nominal's policy, the centre's mass or not)."""
+    start = time.perf_counter()
+    extents = anchor_extents(uncertainty) if adapt else {}
+    c = controller if controller is not None else nominal.controller
+    flights = 0
+    fly = None
+    moved = adapt and uncertainty.mass_scale != 1.0
+    if extents or moved:
+        if c is None:
+            from flight.control.flip_runner import FlipController
+            c = FlipController(nominal.vehicle, nominal.method)
+
+        def fly(plant):
+            return fly_nominal(nominal.vehicle, nominal.method, nominal.altitude_m, controller=c, plant=plant)
+    ticks = nominal.ticks
+    if moved:
+        centre = _tables(fly(centre_plant(nominal.vehicle, uncertainty)), ticks)
+        flights += 1
+    else:
+        centre = _tables(nominal, ticks)
+    rows, columns = [centre], []
+    for name, (low, high) in extents.items():
+        for extent in [f * low for f in ANCHOR_KNOTS] + [f * high for f in ANCHOR_KNOTS]:
+            if abs(extent) < 1e-9:
+                continue
+            anchor = _tables(fly(anchor_plant(nominal.vehicle, uncertainty, name, extent)), ticks)
+            flights += 1
+            x = anchor[2].copy()
+            flip = np.sum(x[:, 6:10] * centre[2][:, 6:10], axis=1) < 0   # q and -q: the centre's sign
+            x[flip, 6:10] *= -1
+            rows.append((anchor[0] - centre[0], anchor[1] - centre[1], x - centre[2]))
+            columns.append((name, extent))
+    stack = [np.stack([r[i] for r in rows]).astype(np.float32) for i in range(3)]
+    return AnchoredPolicy(*stack, columns, flights, time.perf_counter() - start if flights else 0.0)
+
+
 # --- the rollouts ---------------------------------------------------------------------------
 
 def draw_cases(vehicle: Vehicle, nominal: NominalFlip, n: int, uncertainty: Uncertainty, seed: int) -> dict:
@@ -319,8 +483,9 @@ def draw_cases(vehicle: Vehicle, nominal: NominalFlip, n: int, uncertainty: Unce
 
 
 def make_rollouts(nominal: NominalFlip, uncertainty: Uncertainty, max_delay_ticks: int):
-    """A jitted rollouts(cases, tables) -> per tick (N, T, 6): z, x, y, accumulated roll, tilt,
-    body-rate norm."""
+    """A jitted rollouts(cases, u_plan, gains, x_plan, x0) -> per tick (N, T, 6): z, x, y,
+    accumulated roll, tilt, body-rate norm. The tables are an AnchoredPolicy's (A, T, ...),
+    cases["weights"] (N, A) its weights."""
     import jax
     import jax.numpy as jnp
 
@@ -340,17 +505,24 @@ def make_rollouts(nominal: NominalFlip, uncertainty: Uncertainty, max_delay_tick
         return jnp.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
 
     def one(case, u_plan, gains, x_plan, x0):
+        w = case["weights"]
         body0 = x0[:13]
         q0 = quat_multiply(body0[6:10], case["start_dq"], jnp)
         err = case["start_error"]
         body0 = jnp.concatenate([body0[0:3] + err[0:3], body0[3:6] + err[3:6], q0, body0[10:13] + err[6:9]])
         forces0 = jnp.full(4, hover_f, jnp.float32)
         params = {k: case[k] for k in ("mass", "inertia", "thrust_scale", "tau")}
-        buffer0 = jnp.tile((kf * (u_plan[0] ** 2))[None], (max_delay_ticks + 1, 1))
+        buffer0 = jnp.tile((kf * (w @ u_plan[:, 0]) ** 2)[None], (max_delay_ticks + 1, 1))
+        # the phase machine's targets move with where the flip starts (its flip point, the
+        # recovery's coast, the hold's stop): the plan's positions move with the start's error
+        shift = jnp.concatenate([err[0:3], jnp.zeros(x0.shape[0] - 3, jnp.float32)])
 
         def tick(carry, inputs):
             body, forces, est, buffer, gust, roll, last = carry
-            u_bar, k, xp, noise = inputs
+            u_rows, k_rows, x_rows, noise = inputs
+            u_bar = w @ u_rows
+            k = jnp.tensordot(w, k_rows, axes=1)
+            xp = w @ x_rows + shift
             x_ctrl = jnp.concatenate([body, est]) if ctrl_tau is not None else body
             sign = jnp.where(jnp.sum(x_ctrl[6:10] * xp[6:10]) < 0, -1.0, 1.0)
             x_ctrl = x_ctrl.at[6:10].multiply(sign)
@@ -371,7 +543,8 @@ def make_rollouts(nominal: NominalFlip, uncertainty: Uncertainty, max_delay_tick
             return (body_next, forces_next, est_next, buffer, gust_next, roll_next, r), out
 
         carry0 = (body0, forces0, forces0, buffer0, jnp.zeros(3, jnp.float32), jnp.float32(0.0), euler_roll(q0))
-        _, outs = jax.lax.scan(tick, carry0, (u_plan, gains, x_plan, case["gust_noise"]))
+        tables = (jnp.swapaxes(u_plan, 0, 1), jnp.swapaxes(gains, 0, 1), jnp.swapaxes(x_plan, 0, 1))
+        _, outs = jax.lax.scan(tick, carry0, tables + (case["gust_noise"],))
         return outs
 
     batched = jax.vmap(one, in_axes=(0, None, None, None, None))
@@ -432,10 +605,14 @@ def metrics_from_series(series: np.ndarray, flip_tick: int, tick_s: float, altit
 class Predictor:
     """A nominal flip and its compiled rollouts; predict() draws and flies N cases."""
 
-    def __init__(self, nominal: NominalFlip, uncertainty: Uncertainty = Uncertainty(), nominal_s: float = 0.0):
+    def __init__(self, nominal: NominalFlip, uncertainty: Uncertainty = Uncertainty(), nominal_s: float = 0.0,
+                 controller=None, adapt: bool = True):
+        """controller: the FlipController that flies the anchors (default: the nominal's);
+        adapt: False replays the nominal's policy in every case (anchored_policy)."""
         self.nominal = nominal
         self.uncertainty = uncertainty
         self.nominal_s = nominal_s
+        self.policy = anchored_policy(nominal, uncertainty, controller, adapt)
         self.max_delay = int(round(uncertainty.delay_max_s * TICK_RATE_HZ))
         self._rollouts = make_rollouts(nominal, uncertainty, self.max_delay)
         self._compiled_for = set()
@@ -445,8 +622,8 @@ class Predictor:
         import jax
         nom = self.nominal
         cases, _ = draw_cases(nom.vehicle, nom, n, self.uncertainty, seed)
-        tables = (nom.u_plan.astype(np.float32), nom.gains.astype(np.float32),
-                  nom.x_plan.astype(np.float32), nom.x0.astype(np.float32))
+        tables = self.tables()
+        cases["weights"] = self.policy.weights(nom.vehicle, self.uncertainty, cases)
         compile_s = 0.0
         if n not in self._compiled_for:
             start = time.perf_counter()
@@ -457,17 +634,23 @@ class Predictor:
         out = np.asarray(jax.block_until_ready(self._rollouts(cases, *tables)), dtype=np.float64)
         return out, time.perf_counter() - start, compile_s
 
+    def tables(self) -> tuple:
+        """The rollouts' tables: the policy's (u_plan, gains, x_plan) and the start state."""
+        p = self.policy
+        return p.u_plan, p.gains, p.x_plan, self.nominal.x0.astype(np.float32)
+
     def predict(self, n: int = 1000, seed: int = 0) -> Prediction:
         if n < 1:
             raise PredictError(f"rollouts must be >= 1 (got {n})")
         series, rollout_s, compile_s = self.series(n, seed)
         m = metrics_from_series(series, self.nominal.flip_tick, self.nominal.tick_s, self.nominal.altitude_m)
         return Prediction(n=n, altitude_m=self.nominal.altitude_m, rollout_s=rollout_s, compile_s=compile_s,
-                          nominal_s=self.nominal_s, **m)
+                          nominal_s=self.nominal_s, anchor_flights=self.policy.flights,
+                          anchor_s=self.policy.flight_s, **m)
 
 
 def build_predictor(vehicle: Vehicle, method: str = "ilqr-project", altitude_m: float = 5.0,
-                    uncertainty: Uncertainty = Uncertainty(), controller=None) -> Predictor:
+                    uncertainty: Uncertainty = Uncertainty(), controller=None, adapt: bool = True) -> Predictor:
     start = time.perf_counter()
     nominal = fly_nominal(vehicle, method, altitude_m, controller=controller)
-    return Predictor(nominal, uncertainty, time.perf_counter() - start)
+    return Predictor(nominal, uncertainty, time.perf_counter() - start, adapt=adapt)

@@ -23,6 +23,11 @@ PARAMS = {
     "flip_predict_rollouts": Param(256, "", 0, doc="before the first tick, each iLQR flip (the mission's items, "
                                                    "a ground station's) is predicted over this many uncertain "
                                                    "cases; 0: no check"),
+    # off by default: the pre-arm check stays a second or two and errs on the safe side (the replay's
+    # losses are the larger); `zenpilot predict` adapts by default, for the calibrated envelope
+    "flip_predict_adapt": Param(False, doc="... each case replaying the controller's flight on its own vehicle "
+                                           "(20 more flights of the controller at start-up, ~1 s each); false: the "
+                                           "nominal's plans and gains in every case (pessimistic on a stronger vehicle)"),
     "flip_clearance_m": Param(0.5, "m", doc="... and refused when its 95th-percentile loss from the hover leaves "
                                             "less than this"),
 }

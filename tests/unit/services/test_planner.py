@@ -160,8 +160,8 @@ def refusing_predictor(monkeypatch):
     import flight.control.predict as predict
     asked = []
 
-    def build(vehicle, method, altitude_m, controller=None):
-        asked.append((method, altitude_m))
+    def build(vehicle, method, altitude_m, controller=None, adapt=True):
+        asked.append((method, altitude_m, adapt))
         return FakePrediction(altitude_m)
     monkeypatch.setattr(predict, "build_predictor", build)
     return asked
@@ -175,7 +175,7 @@ def test_the_ground_stations_flip_is_predicted_and_a_refused_prediction_still_re
     import services.planner as planner
     monkeypatch.setattr(planner, "flip_controllers", lambda io, methods: {m: FakeController(m) for m in methods})
     io, loop = loop_for("none", flip_methods=["ilqr-project"])
-    assert refusing_predictor == [("ilqr-project", 5.0)]
+    assert refusing_predictor == [("ilqr-project", 5.0, False)]
     assert loop.refused == {("ilqr-project", 5.0): "predicted loss 4.9 m from 5 m"}
     states, commands = io.received(schemas.POSITION_STATE, "position"), io.received(schemas.PLANNER_COMMAND, "mavlink")
     io.received(schemas.ATTITUDE_STATE, "attitude").push(0.0, attitude())
@@ -194,8 +194,16 @@ def test_the_ground_stations_flip_is_predicted_and_a_refused_prediction_still_re
 def test_a_missions_flip_item_is_predicted_once_when_the_ground_stations_is_the_same(monkeypatch, refusing_predictor):
     import services.planner as planner
     monkeypatch.setattr(planner, "flip_controllers", lambda io, methods: {m: FakeController(m) for m in methods})
-    loop_for("flip")   # its item: ilqr-project from 5 m, what a command flies too
-    assert refusing_predictor == [("ilqr-project", 5.0)]
+    loop_for("flip", flip_predict_adapt=True)   # its item: ilqr-project from 5 m, what a command flies too
+    assert refusing_predictor == [("ilqr-project", 5.0, True)]
+
+
+def test_the_prediction_replays_the_nominal_in_every_case_when_asked(monkeypatch, refusing_predictor):
+    """flip_predict_adapt=false (the default): no flights on the knots' vehicles at start-up."""
+    import services.planner as planner
+    monkeypatch.setattr(planner, "flip_controllers", lambda io, methods: {m: FakeController(m) for m in methods})
+    loop_for("flip")
+    assert refusing_predictor == [("ilqr-project", 5.0, False)]
 
 
 def test_an_uploaded_flip_item_flies_the_ground_stations_method():
