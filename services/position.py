@@ -57,11 +57,26 @@ OBSERVER_MIN_TILT_COS = math.cos(math.radians(45.0))
 # again: its first fixes' innovations are that error, not the camera's timing, and stay out of
 # the delay's fit this long
 DELAY_FIT_AFTER_S = 1.0
+# ... and while the EKF's thrust scale still moves by more than this over the last second (a
+# vehicle heavier or lighter than its file, learnt in the first seconds of flight): the model's
+# velocity, the delay's regressor, is wrong by the scale's error times the acceleration (a climb
+# of a +10 % mass q820 read as an 87 ms offset, "corrected", and the flip then crashed)
+THRUST_SCALE_SETTLED = 0.01
 
 
 class PositionLoop:
     """The position level's logic: EKF (or truth), laws (9)-(11) and the failsafes (module
     docstring). `io` is the service's Runtime in flight, a fake in the unit tests; no Zenoh here."""
+
+    def thrust_scale_settled(self, t: float, scale: float) -> bool:
+        """Whether the thrust scale stayed within THRUST_SCALE_SETTLED over the last second (a
+        second of history needed)."""
+        scales = self.thrust_scales
+        scales.append((t, scale))
+        while scales[0][0] < t - 1.0:
+            scales.popleft()
+        spread = max(s for _, s in scales) - min(s for _, s in scales)
+        return t - scales[0][0] >= 1.0 - 0.1 and spread <= THRUST_SCALE_SETTLED
 
     def __init__(self, io):
         self.io = io
@@ -80,7 +95,8 @@ class PositionLoop:
             self.ekf_health_out.tracked = False   # as the service's health: nobody on the clock reads it
             self.next_ekf_health = 0.0
             self.delay_step_t = self.offset_detected_t = -1.0   # when (a) last saw a step, (b) an offset
-            self.unsettled_t = -math.inf     # when the attitude was last pinned or the position reset
+            self.unsettled_t = -math.inf     # when the attitude was last pinned, the position reset
+            self.thrust_scales: deque = deque()   # or the thrust scale moved; (t, scale) of the last second
         else:
             self.truth = io.inbox(schemas.TRUTH, "sim")
         self.ekf_started = False
@@ -165,6 +181,8 @@ class PositionLoop:
                     t_fix = max(stamp, ekf.t)
             accepted, _nis = ekf.update_position(t_fix, np.asarray(pose["position_m"]), cov)
             fix = ekf.camera_fix
+            if not self.thrust_scale_settled(t, ekf.thrust_scale):
+                self.unsettled_t = t
             if fix is not None and delay.innovation(t_fix, *fix, fit=t - self.unsettled_t > DELAY_FIT_AFTER_S):
                 count("camera_offset_detected")
                 self.offset_detected_t = t

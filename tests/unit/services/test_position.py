@@ -143,3 +143,17 @@ def test_disturbance_observer_learns_holds_through_a_flip_and_resets_on_the_grou
     assert loop.observer.d == d   # a flip's phases: held
     step(3.5, mode="idle", armed=False)
     assert loop.observer.d == (0.0, 0.0)
+
+
+def test_the_camera_delay_fit_waits_for_the_thrust_scale_to_settle():
+    """The delay's regressor is the model's velocity: while the EKF still learns the thrust scale
+    (a vehicle heavier than its file, in its first seconds of flight) the fit waits, and it takes
+    up again once the scale has held within THRUST_SCALE_SETTLED for a second."""
+    from services.position import THRUST_SCALE_SETTLED
+    loop = PositionLoop(FakeIO("position", PARAMS, {}, rate_hz=100.0))
+    assert not loop.thrust_scale_settled(0.0, 1.0)   # no second of history yet
+    assert [loop.thrust_scale_settled(n * 0.05, 1.0) for n in range(1, 21)][-1]
+    assert not loop.thrust_scale_settled(1.05, 1.0 - 2 * THRUST_SCALE_SETTLED)   # learning
+    held = {round(1.05 + n * 0.05, 2): loop.thrust_scale_settled(1.05 + n * 0.05, 0.98) for n in range(1, 30)}
+    assert not any(ok for t, ok in held.items() if t <= 2.0)   # the scale before the step still within the last second
+    assert all(ok for t, ok in held.items() if t >= 2.05)      # then settled at the learnt scale
