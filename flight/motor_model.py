@@ -166,47 +166,6 @@ def thrust_step_and_mean_floats(forces_n: list, command_n: list, weights) -> tup
     return ends, means
 
 
-def lead_gain(dt_s: float, time_constant_s: float, target_time_constant_s: float) -> float:
-    """The gain g of a lead on a rotor's speed command: commanding s_c = s_d + g (s_d - s), from the
-    rotor's speed s (root units, s = sqrt(f)) and the one it should reach s_d, takes it over a held
-    step of dt_s to s_d + (s - s_d) d_t, d_t = exp(-dt_s / target): the rotor follows s_d with the
-    target time constant instead of its own (g = (d - d_t) / (1 - d); a target of 0: in one step).
-    0 for a target at or above the rotor's own: no lead."""
-    if not target_time_constant_s < time_constant_s:
-        return 0.0
-    d = decay(dt_s, time_constant_s)
-    d_t = decay(dt_s, target_time_constant_s) if target_time_constant_s > 0.0 else 0.0
-    return (d - d_t) / (1.0 - d)
-
-
-def lead_commands_floats(desired_n: list, roots: list, gain: float, lo: float, hi: float) -> list:
-    """The lead of lead_gain on four rotors (lists of floats): the thrust commands (N) whose speeds
-    s_d + g (s_d - s) drive the rotors, now at roots = sqrt(f), towards the desired forces
-    (s_d = sqrt(desired), within [lo, hi]). Where a command would leave [lo, hi] the lead (what it
-    adds to the desired forces) is scaled back, the same fraction on every rotor, until all fit:
-    no rotor is pushed past its range and the lead keeps its direction (a rotor already at a
-    limit, where the mixer put it, leaves no room for it). NaN stays NaN."""
-    led = []
-    scale = 1.0
-    sqrt = math.sqrt
-    for f, s in zip(desired_n, roots):
-        sd = sqrt(f) if f > 0.0 else 0.0
-        sc = sd + (sd - s) * gain
-        c = sc * sc if sc >= 0.0 else -sc * sc   # a speed below zero as a negative force: scaled back below
-        if c > hi:
-            if c > f:
-                scale = min(scale, max(hi - f, 0.0) / (c - f))
-        elif c < lo and c < f:
-            scale = min(scale, max(f - lo, 0.0) / (f - c))
-        led.append(c)
-    if scale == 1.0:
-        if desired_n[0] == desired_n[0] and desired_n[1] == desired_n[1] and desired_n[2] == desired_n[2] \
-                and desired_n[3] == desired_n[3]:
-            return led
-        return [c if f == f else f for c, f in zip(led, desired_n)]   # NaN stays NaN
-    return [f + scale * (c - f) if f == f else f for c, f in zip(led, desired_n)]
-
-
 @dataclass(frozen=True)
 class MotorModel:
     """The coefficients of a vehicle's rotors: kf (N s^2), km (N m s^2), tau (s)."""

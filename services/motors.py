@@ -5,14 +5,6 @@ mixer F = M^-1 u (saturation keeps attitude authority before collective
 thrust), then into PWM through the motor map of 000. Disarmed (or with no
 command yet) it holds every motor at the minimum pulse.
 
-The rotors lag their speed commands by the vehicle's motor_time_constant_s (20 ms on x250), a
-lag law (8) does not see. The driver carries each rotor's speed as flight/motor_model.py has it
-(from what it sent) and leads the attitude command's forces: it commands the speeds that make
-the rotors follow the mixer's forces with `lag_compensation_tau_s` (10 ms) instead
-(flight/motor_model.lead_gain, lead_commands_floats; the feed-forward of an actuator's known
-lag). A lead that would leave the rotors' range is scaled back, alike on all four, until it fits.
-Plans carry the lag in their own model and the failsafe flies as it was: neither is led.
-
 Plans (the flip of 001): while the planner's setpoint is in mode `plan` and a
 plan (planner/plan) is valid at t (t0_s <= t < t0_s + horizon dt_s), the driver
 applies u = u_plan(t) + K(t) (x - x_plan(t)) (flight/control/plan.py) on the latest
@@ -44,8 +36,6 @@ torques and thrust, flight/mavframes.actuator_controls) on `mavlink_endpoint`.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 import schemas
@@ -53,8 +43,7 @@ from flight.control.laws import STOPPING_ACCEL_FRACTION, attitude_law, stopping_
 from flight.control.failsafe import Descent, DescentParams, LevelEstimate
 from flight.control.mixer import mix, mix_floats
 from flight.control.plan import RotorPlan, body_state, scale_collective_floats
-from flight.motor_model import (decay, lead_commands_floats, lead_gain, pwm_to_thrust, thrust_step, thrust_step_floats,
-                                thrust_to_pwm, thrust_to_pwm_floats)
+from flight.motor_model import decay, pwm_to_thrust, thrust_step, thrust_step_floats, thrust_to_pwm, thrust_to_pwm_floats
 from flight.vehicle import load_vehicle
 from services.params.motors import PARAMS  # every parameter: default, unit, bounds, doc
 from services.runtime import Runtime, main_guard, service_parser
@@ -86,14 +75,6 @@ class MotorDriver:
         self.cmd = None                   # the attitude command being flown
         self.max_age = io.params["command_timeout_s"]
         self.failsafe = MotorFailsafe(io, vehicle)
-        # the lead on the rotor speeds (lag_compensation_tau_s): its model of the rotors' speeds
-        # (root units, sqrt(f)) at roots_t and the speeds commanded since (what was last sent)
-        self.tau = vehicle.motor_time_constant_s
-        self.lead = lead_gain(self.dt_tick, self.tau, io.params["lag_compensation_tau_s"])
-        self.roots, self.sent_roots, self.roots_t = [0.0] * 4, [0.0] * 4, None
-        # restarted mid-flight, the rotors spin at what the driver before it sent, not at rest: its
-        # model starts at the first command's forces (no lead on that one)
-        self.roots_unknown = io.restarted
         self.waiting = io.restarted   # restarted mid-flight: silent until the planner and the level are heard
         self.idle = {"pwm_us": [vehicle.pwm_min_us] * 4, "thrust_n": [0.0] * 4, "armed": False,
                      "saturated": False, "imu_t_s": -1.0}
@@ -146,8 +127,6 @@ class MotorDriver:
         tau = vehicle.motor_time_constant_s
         cmd, sp = self.fresh_command(t), self.setpoint.latest()
         armed = sp is not None and sp["armed"]
-        if self.lead:
-            self.rotors_at(t)
         if self.waiting:   # idle output would cut the motors of a vehicle in the air: say nothing
             if sp is None or (armed and cmd is None):   # (the motors hold the last output sent) until
                 return                                  # told it is disarmed, or commanded
@@ -164,7 +143,6 @@ class MotorDriver:
         if forces is not None:
             pwm = thrust_to_pwm(vehicle, forces)
             self.forces = thrust_step(self.forces, forces, self.dt_tick, tau)
-            self.sent(forces)
             if link:
                 link(t, forces)
             out.put({"pwm_us": pwm, "thrust_n": forces, "armed": True, "saturated": False,
@@ -172,7 +150,6 @@ class MotorDriver:
             return
         if not armed or failsafe.latched or cmd is None:
             self.forces = thrust_step(self.forces, np.zeros(4), self.dt_tick, tau)
-            self.sent(self.idle["thrust_n"])
             out.put({**self.idle, "armed": bool(armed and not failsafe.latched)}, t_s=t)
             if link:
                 link(t, self.idle["thrust_n"])
@@ -190,39 +167,14 @@ class MotorDriver:
             forces, pwm = forces.tolist(), pwm.tolist()
         else:   # the 400 Hz path in Python floats (the same numbers as the arrays' functions)
             forces, saturated = mix_floats(vehicle, cmd["thrust_n"], cmd["torque_nm"])
-            if self.lead and self.roots_unknown:
-                self.roots, self.roots_unknown = [math.sqrt(f) if f > 0.0 else 0.0 for f in forces], False
-            if self.lead:   # the rotors driven to the mixer's forces faster than their own lag
-                forces = lead_commands_floats(forces, self.roots, self.lead, vehicle.min_thrust_n,
-                                              vehicle.max_thrust_n)
             pwm = thrust_to_pwm_floats(vehicle, forces)
         # the plan's motor states: what was sent, as the plan's model (the airframe file's) sees it
         as_planned = scale_collective_floats(vehicle.allocation, forces, thrust_scale)
         self.forces = np.array(thrust_step_floats(self.forces.tolist(), as_planned, self.decay))
-        self.sent(forces)
         if link:
             link(t, np.array(forces))
         out.put({"pwm_us": pwm, "thrust_n": forces,
                  "armed": True, "saturated": bool(saturated), "imu_t_s": cmd["imu_t_s"]}, t_s=t)
-
-    def rotors_at(self, t: float) -> None:
-        """The lead's model of the rotor speeds carried to t under the speeds last commanded
-        (root_step, written out for the four rotors: this runs every 400 Hz step)."""
-        t0 = self.roots_t
-        if t0 is not None and t > t0:
-            dt = t - t0
-            d = self.decay if -1e-9 < dt - self.dt_tick < 1e-9 else decay(dt, self.tau)
-            s0, s1, s2, s3 = self.roots
-            c0, c1, c2, c3 = self.sent_roots
-            self.roots = [c0 + (s0 - c0) * d, c1 + (s1 - c1) * d, c2 + (s2 - c2) * d, c3 + (s3 - c3) * d]
-        self.roots_t = t
-
-    def sent(self, forces) -> None:
-        """The forces just sent (N): the speeds the rotors follow from now (for the lead's model)."""
-        if self.lead:
-            self.sent_roots = [math.sqrt(f) if f > 0.0 else 0.0 for f in forces]
-            if self.roots_unknown:   # a restarted driver's first output (not a mixed one): from there
-                self.roots, self.roots_unknown = list(self.sent_roots), False
 
 
 def run(args) -> None:

@@ -13,13 +13,6 @@ PARAMS = {
     "command_timeout_s": Param(0.05, "s", 0.005, 1.0, mavlink="MOT_CMD_TIMEOUT",
                                doc="an attitude command older than this (its header, or the IMU sample "
                                    "behind it) is never mixed (\"stale_att_command\")"),
-    # the rotors lag their speed commands by the vehicle's motor_time_constant_s (20 ms on x250), a lag
-    # law (8) does not see; from its model of the speeds the driver leads each command so that the
-    # rotors follow the mixer's forces with this time constant (flight/motor_model.lead_gain)
-    "lag_compensation_tau_s": Param(0.01, "s", 0.0, 1.0,
-                                    doc="the time constant the rotors are led to follow the mixer's forces with "
-                                        "(a lead on the speed commands; the attitude command's path only); at or "
-                                        "above the vehicle's motor_time_constant_s: no lead"),
     # softer than the attitude level's: its rates are the raw gyro; yaw only held
     "failsafe_k": Param([8.0, 8.0, 2.0], "1/s", 0.0, doc="the failsafe's law (8) angle gain per axis "
                                                          "(roll, pitch, yaw)"),

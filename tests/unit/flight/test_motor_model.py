@@ -61,48 +61,6 @@ def test_thrust_space_forms_are_the_speed_lag():
 
 
 
-def test_the_lead_makes_the_rotor_follow_with_the_target_time_constant():
-    """A lead of lead_gain on the speed command, from the rotor's speed, takes it to the desired
-    speed with the target time constant (the rotor's own lag, exact step, doing the work)."""
-    tau, h = 0.02, 0.0025
-    for target in (0.0, 0.005, 0.01):
-        g = motor_model.lead_gain(h, tau, target)
-        s, sd = 20.0, 35.0   # root units, sqrt(N)
-        for _ in range(5):
-            sc = sd + (sd - s) * g
-            s_next = motor_model.root_step(s, sc, motor_model.decay(h, tau))
-            expected = sd + (s - sd) * (math.exp(-h / target) if target > 0 else 0.0)
-            assert s_next == pytest.approx(expected, rel=1e-12)
-            s = s_next
-    # stronger for a faster target; none at or above the rotor's own
-    assert motor_model.lead_gain(h, tau, 0.0) > motor_model.lead_gain(h, tau, 0.01) > 0.0
-    assert motor_model.lead_gain(h, tau, tau) == 0.0 == motor_model.lead_gain(h, tau, 1.0)
-
-
-def test_a_lead_that_does_not_fit_is_scaled_back_on_every_rotor_alike():
-    """Settled rotors get their desired forces as they are; a lead past the limits is scaled back
-    by one fraction on all four, so the commands fit and the lead's direction is kept; a rotor
-    already at a limit leaves no room for it; NaN stays NaN."""
-    g = motor_model.lead_gain(0.0025, 0.02, 0.01)
-    desired = [0.98, 0.98, 0.5, 1.5]
-    roots = [math.sqrt(f) for f in desired]
-    assert motor_model.lead_commands_floats(desired, roots, g, 0.0, 2.5) == pytest.approx(desired, rel=1e-12)
-    desired, roots = [0.5, 0.5, 1.9, 1.9], [math.sqrt(0.98)] * 4     # a roll step from hover
-    free = motor_model.lead_commands_floats(desired, roots, g, 0.0, 10.0)   # fits in [0, 10]: as it is
-    sd, s0 = math.sqrt(1.9), math.sqrt(0.98)
-    assert free[0] < 0.5 and free[2] == pytest.approx((sd + (sd - s0) * g) ** 2, rel=1e-12)
-    fast = motor_model.lead_gain(0.0025, 0.02, 0.0)
-    led = motor_model.lead_commands_floats(desired, roots, fast, 0.0, 2.5)
-    unscaled = motor_model.lead_commands_floats(desired, roots, fast, -100.0, 100.0)
-    assert min(led) >= 0.0 and max(led) <= 2.5 and (min(led) == pytest.approx(0.0) or max(led) == pytest.approx(2.5))
-    fraction = [(c - f) / (u - f) for c, f, u in zip(led, desired, unscaled)]
-    assert 0.0 < fraction[0] < 1.0 and fraction == pytest.approx([fraction[0]] * 4, rel=1e-12)
-    at_limit = motor_model.lead_commands_floats([0.0, 0.0, 1.9, 1.9], roots, g, 0.0, 2.5)
-    assert at_limit == pytest.approx([0.0, 0.0, 1.9, 1.9], abs=1e-12)
-    out = motor_model.lead_commands_floats([math.nan, 1.0, 1.0, 1.0], [1.0] * 4, g, 0.0, 2.5)
-    assert math.isnan(out[0]) and out[1:] == pytest.approx([1.0] * 3)
-
-
 def test_one_formula_on_floats_numpy_and_jax():
     """The lag's float forms (the 400 Hz driver, the simulator, the EKF's input), its numpy
     form and its JAX form (the planner's dynamics, root_step_and_mean on jnp arrays) give the
