@@ -68,16 +68,6 @@ class PositionLoop:
     """The position level's logic: EKF (or truth), laws (9)-(11) and the failsafes (module
     docstring). `io` is the service's Runtime in flight, a fake in the unit tests; no Zenoh here."""
 
-    def thrust_scale_settled(self, t: float, scale: float) -> bool:
-        """Whether the thrust scale stayed within THRUST_SCALE_SETTLED over the last second (a
-        second of history needed)."""
-        scales = self.thrust_scales
-        scales.append((t, scale))
-        while scales[0][0] < t - 1.0:
-            scales.popleft()
-        spread = max(s for _, s in scales) - min(s for _, s in scales)
-        return t - scales[0][0] >= 1.0 - 0.1 and spread <= THRUST_SCALE_SETTLED
-
     def __init__(self, io):
         self.io = io
         p = self.p = io.params
@@ -218,6 +208,16 @@ class PositionLoop:
             "camera_offset_confident": delay.confident, "camera_offset_correction_s": delay.correction_s,
             "camera_offset_detections": delay.detections, "camera_offset_detected_t_s": self.offset_detected_t,
             "camera_fixes": counts}, t_s=t)
+
+    def thrust_scale_settled(self, t: float, scale: float) -> bool:
+        """Record the EKF's thrust scale at t (each camera fix) and say whether it stayed within
+        THRUST_SCALE_SETTLED over the last second (a second of history needed)."""
+        scales = self.thrust_scales
+        scales.append((t, scale))
+        while scales[0][0] < t - 1.0:
+            scales.popleft()
+        spread = max(s for _, s in scales) - min(s for _, s in scales)
+        return t - scales[0][0] >= 1.0 - 0.1 and spread <= THRUST_SCALE_SETTLED
 
     def step(self, t: float) -> None:
         """One run at time t: the state, then the setpoint for the attitude level."""
