@@ -35,6 +35,7 @@ def router_config(listen: list[str], stack_file: str | None = None, machine: str
     # machine (network namespaces standing for two hosts) would otherwise pass large payloads
     # through /dev/shm, not their link, as two real hosts never can
     conf.insert_json5("transport/shared_memory/enabled", "false")
+    conf.insert_json5("transport/link/tx/queue/size/real_time", "16")
     connect: list[str] = []
     if machine:
         stack = load_stack(stack_file)

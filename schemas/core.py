@@ -115,6 +115,10 @@ class Message:
     check: Callable[[dict], str | None] | None = None  # cross-field check -> error detail
     max_bytes: int | None = None  # bound on the encoded size; None: computed (_size_bound)
     priority: str = "control"  # one of PRIORITIES
+    # True: every message counts (a command, a mission, a parameter): sent reliably in real time
+    # too. False: a stream whose next sample replaces a lost one: best effort in real time, so
+    # that no fresh sample waits behind a lost one's retransmission (services.runtime.Publisher).
+    reliable: bool = False
     _by_name: dict = field(default_factory=dict, compare=False, repr=False)
 
     def __post_init__(self):

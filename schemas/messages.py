@@ -40,6 +40,7 @@ CLOCK = Message(
         F("published", "str[]", "simulator topics published for this tick, before this message"),
         F("done", "counts", "per service, the last tick it finished before this one (-1: none yet)", min=-1),
     ),
+    reliable=True,
 )
 
 SYNC_DONE = Message(
@@ -54,6 +55,7 @@ SYNC_DONE = Message(
         F("period_ticks", "int", "ticks between two runs of a rate service (0: it runs on its triggers); "
           "the clock's schedule, fixed before the first tick", min=0),
     ),
+    reliable=True,
 )
 
 IMU = Message(
@@ -322,6 +324,7 @@ PLANNER_COMMAND = Message(
         F("yaw_rad", "float", "goto: yaw reference (ENU, 0 = east)", "rad", min=-7.0, max=7.0),
         F("origin", "str", "who sent it, for logs (e.g. 'mavlink:255/190')"),
     ),
+    reliable=True,
 )
 
 FLIP_METHODS = ("ilqr-project", "ilqr-thesis", "baseline")
@@ -359,6 +362,7 @@ PLANNER_MISSION = Message(
     ),
     check=_mission_lengths,
     max_bytes=4 << 20,   # ~50,000 items
+    reliable=True,
 )
 
 def _plan_lengths(doc: dict) -> str | None:
@@ -431,6 +435,7 @@ PLANNER_FLIP_PREDICTION = Message(
     check=lambda doc: next((f"{k} has {len(doc[k])} values, expected 3 (p5, p50, p95) or none"
                             for k in ("loss_from_turn_m", "loss_from_hover_m", "xy_drift_m", "overshoot_deg",
                                       "recovery_s") if len(doc[k]) not in (0, 3)), None),
+    reliable=True,
 )
 
 PLANNER_FLIP_STATUS = Message(
@@ -463,6 +468,7 @@ PARAM_SET = Message(
         F("value", "float[]", "new value: one number for a scalar, all elements for an array",
           min=-1e9, max=1e9),
     ),
+    reliable=True,
 )
 
 ALL = (

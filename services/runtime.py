@@ -398,6 +398,15 @@ def zenoh_priority(name: str) -> zenoh.Priority:
         raise ValueError(f"priority {name!r}: expected one of {', '.join(ZENOH_PRIORITIES)}") from None
 
 
+def publisher_reliability(message: schemas.Message, lockstep: bool) -> zenoh.Reliability:
+    """Reliable in lockstep (a lost message would stall the handshake), for what must arrive
+    (schemas' `reliable`) and for bulk keys (Zenoh picks a link by reliability before priority:
+    an image must not take the control keys' unreliable link); best effort for the streams."""
+    if lockstep or message.reliable or message.priority == "bulk":
+        return zenoh.Reliability.RELIABLE
+    return zenoh.Reliability.BEST_EFFORT
+
+
 class Publisher:
     def __init__(self, runtime: "Runtime", message: schemas.Message, key: str):
         self.runtime = runtime
@@ -406,11 +415,15 @@ class Publisher:
         self.seq = 0
         # Express: sent at once, not held for batching (a control hop must not wait for
         # the next batch). Lockstep must not lose a message (the handshake would stall),
-        # so it blocks under congestion; real time drops stale data instead. The key's
+        # so it blocks under congestion and is reliable; real time drops stale data instead,
+        # and sends a stream best effort: across a lossy link its samples then take an
+        # unreliable link where the stack file declares one (`?rel=0`, UDP), so that no fresh
+        # sample waits behind a lost one's retransmission (publisher_reliability). The key's
         # priority (schemas.PRIORITIES) gives bulk messages a queue of their own on each link.
         congestion = zenoh.CongestionControl.BLOCK if runtime.lockstep else zenoh.CongestionControl.DROP
-        self._pub = runtime.session.declare_publisher(key, express=True, congestion_control=congestion,
-                                                      priority=zenoh_priority(message.priority))
+        self._pub = runtime.session.declare_publisher(
+            key, express=True, congestion_control=congestion, priority=zenoh_priority(message.priority),
+            reliability=publisher_reliability(message, runtime.lockstep))
         self._put = self._pub.put
         self._encode = message.encode
         self._source = runtime.name

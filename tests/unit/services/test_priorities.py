@@ -2,6 +2,8 @@
 capped in real time where a machine says so, and a router link per priority range."""
 
 import json
+import shutil
+import subprocess
 import time
 from pathlib import Path
 
@@ -10,7 +12,8 @@ import zenoh
 import schemas
 from deploy.launcher import free_port
 from deploy.router import MAX_LINKS, router_config
-from services.runtime import ZENOH_PRIORITIES, bulk_downsampling, service_parser, zenoh_config
+from services.runtime import (ZENOH_PRIORITIES, bulk_downsampling, publisher_reliability, service_parser,
+                              zenoh_config)
 from services.stack import load_stack
 
 STACKS = Path(__file__).resolve().parents[2] / "integration" / "stacks"
@@ -91,7 +94,61 @@ def test_router_links_one_tcp_stream_per_priority_range_and_caps_bulk():
     conf, listen = router_config([], str(STACKS / "two-hosts-ground.toml"), "vehicle-router")
     assert json.loads(str(conf))["transport"]["unicast"]["max_links"] == MAX_LINKS
     assert _rules(conf) == [{"key_expr": "zp/0/sim/@image", "freq": 20.0}]
-    assert listen == ["tcp/127.0.0.1:7447", "tcp/10.77.0.1:7448?prio=0-6", "tcp/10.77.0.1:7449?prio=7-7"]
+    assert listen == ["tcp/127.0.0.1:7447", "tcp/10.77.0.1:7448?prio=0-6", "udp/10.77.0.1:7450?prio=0-6;rel=0",
+                      "tcp/10.77.0.1:7449?prio=7-7"]
     plain, _ = router_config(["tcp/127.0.0.1:7447"])
     assert json.loads(str(plain))["transport"]["unicast"]["max_links"] == 1
     assert _rules(plain) == []
+
+
+def test_streams_are_best_effort_in_real_time_and_what_must_arrive_is_reliable():
+    reliable = {m.name for m in schemas.ALL if publisher_reliability(m, lockstep=False) == zenoh.Reliability.RELIABLE}
+    assert reliable == {"clock", "sync_done", "planner_command", "planner_mission", "planner_flip_prediction",
+                        "param_set", "camera_image"}
+    assert all(publisher_reliability(m, lockstep=True) == zenoh.Reliability.RELIABLE for m in schemas.ALL)
+
+
+def _tcp_bytes_received(port: int) -> int:
+    """Bytes received on the loopback TCP connections to `port` (ss -tin)."""
+    lines = subprocess.run(["ss", "-tinH", f"dport = :{port}"], capture_output=True, text=True,
+                           check=True).stdout.split()
+    return sum(int(w.split(":")[1]) for w in lines if w.startswith("bytes_received:"))
+
+
+def test_two_routers_carry_best_effort_streams_on_their_udp_link_and_reliable_messages_on_tcp():
+    """Routers linked as two-hosts-ground.toml links them (TCP and UDP for the control priorities):
+    a best-effort stream crosses without touching the TCP link (no retransmission can hold it
+    up), a reliable message crosses on TCP."""
+    if shutil.which("ss") is None:
+        import pytest
+        pytest.skip("needs iproute2's ss to read the TCP link's byte counters")
+    tcp, udp, bulk = free_port(), free_port(), free_port()
+    links = [f"tcp/127.0.0.1:{tcp}?prio=0-6", f"udp/127.0.0.1:{udp}?prio=0-6;rel=0", f"tcp/127.0.0.1:{bulk}?prio=7-7"]
+    common = {"mode": "router", "scouting/multicast/enabled": False, "transport/shared_memory/enabled": False,
+              "transport/unicast/max_links": MAX_LINKS}
+    vehicle = _open({**common, "listen/endpoints": links})
+    ground = _open({**common, "listen/endpoints": [], "connect/endpoints": links})
+    got = []
+    try:
+        time.sleep(1.0)
+        ground.declare_subscriber("zp/0/planner/plan", lambda s: got.append(len(s.payload)))
+        time.sleep(0.5)
+
+        def send(reliability) -> int:
+            pub = vehicle.declare_publisher("zp/0/planner/plan", express=True, priority=ZENOH_PRIORITIES["control"],
+                                            reliability=reliability)
+            before, n = _tcp_bytes_received(tcp), len(got)
+            for _ in range(50):
+                pub.put(bytes(4000))
+                time.sleep(0.002)
+            deadline = time.monotonic() + 2.0
+            while len(got) < n + 50 and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert len(got) - n >= 45   # loopback: nothing should be lost; a few at most
+            return _tcp_bytes_received(tcp) - before
+
+        assert send(publisher_reliability(schemas.PLANNER_PLAN, lockstep=False)) < 10_000
+        assert send(zenoh.Reliability.RELIABLE) >= 50 * 4000
+    finally:
+        ground.close()
+        vehicle.close()
