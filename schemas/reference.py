@@ -49,12 +49,16 @@ def render() -> str:
         "Priority: `control` keys travel at Zenoh's real-time priority, all at one so that their order "
         "on a link holds (a plan before its setpoint, a run's outputs before its sync); `bulk` keys at "
         "the background priority, in a queue of their own, so that a flood of them never holds a "
-        "control message up on a shared link (docs/reliability.md).",
+        "control message up on a shared link (docs/reliability.md). Real time: `reliable` keys "
+        "(what must arrive, and bulk) are sent reliably; `stream` keys best effort, where the next sample "
+        "replaces a lost one, so that across a link they can take an unreliable (UDP) link and never wait "
+        "behind a lost one's retransmission. Lockstep sends every key reliably.",
         "",
-        "| key expression | message | version | priority |",
-        "|---|---|---|---|",
-        *[f"| `{m.key('<vehicle>', '<service>')}` | [{m.name}](#{m.name}) | {m.version} | {m.priority} |" for m in ALL],
-        "| `zp/<vehicle>/alive/<service>` | liveliness token | | |",
+        "| key expression | message | version | priority | real time |",
+        "|---|---|---|---|---|",
+        *[f"| `{m.key('<vehicle>', '<service>')}` | [{m.name}](#{m.name}) | {m.version} | {m.priority} | "
+          f"{'reliable' if m.reliable or m.priority == 'bulk' else 'stream'} |" for m in ALL],
+        "| `zp/<vehicle>/alive/<service>` | liveliness token | | | |",
         "",
     ]
     for m in ALL:
