@@ -12,9 +12,11 @@ estimate x (pos/state position/velocity and att/state quaternion/rates, each
 carried forward over its age; with a 17-state plan, the rotor forces its own
 commands imply through the motor lag), clipped to the rotor limits, as thrust
 kf u^2 through the motor map, the collective divided by the position EKF's
-thrust scale (pos/state; flight/control/plan.scale_collective). The newest plan is used; when it has expired the
-previous one while it lasts ("plan_fallback_previous"), then the attitude
-level's command ("plan_fallback_hover"): both counted per output in health.
+thrust scale (pos/state; flight/control/plan.scale_collective). The newest plan that has
+started is used (a planner across a link sends its plans ahead, planner.plan_lead_s: each
+waits for its start); when the newest has ended, an older one while it lasts
+("plan_fallback_previous"), then the attitude level's command ("plan_fallback_hover"):
+both counted per output in health.
 
 Stale commands and the failsafe: an attitude command is judged by its sample times against
 the driver's clock (its header's, and the IMU sample behind it: a controller resumed after a
@@ -49,6 +51,7 @@ from services.params.motors import PARAMS  # every parameter: default, unit, bou
 from services.runtime import Runtime, main_guard, service_parser
 
 NAME = "motors"
+HELD_PLANS = 16   # the plans received last: a planner's lead of ~0.1 s of them, and older ones to fall back on
 
 
 class MotorDriver:
@@ -70,7 +73,7 @@ class MotorDriver:
         self.u_max = vehicle.max_rotor_speed_rad_s
         self.dt_tick = 1.0 / io.rate_hz if io.rate_hz > 0 else 1.0 / io.tick_rate
         self.decay = decay(self.dt_tick, vehicle.motor_time_constant_s)   # thrust_step's, per tick
-        self.held_plans: list = []        # the newest two plans received
+        self.held_plans: list = []        # the last HELD_PLANS plans received, oldest first
         self.forces = np.zeros(4)         # the rotors' forces as the plan's model sees them
         self.cmd = None                   # the attitude command being flown
         self.max_age = io.params["command_timeout_s"]
@@ -102,19 +105,21 @@ class MotorDriver:
         """Rotor forces from a valid plan (in the plan's model, the airframe file's),
         with the thrust scale of the latest pos/state; or None (fall back to the
         attitude command)."""
+        held = self.held_plans
         for m in self.plans.take():   # each plan once
-            self.held_plans = (self.held_plans + [RotorPlan.from_message(m)])[-2:]  # newest two
+            held.append(RotorPlan.from_message(m))
         if sp is None or sp["mode"] != "plan":
-            self.held_plans = []
+            held.clear()
             return None
+        del held[:-HELD_PLANS]
         att, pos = self.att_state.latest(), self.pos_state.latest()
-        valid = [p for p in self.held_plans if p.valid_at(t)]
+        valid = [p for p in held if p.valid_at(t)]
         if not valid or att is None or pos is None or self.kf is None:
             self.count("plan_fallback_hover")
             return None
-        plan = valid[-1]
-        if plan is not self.held_plans[-1]:
-            self.count("plan_fallback_previous")
+        plan = valid[-1]   # the newest started; those after it start later (a planner's lead, plan_lead_s)
+        if held[-1].t0_s <= t and plan is not held[-1]:
+            self.count("plan_fallback_previous")   # the newest has started and ended: an older one flies
         x = body_state(t, att, pos, self.vehicle, self.forces)
         if plan.state_dim == 17:
             x = np.concatenate([x, self.forces])

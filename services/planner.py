@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from dataclasses import replace
 
 import numpy as np
@@ -91,6 +92,16 @@ def flip_controllers(rt: Runtime, methods: list[str]) -> dict:
         if controllers[m].planner is not None:  # XLA's small-loop option took (flight/control/ilqr.py), or not
             whole = controllers[m].planner.loops_compiled_whole()
             print(f"zenpilot-planner: {m}: {whole} of the solver's loops compiled whole", flush=True)
+    if rt.params["plan_lead_s"] > 0.0 and any(c.state_dim == 17 for c in controllers.values()):
+        from flight.control.lead import make_lead_predictor
+        t0 = time.monotonic()
+        for c in controllers.values():
+            if c.state_dim == 17:   # compiled now, not in flight: one prediction of a hover
+                c.lead = make_lead_predictor(vehicle)
+                x = c.planner.full_state(np.array([0, 0, 1.0, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0]))
+                c.lead(x, [(0.0, c.planner.solve(x, np.repeat(x[None], c.planner.config.horizon + 1, axis=0)))], 0.01)
+        print(f"zenpilot-planner: plans lead by {rt.params['plan_lead_s']:g} s: predictor built in "
+              f"{time.monotonic() - t0:.2f} s", flush=True)
     loop = loop_rate_hz(rt.rate_hz, rt.tick_rate, [c.solve_rate_hz for c in controllers.values()])
     if loop != rt.rate_hz:
         print(f"zenpilot-planner: loop at {loop:g} Hz for the flip's re-solves", flush=True)
@@ -164,6 +175,9 @@ class PlannerLoop:
         self.flip_pos = None
         self.flip_plan = None   # the plan this run made, sent before the setpoint
         self.flip_steps = 0
+        self.lead_s = io.params["plan_lead_s"]
+        self.flip_measured = None   # with a lead: (sample time, full state at it)
+        self.sent = deque(maxlen=8)   # with a lead: (start, Plan) of the plans sent, oldest first
         if self.controllers:
             self.attitude = io.inbox(schemas.ATTITUDE_STATE, "attitude")
             self.pwm = io.inbox(schemas.MOTOR_PWM, "motors", keep=32)
@@ -195,13 +209,21 @@ class PlannerLoop:
         x = self.flip_x if c.state_dim == 17 else self.flip_x[:13]
         if (method, float(item["altitude_m"])) in self.refused:  # predicted unsafe: never started
             return "refused", False, True, self.flip_pos
+        lead = self.lead_s if c.state_dim == 17 else 0.0   # the rotor-lag model's plans (ilqr-project)
+        if lead:   # the plan starts where it will fly: the state predicted to then (flight/control/lead.py)
+            t_x, x_measured = self.flip_measured
+            t = t + lead
+            x = c.lead(x_measured, [(start - t_x, plan) for start, plan in self.sent], t - t_x)
         if starting:
             c.start(t, x, item["altitude_m"], item["baseline_climb_m"])
             self.flip_steps = 0
+            self.sent.clear()
         ratio = max(1, round(self.io.rate_hz / c.solve_rate_hz))
         s = c.step(t, x, item["settle_s"], solve=self.flip_steps % ratio == 0)
         self.flip_steps += 1
         self.flip_plan = s.plan
+        if lead and s.plan is not None:
+            self.sent.append((s.plan["t0_s"], c.plan))
         return s.phase, s.done, s.failed, s.position_ref_m
 
     def read_full_state(self, t: float, pos: dict) -> np.ndarray | None:
@@ -255,6 +277,9 @@ class PlannerLoop:
             return
         if self.controllers:
             self.flip_x = self.read_full_state(t, s)
+            if self.lead_s and self.flip_x is not None:   # the state at its newer sample time, not carried to t
+                t_x = min(t, max(s["header"]["t_s"], self.attitude.latest()["header"]["t_s"]))
+                self.flip_measured = (t_x, self.read_full_state(t_x, s))
             self.flip_pos = np.array(s["position_m"])
             self.flip_plan = None
         sp = self.planner.update(t, s["position_m"], s["velocity_m_s"])

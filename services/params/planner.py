@@ -17,6 +17,12 @@ PARAMS = {
     "flip_methods": Param([], choices=FLIP_METHODS,
                           doc="flip controllers built at start-up besides those of the mission's flip items, "
                               "e.g. [\"ilqr-project\"]: a MAVLink flip flies the first; []: only the mission's"),
+    # a planner across a link from the vehicle (flight/control/lead.py): its plans would start in the past
+    "plan_lead_s": Param(0.0, "s", 0.0, 0.5,
+                         doc="an iLQR flip's plans start this far ahead of the planner's clock, from the state "
+                             "predicted to then (the measured state flown forward on the model under the plans "
+                             "sent): the time a plan takes to reach the motor driver, e.g. 0.04 across a 20 ms "
+                             "link; 0: on the planner's clock, the state extrapolated to it (one host)"),
     "compile_cache_dir": Param("~/.cache/zenpilot/jax",
                                doc="where compiled iLQR solvers are kept between starts; \"\": compile every start"),
     # flight/control/predict.py; `zenpilot predict` prints the same

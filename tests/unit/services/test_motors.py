@@ -101,3 +101,56 @@ def test_restarted_mid_flight_it_says_nothing_until_it_has_heard_the_planner_and
     io2.received(schemas.PLANNER_SETPOINT, "planner").push(1.0, planner(armed=False))
     d2.step(1.0)                      # told it is disarmed: idle, as always
     assert io2.sent(schemas.MOTOR_PWM)[-1][1]["pwm_us"] == [X250.pwm_min_us] * 4
+
+
+# ---------------------------------------------------------------- plans (the flip of 001)
+def _plan(t0_s, speed_rad_s, horizon=4, dt_s=0.025):
+    """A plan of constant rotor speeds, zero gains, the hover state throughout."""
+    x = [0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+    return {"method": "ilqr-project", "phase": "flip", "t0_s": t0_s, "dt_s": dt_s, "horizon": horizon,
+            "state_dim": 13, "states": x * (horizon + 1), "controls_rad_s": [speed_rad_s] * 4 * horizon,
+            "gains": [0.0] * 4 * 13 * horizon, "roll_rad": 0.0, "target_roll_rad": [0.0] * horizon,
+            "solve_ms": 1.0, "iterations": 1, "cost": 1.0, "converged": True, "solves": 1, "failed_solves": 0,
+            "overrun_solves": 0}
+
+
+def _flying_plans():
+    from tests.unit.services.test_attitude import pos_state
+    from tests.unit.services.test_planner import attitude
+    io, d = driver()
+    io.received(schemas.PLANNER_SETPOINT, "planner").push(1.0, planner(mode="plan"))
+    io.received(schemas.ATTITUDE_STATE, "attitude").push(1.0, attitude())
+    io.received(schemas.POSITION_STATE, "position").push(1.0, pos_state())
+    commands = io.received(schemas.ATTITUDE_COMMAND, "attitude")
+    return io, d, io.received(schemas.PLANNER_PLAN, "planner"), commands
+
+
+def _flown_speed(io, d, commands, t):
+    commands.push(t, {"thrust_n": HOVER_N, "torque_nm": [0.0, 0.0, 0.0], "imu_t_s": t})
+    d.step(t)
+    thrust = io.sent(schemas.MOTOR_PWM)[-1][1]["thrust_n"]
+    return float(np.sqrt(np.mean(thrust) / X250.thrust_coefficient_kf))
+
+
+def test_a_plan_that_starts_later_waits_while_the_one_flying_goes_on():
+    """A planner across a link sends its plans ahead (planner.plan_lead_s): the driver keeps
+    flying the plan that has started, takes each later one at its start, and counts no fallback."""
+    io, d, plans, commands = _flying_plans()
+    plans.push(1.0, _plan(1.0, 1000.0))
+    for k in range(1, 5):   # four plans made before they start, 10 ms apart, each 40 ms ahead
+        plans.push(1.0 + 0.01 * k, _plan(1.04 + 0.01 * k, 1000.0 + 100.0 * k))
+    assert _flown_speed(io, d, commands, 1.045) == pytest.approx(1000.0, rel=0.02)
+    assert _flown_speed(io, d, commands, 1.0525) == pytest.approx(1100.0, rel=0.02)
+    assert _flown_speed(io, d, commands, 1.085) == pytest.approx(1400.0, rel=0.02)
+    assert io.rejected == {}
+
+
+def test_with_the_newest_plan_over_an_older_one_flies_and_then_the_hover_laws():
+    io, d, plans, commands = _flying_plans()
+    plans.push(1.0, _plan(1.0, 1000.0, horizon=8))
+    plans.push(1.01, _plan(1.01, 1200.0, horizon=2))   # the newest ends at 1.06, the older at 1.20
+    assert _flown_speed(io, d, commands, 1.05) == pytest.approx(1200.0, rel=0.02)
+    assert _flown_speed(io, d, commands, 1.10) == pytest.approx(1000.0, rel=0.02)
+    assert io.rejected == {"plan_fallback_previous": 1}
+    _flown_speed(io, d, commands, 1.25)   # every plan over: the attitude command is mixed
+    assert io.rejected == {"plan_fallback_previous": 1, "plan_fallback_hover": 1}

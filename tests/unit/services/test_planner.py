@@ -216,3 +216,28 @@ def test_an_uploaded_flip_item_flies_the_ground_stations_method():
     loop.step(0.0)
     assert io.rejected == {} and [i["method"] for i in loop.planner.runner.mission.items if i["type"] == "flip"] \
         == ["baseline"]
+
+
+def test_with_a_lead_the_flips_plans_start_that_far_ahead_from_the_predicted_state():
+    """A planner across a link (planner.plan_lead_s): each plan starts lead seconds after the
+    run that made it, solved from the state flown forward on the model to then."""
+    io, loop = loop_for("none", flip_methods=["ilqr-project"], plan_lead_s=0.04, flip_predict_rollouts=0)
+    states, commands = io.received(schemas.POSITION_STATE, "position"), io.received(schemas.PLANNER_COMMAND, "mavlink")
+    atts = io.received(schemas.ATTITUDE_STATE, "attitude")
+    commands.push(0.0, command("arm"))
+    commands.push(0.0, command("takeoff", altitude_m=5.0))
+    rate = loop.io.rate_hz
+    for n in range(0, int(1.5 * rate)):
+        t = n / rate
+        states.push(t + 0.97, state((0.0, 0.0, 5.0)))   # measured 30 ms ago, as across a link
+        atts.push(t + 0.97, attitude())
+        if n == 5:
+            commands.push(t + 1.0, command("flip"))
+        loop.step(t + 1.0)
+    assert io.rejected == {} and not io.problems, io.problems
+    plans = io.sent(schemas.PLANNER_PLAN)
+    assert len(plans) > 10
+    assert all(p["t0_s"] == pytest.approx(t + 0.04) for t, p in plans)
+    # the state it was solved from: 70 ms of the plans flown on from the 5 m hover, not the hover
+    first = [p for _, p in plans if p["phase"] == "flip"]
+    assert first and abs(first[5]["states"][2] - 5.0) > 1e-4

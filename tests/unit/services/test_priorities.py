@@ -134,21 +134,24 @@ def test_two_routers_carry_best_effort_streams_on_their_udp_link_and_reliable_me
         ground.declare_subscriber("zp/0/planner/plan", lambda s: got.append(len(s.payload)))
         time.sleep(0.5)
 
-        def send(reliability) -> int:
+        def send(reliability) -> tuple[int, int]:
+            """(messages received, bytes the TCP link carried) for 50 messages of 4000 bytes;
+            blocking, so that a loaded machine delays them rather than dropping them."""
             pub = vehicle.declare_publisher("zp/0/planner/plan", express=True, priority=ZENOH_PRIORITIES["control"],
-                                            reliability=reliability)
+                                            reliability=reliability, congestion_control=zenoh.CongestionControl.BLOCK)
             before, n = _tcp_bytes_received(tcp), len(got)
             for _ in range(50):
                 pub.put(bytes(4000))
                 time.sleep(0.002)
-            deadline = time.monotonic() + 2.0
+            deadline = time.monotonic() + 5.0
             while len(got) < n + 50 and time.monotonic() < deadline:
                 time.sleep(0.01)
-            assert len(got) - n >= 45   # loopback: nothing should be lost; a few at most
-            return _tcp_bytes_received(tcp) - before
+            return len(got) - n, _tcp_bytes_received(tcp) - before
 
-        assert send(publisher_reliability(schemas.PLANNER_PLAN, lockstep=False)) < 10_000
-        assert send(zenoh.Reliability.RELIABLE) >= 50 * 4000
+        received, tcp_bytes = send(publisher_reliability(schemas.PLANNER_PLAN, lockstep=False))
+        assert received >= 40 and tcp_bytes < 4000   # across on UDP (loopback: a datagram lost at most rarely)
+        received, tcp_bytes = send(zenoh.Reliability.RELIABLE)
+        assert received == 50 and tcp_bytes >= 50 * 4000
     finally:
         ground.close()
         vehicle.close()
