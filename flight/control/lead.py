@@ -26,7 +26,7 @@ from flight.vehicle import Vehicle
 
 QUAT = slice(6, 10)
 TICK_S = 1.0 / 400.0   # the motor driver's tick: the law's zero-order hold
-MAX_TICKS = 48         # the longest lead flown (120 ms); a longer one is cut there
+MAX_TICKS = 48         # ticks flown at most (120 ms): a longer span is flown in longer ones
 PLANS = 8              # the plans a prediction can fly: a link's round trip of re-solves (80 ms at 100 Hz)
 
 
@@ -45,7 +45,8 @@ def plan_feedback_jnp(states, controls, gains, dt_s, elapsed_s, x, u_max_rad_s):
 
 def make_lead_predictor(vehicle: Vehicle, tick_s: float = TICK_S, plans: int = PLANS) -> Callable:
     """predict(x, sent, span) -> the state span seconds after x (the 17-state: body and rotor
-    forces), flown in the driver's ticks. sent: the plans sent last, oldest first, each
+    forces), flown in the driver's ticks (a span over MAX_TICKS of them: in as many longer
+    ones). sent: the plans sent last, oldest first, each
     (t0 - time of x, RotorPlan-like: states, controls, gains, dt_s); at each tick the newest one
     started flies, as the motor driver picks it (before any has started: the oldest, from its
     first step). Jitted once (fixed shapes: `plans` plans of one size); numpy in and out."""
@@ -58,9 +59,11 @@ def make_lead_predictor(vehicle: Vehicle, tick_s: float = TICK_S, plans: int = P
         return jnp.sqrt(jnp.maximum(f, 0.0))
 
     def predict(x, starts, states, controls, gains, plan_dt_s, span_s):
+        tick_len = jnp.maximum(tick_s, span_s / MAX_TICKS)
+
         def tick(x, k):
-            now = k * tick_s
-            dt = jnp.clip(span_s - now, 1e-6, tick_s)   # the last tick cut at the span; after it, none
+            now = k * tick_len
+            dt = jnp.clip(span_s - now, 1e-6, tick_len)   # the last tick cut at the span; after it, none
             i = jnp.maximum(jnp.sum(starts <= now + 1e-6) - 1, 0)   # the newest plan started
             u = plan_feedback_jnp(states[i], controls[i], gains[i], plan_dt_s, now - starts[i], x, u_max)
             forces, mean = motor_model.thrust_step_and_mean(x[13:], kf * u * u, dt, tau, root, jnp.exp)
@@ -87,8 +90,7 @@ def make_lead_predictor(vehicle: Vehicle, tick_s: float = TICK_S, plans: int = P
         out = compiled(np.asarray(x, f32), np.array([s for s, _ in sent], f32),
                        np.stack([p.states for _, p in sent]).astype(f32),
                        np.stack([p.controls for _, p in sent]).astype(f32),
-                       np.stack([p.gains for _, p in sent]).astype(f32), f32(sent[-1][1].dt_s),
-                       f32(min(span_s, MAX_TICKS * tick_s)))
+                       np.stack([p.gains for _, p in sent]).astype(f32), f32(sent[-1][1].dt_s), f32(span_s))
         return np.asarray(jax.device_get(out), dtype=np.float64)
 
     return run
