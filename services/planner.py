@@ -92,7 +92,7 @@ def flip_controllers(rt: Runtime, methods: list[str]) -> dict:
         if controllers[m].planner is not None:  # XLA's small-loop option took (flight/control/ilqr.py), or not
             whole = controllers[m].planner.loops_compiled_whole()
             print(f"zenpilot-planner: {m}: {whole} of the solver's loops compiled whole", flush=True)
-    if rt.params["plan_lead_s"] > 0.0 and any(c.state_dim == 17 for c in controllers.values()):
+    if rt.params["plan_lead_s"] > 0.0 and not rt.lockstep and any(c.state_dim == 17 for c in controllers.values()):
         from flight.control.lead import make_lead_predictor
         t0 = time.monotonic()
         for c in controllers.values():
@@ -175,7 +175,7 @@ class PlannerLoop:
         self.flip_pos = None
         self.flip_plan = None   # the plan this run made, sent before the setpoint
         self.flip_steps = 0
-        self.lead_s = io.params["plan_lead_s"]
+        self.lead_s = 0.0 if io.lockstep else io.params["plan_lead_s"]   # lockstep: a plan flies in the tick after it
         self.flip_measured = None   # with a lead: (sample time, full state at it)
         self.sent = deque(maxlen=8)   # with a lead: (start, Plan) of the plans sent, oldest first
         if self.controllers:

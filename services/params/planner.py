@@ -22,7 +22,8 @@ PARAMS = {
                          doc="an iLQR flip's plans start this far ahead of the planner's clock, from the state "
                              "predicted to then (the measured state flown forward on the model under the plans "
                              "sent): the time a plan takes to reach the motor driver, e.g. 0.04 across a 20 ms "
-                             "link; 0: on the planner's clock, the state extrapolated to it (one host)"),
+                             "link; 0: on the planner's clock, the state extrapolated to it (one host). Real "
+                             "time only (in lockstep a plan flies in the tick after it is made)"),
     "compile_cache_dir": Param("~/.cache/zenpilot/jax",
                                doc="where compiled iLQR solvers are kept between starts; \"\": compile every start"),
     # flight/control/predict.py; `zenpilot predict` prints the same

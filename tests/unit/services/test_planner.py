@@ -221,7 +221,10 @@ def test_an_uploaded_flip_item_flies_the_ground_stations_method():
 def test_with_a_lead_the_flips_plans_start_that_far_ahead_from_the_predicted_state():
     """A planner across a link (planner.plan_lead_s): each plan starts lead seconds after the
     run that made it, solved from the state flown forward on the model to then."""
-    io, loop = loop_for("none", flip_methods=["ilqr-project"], plan_lead_s=0.04, flip_predict_rollouts=0)
+    io = FakeIO("planner", PARAMS, {"flip_methods": ["ilqr-project"], "plan_lead_s": 0.04, "flip_predict_rollouts": 0},
+                rate_hz=50.0, lockstep=False)
+    io.tick_rate = 400.0
+    loop = PlannerLoop(io, "none")
     states, commands = io.received(schemas.POSITION_STATE, "position"), io.received(schemas.PLANNER_COMMAND, "mavlink")
     atts = io.received(schemas.ATTITUDE_STATE, "attitude")
     commands.push(0.0, command("arm"))
@@ -241,3 +244,5 @@ def test_with_a_lead_the_flips_plans_start_that_far_ahead_from_the_predicted_sta
     # the state it was solved from: 70 ms of the plans flown on from the 5 m hover, not the hover
     first = [p for _, p in plans if p["phase"] == "flip"]
     assert first and abs(first[5]["states"][2] - 5.0) > 1e-4
+    io, loop = loop_for("none", flip_methods=["ilqr-project"], plan_lead_s=0.04, flip_predict_rollouts=0)
+    assert loop.lead_s == 0.0   # lockstep: a plan flies in the tick after it is made
