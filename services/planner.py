@@ -92,7 +92,8 @@ def flip_controllers(rt: Runtime, methods: list[str]) -> dict:
         if controllers[m].planner is not None:  # XLA's small-loop option took (flight/control/ilqr.py), or not
             whole = controllers[m].planner.loops_compiled_whole()
             print(f"zenpilot-planner: {m}: {whole} of the solver's loops compiled whole", flush=True)
-    if rt.params["plan_lead_s"] > 0.0 and not rt.lockstep and any(c.state_dim == 17 for c in controllers.values()):
+    lead = rt.params["plan_lead_s"] > 0.0 or rt.params["plan_lead_auto"]
+    if lead and not rt.lockstep and any(c.state_dim == 17 for c in controllers.values()):
         from flight.control.lead import make_lead_predictor
         t0 = time.monotonic()
         for c in controllers.values():
@@ -100,7 +101,8 @@ def flip_controllers(rt: Runtime, methods: list[str]) -> dict:
                 c.lead = make_lead_predictor(vehicle)
                 x = c.planner.full_state(np.array([0, 0, 1.0, 0, 0, 0, 1.0, 0, 0, 0, 0, 0, 0]))
                 c.lead(x, [(0.0, c.planner.solve(x, np.repeat(x[None], c.planner.config.horizon + 1, axis=0)))], 0.01)
-        print(f"zenpilot-planner: plans lead by {rt.params['plan_lead_s']:g} s: predictor built in "
+        print(f"zenpilot-planner: plans lead by {rt.params['plan_lead_s']:g} s"
+              f"{' or the link latency' if rt.params['plan_lead_auto'] else ''}: predictor built in "
               f"{time.monotonic() - t0:.2f} s", flush=True)
     loop = loop_rate_hz(rt.rate_hz, rt.tick_rate, [c.solve_rate_hz for c in controllers.values()])
     if loop != rt.rate_hz:
@@ -176,6 +178,9 @@ class PlannerLoop:
         self.flip_plan = None   # the plan this run made, sent before the setpoint
         self.flip_steps = 0
         self.lead_s = 0.0 if io.lockstep else io.params["plan_lead_s"]   # lockstep: a plan flies in the tick after it
+        self.lead_auto = not io.lockstep and io.params["plan_lead_auto"]
+        self.state_ages = deque(maxlen=max(1, round(2.0 * io.rate_hz)))   # plan_lead_auto: the last 2 s
+        self.flip_lead_s = self.lead_s   # fixed for a flip at its start: the plans' clock must not jump
         self.flip_measured = None   # with a lead: (sample time, full state at it)
         self.sent = deque(maxlen=8)   # with a lead: (start, Plan) of the plans sent, oldest first
         if self.controllers:
@@ -209,7 +214,12 @@ class PlannerLoop:
         x = self.flip_x if c.state_dim == 17 else self.flip_x[:13]
         if (method, float(item["altitude_m"])) in self.refused:  # predicted unsafe: never started
             return "refused", False, True, self.flip_pos
-        lead = self.lead_s if c.state_dim == 17 else 0.0   # the rotor-lag model's plans (ilqr-project)
+        if starting:
+            self.flip_lead_s = max(self.lead_s, float(np.median(self.state_ages))) \
+                if self.lead_auto and self.state_ages else self.lead_s
+            if self.lead_auto:
+                print(f"zenpilot-planner: flip plans lead by {self.flip_lead_s:.3f} s", flush=True)
+        lead = self.flip_lead_s if c.state_dim == 17 else 0.0   # the rotor-lag model's plans (ilqr-project)
         if lead:   # the plan starts where it will fly: the state predicted to then (flight/control/lead.py)
             t_x, x_measured = self.flip_measured
             t = t + lead
@@ -277,7 +287,9 @@ class PlannerLoop:
             return
         if self.controllers:
             self.flip_x = self.read_full_state(t, s)
-            if self.lead_s and self.flip_x is not None:   # the state at its newer sample time, not carried to t
+            if self.lead_auto:
+                self.state_ages.append(max(0.0, t - s["header"]["t_s"]))
+            if (self.lead_s or self.lead_auto) and self.flip_x is not None:   # the state at its newer sample time
                 t_x = min(t, max(s["header"]["t_s"], self.attitude.latest()["header"]["t_s"]))
                 self.flip_measured = (t_x, self.read_full_state(t_x, s))
             self.flip_pos = np.array(s["position_m"])

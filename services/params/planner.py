@@ -24,6 +24,9 @@ PARAMS = {
                              "sent): the time a plan takes to reach the motor driver, e.g. 0.04 across a 20 ms "
                              "link; 0: on the planner's clock, the state extrapolated to it (one host). Real "
                              "time only (in lockstep a plan flies in the tick after it is made)"),
+    "plan_lead_auto": Param(False, doc="... at least that: the median age of the position states as they arrived "
+                                       "over the last 2 s before the flip (the link's latency one way, taken for the "
+                                       "plans' too), fixed for the flip; real time only"),
     "compile_cache_dir": Param("~/.cache/zenpilot/jax",
                                doc="where compiled iLQR solvers are kept between starts; \"\": compile every start"),
     # flight/control/predict.py; `zenpilot predict` prints the same
