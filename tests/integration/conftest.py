@@ -40,6 +40,14 @@ def hover_lockstep(tmp_path_factory):
     return out, fly(out, "hover", *TRUTH_STATE, plots=True)
 
 
+@pytest.fixture(scope="session")
+def hover_real_time(tmp_path_factory):
+    """The truth-state hover flown on the wall clock, once for the tests that read it (its quality
+    in test_flights, its Foxglove channels in test_foxglove): ~28 s of the real-time group each."""
+    out = tmp_path_factory.mktemp("hover-real-time")
+    return out, fly(out, "hover", *TRUTH_STATE, lockstep=False)
+
+
 def processes_mentioning(text: str) -> list[int]:
     """The processes whose command line contains `text` (a run's router endpoint or folder)."""
     pids = []

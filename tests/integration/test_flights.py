@@ -64,13 +64,13 @@ def test_position_steps_settle_within_4_s(tmp_path):
 
 
 @pytest.mark.realtime
-def test_hover_real_time(tmp_path):
-    proc, m = fly(tmp_path, "hover", *TRUTH_STATE, lockstep=False)
+def test_hover_real_time(hover_real_time):
+    out, (proc, m) = hover_real_time
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert m["completed"] and m["mode"] == "realtime"
     assert m["position_rms_m"] < 0.02
     assert m["latency_ms"]["imu_to_pwm_p50"] is not None
     for service in ("sim", "motors", "attitude", "position", "planner"):
         assert m["rates_hz"][service] > 0
-    metrics_text = (tmp_path / "metrics.json").read_text()
+    metrics_text = (out / "metrics.json").read_text()
     assert "NaN" not in metrics_text and json.loads(metrics_text)

@@ -148,7 +148,7 @@ def test_lockstep_log_has_the_well_known_channels(hover_lockstep):
 
 
 @pytest.mark.realtime
-def test_real_time_log_has_the_well_known_channels(tmp_path):
-    proc, m = fly(tmp_path, "hover", *TRUTH_STATE, lockstep=False)
+def test_real_time_log_has_the_well_known_channels(hover_real_time):
+    out, (proc, m) = hover_real_time
     assert m["completed"], proc.stdout + proc.stderr
-    check_log_for_foxglove(tmp_path / "flight.mcap", truth_hz=None)   # wall clock: no rate asserted
+    check_log_for_foxglove(out / "flight.mcap", truth_hz=None)   # wall clock: no rate asserted
