@@ -1,11 +1,13 @@
-"""How the suite runs on two workers (pytest-xdist, `-n 2 --dist loadgroup` in pyproject.toml).
+"""How the suite runs on three workers (pytest-xdist, `-n 3 --dist loadgroup` in pyproject.toml).
 
 Tests marked `realtime` fly on the wall clock: they run one at a time, all on one worker, first.
 Every other test runs at the OS's idle scheduling class (SCHED_IDLE, its processes too), so it
 takes only the CPU a real-time flight leaves: the stack's loops run SCHED_FIFO, its router and
 tools at normal priority, and each wakes ahead of idle work (under a lockstep flight or a JAX
 compile at normal priority on the other core, a real-time stack's timing is not what the test
-judges). The unit modules come next, then the other integration tests. A unit module stays on one
+judges). Two workers beside the real-time one: a real-time stack uses a third to two thirds of a
+core, and one idle worker could take only one of the two cores, the rest of the machine idle for
+the real-time group's minutes. The unit modules come next, then the other integration tests. A unit module stays on one
 worker (its module fixtures: an iLQR solver compiled once), and so do the integration tests that
 read one module- or session-scoped flight (flown once, not once per worker).
 """
