@@ -27,13 +27,16 @@ def test_truth_state_hover_lockstep_holds_within_a_centimetre(hover_lockstep):
     assert page.count("data:image/png;base64,") >= 3 and "[mission]" in page and "[stack]" in page
 
 
-def test_lockstep_is_deterministic(hover_lockstep, tmp_path):
+def test_lockstep_is_deterministic(hover_lockstep, hover_lockstep_live, tmp_path):
     """Same seed, same bytes: and the same whether the services run as threads of one process
-    (the default, as the fixture flew) or each in its own process over the router."""
+    (the default, as the fixture flew) or each in its own process over the router (the flight
+    test_foxglove's live view watched: `--foxglove` flies as `--processes` does, a viewer beside)."""
     out, (_, first) = hover_lockstep
-    _, again = fly(tmp_path / "again", "hover", *TRUTH_STATE, "--processes")
+    again_out, proc, said, _, _ = hover_lockstep_live
+    assert proc.returncode == 0, said
+    again = json.loads((again_out / "metrics.json").read_text())
     assert again == first
-    assert (tmp_path / "again" / "flight.mcap").read_bytes() == (out / "flight.mcap").read_bytes()
+    assert (again_out / "flight.mcap").read_bytes() == (out / "flight.mcap").read_bytes()
     _, other = fly(tmp_path / "other-seed", "hover", *TRUTH_STATE, seed=1)
     assert other["seed"] == 1  # another seed: other sensor noise in the log
     assert (tmp_path / "other-seed" / "flight.mcap").read_bytes() != (out / "flight.mcap").read_bytes()
