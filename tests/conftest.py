@@ -1,13 +1,16 @@
-"""How the suite runs on two workers (pytest-xdist, `-n 2 --dist loadgroup` in pyproject.toml).
+"""How the suite runs on three workers (pytest-xdist, `-n 3 --dist loadgroup` in pyproject.toml).
 
 Tests marked `realtime` fly on the wall clock: they run one at a time, all on one worker, first.
 Every other test runs at the OS's idle scheduling class (SCHED_IDLE, its processes too), so it
 takes only the CPU a real-time flight leaves: the stack's loops run SCHED_FIFO, its router and
 tools at normal priority, and each wakes ahead of idle work (under a lockstep flight or a JAX
 compile at normal priority on the other core, a real-time stack's timing is not what the test
-judges). The unit modules come next, then the other integration tests. A unit module stays on one
-worker (its module fixtures: an iLQR solver compiled once), and so do the integration tests that
-read one module- or session-scoped flight (flown once, not once per worker).
+judges). Two workers beside the real-time one: a real-time stack uses a third to two thirds of a
+core, and one idle worker could take only one of the two cores, the rest of the machine idle for
+the real-time group's minutes. The integration tests that share a flight come next, then the unit
+modules, then the other integration tests. A unit module stays on one worker (its module
+fixtures: an iLQR solver compiled once), and so do the integration tests that read one module- or
+session-scoped flight (flown once, not once per worker).
 """
 
 import os
@@ -30,8 +33,18 @@ def pytest_itemcollected(item):   # as collected: xdist names the groups before 
 
 def pytest_collection_modifyitems(config, items):
     # the longest units first, the fine-grained last to even out the end: real time (one group), then
-    # the unit modules (a group each), then the other integration tests (each on its own)
-    items.sort(key=lambda item: (item.get_closest_marker(REALTIME) is None, not item.nodeid.startswith("tests/unit/")))
+    # the integration tests sharing a flight (a group each: the lockstep hover's is ~90 s of CPU, one
+    # worker's, and would make the run's tail if it came last), the unit modules (a group each), then
+    # the other integration tests (each on its own)
+    items.sort(key=_order)
+
+
+def _order(item) -> int:
+    if item.get_closest_marker(REALTIME):
+        return 0
+    if item.nodeid.startswith("tests/unit/"):
+        return 2
+    return 1 if _shared_flight(item) else 3
 
 
 def _shared_flight(item) -> str | None:

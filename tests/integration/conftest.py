@@ -40,6 +40,39 @@ def hover_lockstep(tmp_path_factory):
     return out, fly(out, "hover", *TRUTH_STATE, plots=True)
 
 
+@pytest.fixture(scope="session")
+def hover_lockstep_live(tmp_path_factory):
+    """The same hover with every service its own process over the router and a Foxglove live view
+    watching it (foxglove_client.py), once for the two tests that read it: test_foxglove (what the
+    viewer received) and test_flights' determinism (its log and metrics against hover_lockstep's,
+    as a `--processes` flight's: a viewer only listens). (out, proc, its output, the advertised
+    channels, the messages received per channel.)"""
+    import asyncio
+    import time
+
+    from deploy.launcher import free_port
+
+    from .foxglove_client import watch
+    out = tmp_path_factory.mktemp("hover-lockstep-live")
+    port = free_port()
+    proc = fly(out, "hover", *TRUTH_STATE, "--foxglove", str(port), background=True)
+    try:
+        channels, received = asyncio.run(watch(port, proc, time.monotonic() + 400))
+        said, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return out, proc, said, channels, received
+
+
+@pytest.fixture(scope="session")
+def hover_real_time(tmp_path_factory):
+    """The truth-state hover flown on the wall clock, once for the tests that read it (its quality
+    in test_flights, its Foxglove channels in test_foxglove): ~28 s of the real-time group each."""
+    out = tmp_path_factory.mktemp("hover-real-time")
+    return out, fly(out, "hover", *TRUTH_STATE, lockstep=False)
+
+
 def processes_mentioning(text: str) -> list[int]:
     """The processes whose command line contains `text` (a run's router endpoint or folder)."""
     pids = []

@@ -27,13 +27,16 @@ def test_truth_state_hover_lockstep_holds_within_a_centimetre(hover_lockstep):
     assert page.count("data:image/png;base64,") >= 3 and "[mission]" in page and "[stack]" in page
 
 
-def test_lockstep_is_deterministic(hover_lockstep, tmp_path):
+def test_lockstep_is_deterministic(hover_lockstep, hover_lockstep_live, tmp_path):
     """Same seed, same bytes: and the same whether the services run as threads of one process
-    (the default, as the fixture flew) or each in its own process over the router."""
+    (the default, as the fixture flew) or each in its own process over the router (the flight
+    test_foxglove's live view watched: `--foxglove` flies as `--processes` does, a viewer beside)."""
     out, (_, first) = hover_lockstep
-    _, again = fly(tmp_path / "again", "hover", *TRUTH_STATE, "--processes")
+    again_out, proc, said, _, _ = hover_lockstep_live
+    assert proc.returncode == 0, said
+    again = json.loads((again_out / "metrics.json").read_text())
     assert again == first
-    assert (tmp_path / "again" / "flight.mcap").read_bytes() == (out / "flight.mcap").read_bytes()
+    assert (again_out / "flight.mcap").read_bytes() == (out / "flight.mcap").read_bytes()
     _, other = fly(tmp_path / "other-seed", "hover", *TRUTH_STATE, seed=1)
     assert other["seed"] == 1  # another seed: other sensor noise in the log
     assert (tmp_path / "other-seed" / "flight.mcap").read_bytes() != (out / "flight.mcap").read_bytes()
@@ -64,13 +67,13 @@ def test_position_steps_settle_within_4_s(tmp_path):
 
 
 @pytest.mark.realtime
-def test_hover_real_time(tmp_path):
-    proc, m = fly(tmp_path, "hover", *TRUTH_STATE, lockstep=False)
+def test_hover_real_time(hover_real_time):
+    out, (proc, m) = hover_real_time
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert m["completed"] and m["mode"] == "realtime"
     assert m["position_rms_m"] < 0.02
     assert m["latency_ms"]["imu_to_pwm_p50"] is not None
     for service in ("sim", "motors", "attitude", "position", "planner"):
         assert m["rates_hz"][service] > 0
-    metrics_text = (tmp_path / "metrics.json").read_text()
+    metrics_text = (out / "metrics.json").read_text()
     assert "NaN" not in metrics_text and json.loads(metrics_text)

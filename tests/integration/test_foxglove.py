@@ -1,62 +1,15 @@
 """Foxglove, live: `zenpilot fly --foxglove PORT` serves the flight over the Foxglove WebSocket
-protocol while it flies. A client speaking that protocol (the `websockets` package: foxglove-sdk
-serves, it has no client) subscribes to every channel the server advertises and counts what comes."""
+protocol while it flies. A client speaking that protocol (foxglove_client.py: the `websockets`
+package, foxglove-sdk serves, it has no client) subscribes to every channel the server advertises
+and counts what comes; the flight is conftest's hover_lockstep_live, which test_flights reads too."""
 
-import asyncio
 import base64
 import json
-import struct
-import time
 
 import pytest
-import websockets
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
-from deploy.launcher import free_port
-
-from .conftest import TRUTH_STATE, fly
-
 pytestmark = pytest.mark.integration
-
-SUBPROTOCOL = "foxglove.sdk.v1"
-MESSAGE_DATA = 0x01   # server binary opcode: subscription id u32, log time u64 (ns), payload
-
-
-async def watch(port: int, proc, deadline: float) -> tuple[dict, dict]:
-    """Subscribe to every channel as it is advertised; until the server goes (the flight ended).
-    Returns the advertised channels by id and, per channel id, [(log_time_ns, payload), ...]."""
-    while True:   # the view starts with the router, a few seconds before the services
-        try:
-            ws = await websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], max_size=None)
-            break
-        except OSError:
-            assert proc.poll() is None and time.monotonic() < deadline, "the live view never came up"
-            await asyncio.sleep(0.2)
-    channels, received, next_sub, sub_channel = {}, {}, 0, {}
-    async with ws:
-        while time.monotonic() < deadline:
-            try:
-                frame = await asyncio.wait_for(ws.recv(), timeout=5.0)
-            except asyncio.TimeoutError:
-                if proc.poll() is not None:
-                    break
-                continue
-            except websockets.ConnectionClosed:
-                break
-            if isinstance(frame, str):
-                op = json.loads(frame)
-                if op["op"] == "advertise":
-                    subs = []
-                    for ch in op["channels"]:
-                        channels[ch["id"]] = ch
-                        sub_channel[next_sub] = ch["id"]
-                        subs.append({"id": next_sub, "channelId": ch["id"]})
-                        next_sub += 1
-                    await ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
-            elif frame[0] == MESSAGE_DATA:
-                sub, log_time = struct.unpack_from("<IQ", frame, 1)
-                received.setdefault(sub_channel[sub], []).append((log_time, bytes(frame[13:])))
-    return channels, received
 
 
 def protobuf_class(channel: dict):
@@ -67,15 +20,8 @@ def protobuf_class(channel: dict):
     return message_factory.GetMessageClass(pool.FindMessageTypeByName(channel["schemaName"]))
 
 
-def test_live_view_during_a_lockstep_flight(tmp_path, hover_lockstep):
-    port = free_port()
-    proc = fly(tmp_path, "hover", *TRUTH_STATE, "--foxglove", str(port), background=True)
-    try:
-        channels, received = asyncio.run(watch(port, proc, time.monotonic() + 400))
-        out, _ = proc.communicate(timeout=120)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+def test_live_view_during_a_lockstep_flight(hover_lockstep, hover_lockstep_live):
+    tmp_path, proc, out, channels, received = hover_lockstep_live
     assert proc.returncode == 0, out
     by_topic = {channels[cid]["topic"]: msgs for cid, msgs in received.items()}
     assert len(by_topic) >= 10, sorted(by_topic)
@@ -148,7 +94,7 @@ def test_lockstep_log_has_the_well_known_channels(hover_lockstep):
 
 
 @pytest.mark.realtime
-def test_real_time_log_has_the_well_known_channels(tmp_path):
-    proc, m = fly(tmp_path, "hover", *TRUTH_STATE, lockstep=False)
+def test_real_time_log_has_the_well_known_channels(hover_real_time):
+    out, (proc, m) = hover_real_time
     assert m["completed"], proc.stdout + proc.stderr
-    check_log_for_foxglove(tmp_path / "flight.mcap", truth_hz=None)   # wall clock: no rate asserted
+    check_log_for_foxglove(out / "flight.mcap", truth_hz=None)   # wall clock: no rate asserted

@@ -7,6 +7,7 @@ import subprocess
 import time
 from pathlib import Path
 
+import pytest
 import zenoh
 
 import schemas
@@ -58,6 +59,7 @@ def _image(seq: int) -> bytes:
                                                            "exposure_s": 0.004, "pixels": bytes(64 * 16)})
 
 
+@pytest.mark.realtime   # rates on the wall clock: a 400 Hz loop for 1 s, which the idle class may not get
 def test_a_capped_session_sends_a_flooded_bulk_key_at_its_cap_and_control_keys_whole():
     """A publisher capped at 20 Hz floods the image key at ~400 Hz for 1 s beside a control key:
     the subscriber gets about 20 images and every control message."""
