@@ -137,13 +137,14 @@ def test_two_routers_carry_best_effort_streams_on_their_udp_link_and_reliable_me
         time.sleep(0.5)
 
         def send(reliability) -> tuple[int, int]:
-            """(messages received, bytes the TCP link carried) for 50 messages of 4000 bytes;
+            """(messages received, bytes the TCP link carried) for 50 messages of 1000 bytes (an idle-class
+            router may read late: they fit the UDP socket's buffer);
             blocking, so that a loaded machine delays them rather than dropping them."""
             pub = vehicle.declare_publisher("zp/0/planner/plan", express=True, priority=ZENOH_PRIORITIES["control"],
                                             reliability=reliability, congestion_control=zenoh.CongestionControl.BLOCK)
             before, n = _tcp_bytes_received(tcp), len(got)
             for _ in range(50):
-                pub.put(bytes(4000))
+                pub.put(bytes(1000))
                 time.sleep(0.002)
             deadline = time.monotonic() + 5.0
             while len(got) < n + 50 and time.monotonic() < deadline:
@@ -151,9 +152,9 @@ def test_two_routers_carry_best_effort_streams_on_their_udp_link_and_reliable_me
             return len(got) - n, _tcp_bytes_received(tcp) - before
 
         received, tcp_bytes = send(publisher_reliability(schemas.PLANNER_PLAN, lockstep=False))
-        assert received >= 40 and tcp_bytes < 4000   # across on UDP (loopback: a datagram lost at most rarely)
+        assert received >= 40 and tcp_bytes < 1000   # across on UDP (loopback: a datagram lost at most rarely)
         received, tcp_bytes = send(zenoh.Reliability.RELIABLE)
-        assert received == 50 and tcp_bytes >= 50 * 4000
+        assert received == 50 and tcp_bytes >= 50 * 1000
     finally:
         ground.close()
         vehicle.close()
