@@ -181,7 +181,7 @@ class PlannerLoop:
         self.lead_auto = not io.lockstep and io.params["plan_lead_auto"]
         self.state_ages = deque(maxlen=max(1, round(2.0 * io.rate_hz)))   # plan_lead_auto: the last 2 s
         self.flip_lead_s = self.lead_s   # fixed for a flip at its start: the plans' clock must not jump
-        self.flip_measured = None   # with a lead: (sample time, full state at it)
+        self.flip_measured = None   # with a lead: (sample time, full state at it, the pos/state)
         self.sent = deque(maxlen=8)   # with a lead: (start, Plan) of the plans sent, oldest first
         if self.controllers:
             self.attitude = io.inbox(schemas.ATTITUDE_STATE, "attitude")
@@ -215,19 +215,22 @@ class PlannerLoop:
         if (method, float(item["altitude_m"])) in self.refused:  # predicted unsafe: never started
             return "refused", False, True, self.flip_pos
         if starting:
+            self.sent.clear()
             self.flip_lead_s = max(self.lead_s, float(np.median(self.state_ages))) \
                 if self.lead_auto and self.state_ages else self.lead_s
             if self.lead_auto:
                 print(f"zenpilot-planner: flip plans lead by {self.flip_lead_s:.3f} s", flush=True)
         lead = self.flip_lead_s if c.state_dim == 17 else 0.0   # the rotor-lag model's plans (ilqr-project)
         if lead:   # the plan starts where it will fly: the state predicted to then (flight/control/lead.py)
-            t_x, x_measured = self.flip_measured
+            t_x, x_measured, pos = self.flip_measured
             t = t + lead
-            x = c.lead(x_measured, [(start - t_x, plan) for start, plan in self.sent], t - t_x)
+            if self.sent:
+                x = c.lead(x_measured, [(start - t_x, plan) for start, plan in self.sent], t - t_x)
+            else:   # no plan flies yet (the hover laws do): carried at constant rates, as without a lead
+                x = self.read_full_state(t, pos)
         if starting:
             c.start(t, x, item["altitude_m"], item["baseline_climb_m"])
             self.flip_steps = 0
-            self.sent.clear()
         ratio = max(1, round(self.io.rate_hz / c.solve_rate_hz))
         s = c.step(t, x, item["settle_s"], solve=self.flip_steps % ratio == 0)
         self.flip_steps += 1
@@ -291,7 +294,7 @@ class PlannerLoop:
                 self.state_ages.append(max(0.0, t - s["header"]["t_s"]))
             if (self.lead_s or self.lead_auto) and self.flip_x is not None:   # the state at its newer sample time
                 t_x = min(t, max(s["header"]["t_s"], self.attitude.latest()["header"]["t_s"]))
-                self.flip_measured = (t_x, self.read_full_state(t_x, s))
+                self.flip_measured = (t_x, self.read_full_state(t_x, s), s)
             self.flip_pos = np.array(s["position_m"])
             self.flip_plan = None
         sp = self.planner.update(t, s["position_m"], s["velocity_m_s"])
