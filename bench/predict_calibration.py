@@ -1,7 +1,7 @@
 """Is `zenpilot predict` calibrated? Flown flips against the predicted 5-95 % bands.
 
     .venv/bin/python bench/predict_calibration.py [--flights 20] [--rollouts 1000]
-        [--rows nominal,mass+10%,wind-2m/s] [--replay] [--cases]
+        [--rows nominal,mass+10%,wind-2m/s] [--replay] [--cases] [--oracle K]
 
 For each row: the prediction (flight/control/predict.py: per case, the controller's policy on its
 vehicle, over --rollouts drawn cases; --replay: the nominal's plans and gains in every case, as
@@ -14,7 +14,9 @@ the fraction of flown flips inside the predicted band (target: >= 90 %), how man
 and above it, and the rollouts' own figure for the same cases beside the flown one (paired:
 the mean |flown - rollout|; --cases: every case). With 20 flights a calibrated band holds
 >= 18 in 68 % of figures (binomial, p = 0.9); the pooled count over all figures and rows is the
-steadier check.
+steadier check. --oracle K: the first K cases also replay the controller's flight on their own
+vehicle (what the anchors interpolate), which splits flown - rollout into the interpolation's
+part and the rest (plant, sampling, metrics: the flown controller against its policy replayed).
 
 This calibrates the predictor against re-planning on the simulator's plant; the stack's
 estimators and transport are not in these flights.
@@ -109,6 +111,29 @@ def fly_case(controller: FlipController, vehicle, cases: dict, i: int, ticks: in
             "xy_drift_m": m.xy_drift_m, "overshoot_deg": m.overshoot_deg, "recovery_s": m.recovery_s}
 
 
+def oracle_figures(predictor, nominal, cases: dict, k: int, controller) -> dict:
+    """The figures of the first k cases with each replaying the policy the controller flies on
+    that case's own vehicle (flight/control/predict.fly_nominal on its mass, inertia, thrust
+    and motor lag, no wind), with the case's wind, gusts, delay and start error: what the
+    rollouts would give if the anchors' interpolation were exact."""
+    from flight.control.predict import _tables
+    tables = []
+    for i in range(k):
+        plant = {"mass": cases["mass"][i], "inertia": cases["inertia"][i].copy(), "tau": cases["tau"][i],
+                 "thrust_scale": cases["thrust_scale"][i], "wind": np.zeros(3, np.float32)}
+        flight = fly_nominal(nominal.vehicle, nominal.method, nominal.altitude_m, controller=controller, plant=plant)
+        tables.append(_tables(flight, nominal.ticks))
+    out = []
+    for i, (u_plan, gains, x_plan) in enumerate(tables):
+        one = {key: value[i:i + 1] for key, value in cases.items() if key != "weights"}
+        one["weights"] = np.ones((1, 1), np.float32)
+        out.append(np.asarray(predictor._rollouts(one, u_plan[None].astype(np.float32), gains[None].astype(np.float32),
+                                                  x_plan[None].astype(np.float32),
+                                                  nominal.x0.astype(np.float32)), dtype=np.float64))
+    m = metrics_from_series(np.concatenate(out), nominal.flip_tick, nominal.tick_s, nominal.altitude_m)
+    return {name: m[name] for name in FIGURES}
+
+
 def _feedback(controller, t, x, u_max):
     from flight.control.ilqr import feedback_control
     return feedback_control(controller.plan, t - controller.plan_t_s, x, u_max)
@@ -121,11 +146,16 @@ def main(argv=None) -> None:
     parser.add_argument("--rows", default=",".join(ROWS))
     parser.add_argument("--replay", action="store_true", help="the nominal's policy in every case (no anchors)")
     parser.add_argument("--cases", action="store_true", help="print every case's flown and rollout figures")
+    parser.add_argument("--oracle", type=int, default=0, metavar="K",
+                        help="also fly the controller on the first K cases' own vehicles (no wind) and "
+                             "replay that policy with the case's noise: splits flown - rollout into "
+                             "the anchors' interpolation (oracle - rollout) and the rest (flown - oracle)")
     args = parser.parse_args(argv)
     rows = args.rows.split(",")
     unknown = [r for r in rows if r not in ROWS]
-    if unknown or args.flights < 1 or args.rollouts < 1:
-        parser.error(f"--rows from {', '.join(ROWS)}; --flights, --rollouts >= 1 (got {unknown or ''})")
+    if unknown or args.flights < 1 or args.rollouts < 1 or not 0 <= args.oracle <= args.flights:
+        parser.error(f"--rows from {', '.join(ROWS)}; --flights, --rollouts >= 1; 0 <= --oracle <= --flights "
+                     f"(got {unknown or ''})")
     print("$ .venv/bin/python bench/predict_calibration.py " + " ".join(sys.argv[1:] if argv is None else argv))
     vehicle = load_vehicle("q820")
     controller = FlipController(vehicle, "ilqr-project")
@@ -133,7 +163,7 @@ def main(argv=None) -> None:
     print(f"\n| row | figure | predicted p5 / p50 / p95 | flown min / median / max | flown inside the band "
           f"(below, above) | mean abs(flown - rollout), same cases |")
     print("|---|---|---|---|---|---|")
-    pooled, total, details = 0, 0, []
+    pooled, total, details, oracles = 0, 0, [], []
     for r, row in enumerate(rows):
         uncertainty = ROWS[row]
         predictor = Predictor(nominal, uncertainty, controller=controller, adapt=not args.replay)
@@ -146,6 +176,9 @@ def main(argv=None) -> None:
         cases["weights"] = predictor.policy.weights(vehicle, uncertainty, cases)
         paired = metrics_from_series(np.asarray(predictor._rollouts(cases, *predictor.tables()), dtype=np.float64),
                                      nominal.flip_tick, nominal.tick_s, nominal.altitude_m)
+        if args.oracle:
+            oracles.append((row, flown[:args.oracle], {k: v[:args.oracle] for k, v in paired.items()},
+                            oracle_figures(predictor, nominal, cases, args.oracle, controller)))
         for name in FIGURES:
             low, mid, high = prediction.band(name)
             values = np.array([f[name] for f in flown], dtype=np.float64)
@@ -164,6 +197,15 @@ def main(argv=None) -> None:
               f"{prediction.compile_s:.1f} s compile; {prediction.anchor_flights} anchor flights in "
               f"{prediction.anchor_s:.1f} s | | | |")
     print(f"\npooled: {pooled}/{total} flown figures inside their band ({pooled / total:.1%})")
+    if oracles:
+        print(f"\n| row | figure | cases | mean flown - rollout | mean oracle - rollout (the anchors) | "
+              f"mean flown - oracle (the rest) |")
+        print("|---|---|---|---|---|---|")
+        for row, flown, paired, oracle in oracles:
+            for name in FIGURES:
+                f = np.array([x[name] for x in flown], dtype=np.float64)
+                print(f"| {row} | {name} | {len(f)} | {np.nanmean(f - paired[name]):+.3f} | "
+                      f"{np.nanmean(oracle[name] - paired[name]):+.3f} | {np.nanmean(f - oracle[name]):+.3f} |")
     if args.cases:
         for row, name, values, paired_values, low, high in details:
             print(f"\n{row} {name} band {low:.3f} .. {high:.3f}")
