@@ -151,7 +151,13 @@ def test_two_routers_carry_best_effort_streams_on_their_udp_link_and_reliable_me
                 time.sleep(0.01)
             return len(got) - n, _tcp_bytes_received(tcp) - before
 
-        received, tcp_bytes = send(zenoh.Reliability.RELIABLE)   # first: the route is up end to end after it
+        probe = vehicle.declare_publisher("zp/0/planner/plan")
+        deadline = time.monotonic() + 10.0
+        while not got and time.monotonic() < deadline:   # the links and the subscription are up end to end
+            probe.put(b"x")
+            time.sleep(0.05)
+        assert got, "the routers never linked"
+        received, tcp_bytes = send(zenoh.Reliability.RELIABLE)
         assert received == 50 and tcp_bytes >= 50 * 1000
         received, tcp_bytes = send(publisher_reliability(schemas.PLANNER_PLAN, lockstep=False))
         assert received >= 40 and tcp_bytes < 1000   # across on UDP (loopback: a datagram lost at most rarely)
