@@ -141,6 +141,12 @@ class Message:
         self.__dict__.update(state)
 
     @property
+    def sent_reliably(self) -> bool:
+        """In real time too: what must arrive, and bulk (Zenoh picks a link by reliability before
+        priority: an image must not take the control keys' unreliable link)."""
+        return self.reliable or self.priority == "bulk"
+
+    @property
     def size_limit(self) -> int:
         """Largest payload a valid message can be: anything longer is refused undecoded."""
         return self._size_limit

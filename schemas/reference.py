@@ -57,7 +57,7 @@ def render() -> str:
         "| key expression | message | version | priority | real time |",
         "|---|---|---|---|---|",
         *[f"| `{m.key('<vehicle>', '<service>')}` | [{m.name}](#{m.name}) | {m.version} | {m.priority} | "
-          f"{'reliable' if m.reliable or m.priority == 'bulk' else 'stream'} |" for m in ALL],
+          f"{'reliable' if m.sent_reliably else 'stream'} |" for m in ALL],
         "| `zp/<vehicle>/alive/<service>` | liveliness token | | | |",
         "",
     ]

@@ -113,11 +113,11 @@ class MotorDriver:
             return None
         del held[:-HELD_PLANS]
         att, pos = self.att_state.latest(), self.pos_state.latest()
-        valid = [p for p in held if p.valid_at(t)]
-        if not valid or att is None or pos is None or self.kf is None:
+        # the newest started; those after it start later (a planner's lead, plan_lead_s)
+        plan = next((p for p in reversed(held) if p.valid_at(t)), None)
+        if plan is None or att is None or pos is None or self.kf is None:
             self.count("plan_fallback_hover")
             return None
-        plan = valid[-1]   # the newest started; those after it start later (a planner's lead, plan_lead_s)
         if held[-1].t0_s <= t and plan is not held[-1]:
             self.count("plan_fallback_previous")   # the newest has started and ended: an older one flies
         x = body_state(t, att, pos, self.vehicle, self.forces)

@@ -399,10 +399,9 @@ def zenoh_priority(name: str) -> zenoh.Priority:
 
 
 def publisher_reliability(message: schemas.Message, lockstep: bool) -> zenoh.Reliability:
-    """Reliable in lockstep (a lost message would stall the handshake), for what must arrive
-    (schemas' `reliable`) and for bulk keys (Zenoh picks a link by reliability before priority:
-    an image must not take the control keys' unreliable link); best effort for the streams."""
-    if lockstep or message.reliable or message.priority == "bulk":
+    """Reliable in lockstep (a lost message would stall the handshake) and for what the schema
+    sends reliably (Message.sent_reliably); best effort for the streams."""
+    if lockstep or message.sent_reliably:
         return zenoh.Reliability.RELIABLE
     return zenoh.Reliability.BEST_EFFORT
 

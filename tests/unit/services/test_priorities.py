@@ -2,7 +2,6 @@
 capped in real time where a machine says so, and a router link per priority range."""
 
 import json
-import shutil
 import subprocess
 import time
 from pathlib import Path
@@ -121,9 +120,6 @@ def test_two_routers_carry_best_effort_streams_on_their_udp_link_and_reliable_me
     """Routers linked as two-hosts-ground.toml links them (TCP and UDP for the control priorities):
     a best-effort stream crosses without touching the TCP link (no retransmission can hold it
     up), a reliable message crosses on TCP."""
-    if shutil.which("ss") is None:
-        import pytest
-        pytest.skip("needs iproute2's ss to read the TCP link's byte counters")
     tcp, udp, bulk = free_port(), free_port(), free_port()
     links = [f"tcp/127.0.0.1:{tcp}?prio=0-6", f"udp/127.0.0.1:{udp}?prio=0-6;rel=0", f"tcp/127.0.0.1:{bulk}?prio=7-7"]
     common = {"mode": "router", "scouting/multicast/enabled": False, "transport/shared_memory/enabled": False,
