@@ -184,9 +184,11 @@ class PositionLoop:
                 self.fused_t = t
                 continue
             count("fusion_position_rejected")
-            self.refused += 1
+            if fix is None:   # too old, ahead of the filter, invalid: no sign the filter lost the vehicle
+                continue
+            self.refused += 1   # gated
             if self.refused >= p["position_reset_after"]:
-                ekf.reset_position(pose["position_m"], cov)
+                ekf.reset_position(pose["position_m"], cov, age_s=ekf.t - t_fix)
                 delay.reset()
                 self.unsettled_t = t
                 count("fusion_position_reset")

@@ -640,16 +640,20 @@ class PositionEKF:
         self._hist = [_Node(self._t, None, self._x, self._P)]
         self._stale = None
 
-    def reset_position(self, position, cov, velocity_std_m_s: float = 1.0) -> None:
+    def reset_position(self, position, cov, velocity_std_m_s: float = 1.0, age_s: float = 0.0) -> None:
         """Restart the translational states at a camera fix, keeping the attitude:
         the way out when the gate has refused every fix for a while (the filter
-        has lost the vehicle and would otherwise never take a fix again)."""
+        has lost the vehicle and would otherwise never take a fix again). age_s: how old
+        the fix is (its exposure before the filter's time): the vehicle has moved since by
+        up to velocity_std_m_s x age_s, so the position's variance grows by that (held at
+        the camera's own, the next fixes of a moving vehicle were gated again: a loop of
+        resets)."""
         self._current()
         x, P = np.array(self._x), self._P.copy()
         x[POSITION] = _vec(position, 3, "position")
         P[:6, :] = 0.0
         P[:, :6] = 0.0
-        P[:3, :3] = np.array(cov, dtype=np.float64).reshape(3, 3)
+        P[:3, :3] = np.array(cov, dtype=np.float64).reshape(3, 3) + np.eye(3) * (velocity_std_m_s * max(age_s, 0.0))**2
         P[3:6, 3:6] = np.eye(3) * velocity_std_m_s**2
         self._x, self._P = x.tolist(), P
         self._hist = [_Node(self._t, None, self._x, P)]

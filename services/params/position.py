@@ -48,7 +48,7 @@ PARAMS = {
     "attitude_timeout_s": Param(0.05, "s", 0.0, min_exclusive=True,
                                 doc="an att/state older than this is not fused"),
     "home_position_m": Param([0.0, 0.0, 0.0], "m", doc="where the EKF starts: the take-off point (x, y, z)"),
-    "position_reset_after": Param(5, "", 1, doc="refused camera fixes in a row before the EKF restarts at one"),
+    "position_reset_after": Param(5, "", 1, doc="camera fixes gated out in a row before the EKF restarts at one (too old, future or invalid ones do not count)"),
     "fuse_camera_at_exposure": Param(True, doc="fuse a camera fix at its exposure time; false (ablation): as if "
                                                "taken now"),
     # the attitude filter does not model the accelerometer's error in manoeuvres nor

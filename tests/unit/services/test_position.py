@@ -80,6 +80,37 @@ def test_planner_lost_holds_then_lands_then_idles():
     assert io.sent(schemas.POSITION_SETPOINT)[-1][1]["thrust_n"] == 0.0
 
 
+def _pose(position):
+    return {"position_m": position, "quaternion_wxyz": [1.0, 0.0, 0.0, 0.0],
+            "position_cov_m2": list(np.eye(3).reshape(-1) * 1e-4),
+            "attitude_var_rad2": [1e-4, 1e-4, 1e-4], "markers": 6, "reprojection_rms_px": 0.5}
+
+
+def test_only_gated_fixes_restart_the_ekf():
+    """Fixes too old for the EKF's history are refused and counted, but say nothing of a lost
+    vehicle: six in a row restart nothing; five gated in a row restart it at the fix."""
+    io = FakeIO("position", PARAMS, {}, rate_hz=100.0)
+    loop = PositionLoop(io)
+    poses = io.received(schemas.VISION_POSE, "vision")
+    io.received(schemas.PLANNER_SETPOINT, "planner").push(0.0, setpoint([0.0, 0.0, 0.0], armed=False))
+    n = 0
+    for n in range(1, 101):   # 1 s at rest, a fix every 5th run
+        if n % 5 == 0:
+            poses.push(n / 100 - 0.05, _pose([0.0, 0.0, 0.0]))
+        loop.step(n / 100)
+    before = io.rejected.get("fusion_position_rejected", 0)
+    for k in range(6):   # 0.4 s old: within pose_timeout_s, beyond the EKF's 0.3 s of history
+        n += 5
+        poses.push(n / 100 - 0.4, _pose([0.0, 0.0, 0.0]))
+        loop.step(n / 100)
+    assert io.rejected.get("fusion_position_rejected") == before + 6 and not io.rejected.get("fusion_position_reset")
+    for k in range(5):   # 2 m off: gated
+        n += 5
+        poses.push(n / 100 - 0.05, _pose([2.0, 0.0, 0.0]))
+        loop.step(n / 100)
+    assert io.rejected.get("fusion_position_rejected") == before + 11 and io.rejected.get("fusion_position_reset") == 1
+
+
 def test_estimate_fuses_camera_fixes_and_counts_stale_ones():
     io = FakeIO("position", PARAMS, {}, rate_hz=100.0)
     loop = PositionLoop(io)

@@ -997,3 +997,22 @@ def test_a_new_vehicle_applies_from_the_next_prediction():
             if k == 20:
                 e.vehicle = heavy
         _assert_identical(new, old, f"step {k}")
+
+
+def test_a_reset_at_an_old_fix_leaves_room_for_the_way_moved_since():
+    """reset_position at a fix age_s old: the position's variance is the camera's plus
+    (velocity_std x age_s)^2, the velocity's velocity_std^2, no cross terms; the attitude kept."""
+    ekf = PositionEKF(VEH, dt=DT)
+    ekf.initialize(0.0, [0.0, 0.0, 1.0], [0.05, -0.02, 0.3])
+    for k in range(1, 21):
+        ekf.predict(k * DT, [VEH.mass_kg * VEH.gravity_m_s2, 0.0, 0.0, 0.0])
+    cam = np.eye(3) * 1e-4
+    ekf.reset_position([1.0, 2.0, 1.5], cam, velocity_std_m_s=1.0, age_s=0.12)
+    P = ekf.P
+    np.testing.assert_allclose(P[:3, :3], cam + np.eye(3) * 0.12 ** 2)
+    np.testing.assert_allclose(P[3:6, 3:6], np.eye(3))
+    assert not np.any(P[:6, 6:]) and not np.any(P[6:, :6])
+    assert ekf.position.tolist() == [1.0, 2.0, 1.5]
+    np.testing.assert_allclose(ekf.euler, [0.05, -0.02, 0.3], atol=1e-3)
+    ekf.reset_position([1.0, 2.0, 1.5], cam)   # a fix of now: the camera's variance alone
+    np.testing.assert_allclose(ekf.P[:3, :3], cam)
