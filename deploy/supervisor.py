@@ -43,7 +43,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
-from services.stack import DEFAULT_HANG_RESTART_S, NEVER_RESTARTED
+from services.stack import DEFAULT_HANG_RESTART_S, NEVER_RESTARTED, service_of
 
 POLL_S = 0.1
 FIRST_BACKOFF_S = 0.0   # the warm spare (deploy/spare.py) is ready: at once
@@ -118,8 +118,8 @@ class Supervisor:
         self.t0 = clock()
         self.started_unix = time.time()   # events' t_s count from here (to match other logs)
         stack = launcher.stack
-        self.watches = {n: Watch(stack.service(n).restart, stack.service(n).restart_limit,
-                                 stack.service(n).hang_restart_s) for n in names}
+        specs = {n: stack.service(service_of(n)) for n in names}   # a hot standby's process: its service's policy
+        self.watches = {n: Watch(s.restart, s.restart_limit, s.hang_restart_s) for n, s in specs.items()}
         self.remote = {n: RemoteWatch() for n in remote if n not in self.watches} if real_time else {}
         self.events: list[dict] = []
         self._write_failed = False

@@ -49,6 +49,7 @@ from flight.motor_model import decay, pwm_to_thrust, thrust_step, thrust_step_fl
 from flight.vehicle import load_vehicle
 from services.params.motors import PARAMS  # every parameter: default, unit, bounds, doc
 from services.runtime import Runtime, main_guard, service_parser
+from services.standby import INSTANCES, Standby
 
 NAME = "motors"
 HELD_PLANS = 16   # the plans received last: a planner's lead of ~0.1 s of them, and older ones to fall back on
@@ -81,6 +82,15 @@ class MotorDriver:
         self.waiting = io.restarted   # restarted mid-flight: silent until the planner and the level are heard
         self.idle = {"pwm_us": [vehicle.pwm_min_us] * 4, "thrust_n": [0.0] * 4, "armed": False,
                      "saturated": False, "imu_t_s": -1.0}
+        # the hot standby (services/standby.py): two drivers, one publishing; None: a lone driver
+        self.standby = self.peers = None
+        spec = getattr(io, "spec", None)
+        if spec is not None and spec.standby and not io.lockstep:
+            me = getattr(io, "instance", io.name)
+            self.standby = Standby(me, active=(me == INSTANCES[0] and not io.restarted), now=io.now(),
+                                   takeover_s=io.params["standby_takeover_s"])
+            self.peers = io.inbox(schemas.MOTOR_PWM, "motors", keep=16, others_only=True)
+            io.problem(f"hot standby: {me} starts {self.standby.role}")
 
     def count(self, reason: str) -> None:
         rejected = self.io.rejected
@@ -126,6 +136,23 @@ class MotorDriver:
         u = plan.control(t, x, self.u_max)
         return self.kf * u * u
 
+    def speaks(self, t: float) -> bool:
+        """Whether this driver sends its output of tick t: always alone; with a hot standby, only
+        while active (services/standby.py). The standby has computed the tick all the same."""
+        sb = self.standby
+        if sb is None:
+            return True
+        for m in self.peers.take():
+            h = m["header"]
+            sb.heard(h["source"], h["t_s"])
+        was = sb.active
+        speak = sb.may_publish(t)
+        if sb.active != was:
+            self.count("standby_took_over" if sb.active else "standby_stepped_back")
+            self.io.problem(f"hot standby: {sb.changed} at t={t:.3f}")
+            self.io.role_changed(sb.active)
+        return speak
+
     def step(self, t: float) -> None:
         """One run at time t: the PWM for the motors."""
         vehicle, failsafe, link, out = self.vehicle, self.failsafe, self.link, self.out
@@ -148,6 +175,8 @@ class MotorDriver:
         if forces is not None:
             pwm = thrust_to_pwm(vehicle, forces)
             self.forces = thrust_step(self.forces, forces, self.dt_tick, tau)
+            if not self.speaks(t):
+                return
             if link:
                 link(t, forces)
             out.put({"pwm_us": pwm, "thrust_n": forces, "armed": True, "saturated": False,
@@ -155,6 +184,8 @@ class MotorDriver:
             return
         if not armed or failsafe.latched or cmd is None:
             self.forces = thrust_step(self.forces, np.zeros(4), self.dt_tick, tau)
+            if not self.speaks(t):
+                return
             out.put({**self.idle, "armed": bool(armed and not failsafe.latched)}, t_s=t)
             if link:
                 link(t, self.idle["thrust_n"])
@@ -176,6 +207,8 @@ class MotorDriver:
         # the plan's motor states: what was sent, as the plan's model (the airframe file's) sees it
         as_planned = scale_collective_floats(vehicle.allocation, forces, thrust_scale)
         self.forces = np.array(thrust_step_floats(self.forces.tolist(), as_planned, self.decay))
+        if not self.speaks(t):
+            return
         if link:
             link(t, np.array(forces))
         out.put({"pwm_us": pwm, "thrust_n": forces,
@@ -184,7 +217,17 @@ class MotorDriver:
 
 def run(args) -> None:
     rt = Runtime(NAME, args, PARAMS)
+    if rt.instance != NAME and not (rt.spec is not None and rt.spec.standby):
+        raise ValueError(f"--instance {rt.instance}: {rt.stack.path} [services.motors] has no standby = true")
+    if rt.lockstep and rt.spec is not None and rt.spec.standby:
+        if rt.instance != NAME:
+            raise ValueError(f"--instance {rt.instance}: the hot standby runs in real time only (lockstep "
+                             f"is one driver, deterministic)")
+        rt.problem("hot standby: real time only; this lockstep run flies one driver")
+    rt.role_changed = active_token(rt)
     driver = MotorDriver(rt)
+    if driver.standby is not None and driver.standby.active:
+        rt.role_changed(True)
     # a new attitude command is mixed and sent at once; between commands the 400 Hz timer runs
     rt.run(driver.step, wake_on=driver.command, min_gap=0.0)
 
@@ -290,8 +333,26 @@ def actuator_link(rt: Runtime, vehicle):
     return send
 
 
+def active_token(rt: Runtime):
+    """role_changed(active): the active driver holds a liveliness token zp/<v>/motors/active/<instance>
+    (`zenpilot status` shows it; gone with the process, as the service's own token)."""
+    held = []
+    key = rt.key(f"motors/active/{rt.instance}")
+
+    def role_changed(active: bool) -> None:
+        if active and not held:
+            held.append(rt.session.liveliness().declare_token(key))
+        elif not active and held:
+            held.pop().undeclare()
+    return role_changed
+
+
 def main(argv=None) -> None:
-    args = service_parser(NAME, __doc__.splitlines()[0]).parse_args(argv)
+    parser = service_parser(NAME, __doc__.splitlines()[0])
+    parser.add_argument("--instance", choices=INSTANCES, default=NAME,
+                        help="which of the two drivers of a hot standby ([services.motors] standby = true): "
+                             f"{INSTANCES[1]} starts as the standby")
+    args = parser.parse_args(argv)
     main_guard(NAME, lambda: run(args))
 
 
