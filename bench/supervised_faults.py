@@ -94,8 +94,10 @@ def fly_with(out: Path, service: str, fault: str, at_s: float, seed: int, standb
                 raise SystemExit(f"bench: the flight did not start:\n{proc.stdout.read()}")
             time.sleep(0.05)
         drivers = {}
-        if standby and service == "motors":   # each driver's CPU over the seconds before the fault
-            drivers = {"motors": service_pid(out, "motors"), "motors.b": service_pid(out, "motors", "motors.b")}
+        if service == "motors":   # each driver's CPU over the seconds before the fault
+            drivers = {"motors": service_pid(out, "motors")}
+            if standby:
+                drivers["motors.b"] = service_pid(out, "motors", "motors.b")
             time.sleep(1.0)
             c0, w0 = {n: cpu_s(p) for n, p in drivers.items()}, time.monotonic()
             time.sleep(max(0.0, at_s - 1.0))

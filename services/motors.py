@@ -223,7 +223,8 @@ def run(args) -> None:
         if rt.instance != NAME:
             raise ValueError(f"--instance {rt.instance}: the hot standby runs in real time only (lockstep "
                              f"is one driver, deterministic)")
-        rt.problem("hot standby: real time only; this lockstep run flies one driver")
+        # said, not kept as the health's detail: the lockstep log stays the one a stack without it writes
+        print(f"zenpilot-{NAME}: hot standby: real time only; this lockstep run flies one driver", flush=True)
     rt.role_changed = active_token(rt)
     driver = MotorDriver(rt)
     if driver.standby is not None and driver.standby.active:
