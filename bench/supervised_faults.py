@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import os
 import signal
 import subprocess
@@ -68,22 +69,26 @@ def cpu_s(pid: int) -> float:
         return float("nan")
 
 
-def standby_stack(out: Path) -> Path:
-    """The default stack with the motor driver's hot standby on, written beside the flight."""
+def standby_stack(out: Path, hang_s: float | None = None) -> Path:
+    """The default stack with the motor driver's hot standby on (and its hang bound hang_s),
+    written beside the flight."""
     text = (ROOT / "deploy" / "stacks" / "default.toml").read_text()
     head = "[services.motors]\n"
     assert head in text, "deploy/stacks/default.toml: no [services.motors] table"
+    if hang_s is not None:
+        text = re.sub(r"(\[services\.motors\][^\[]*?)hang_restart_s = [0-9.]+", rf"\g<1>hang_restart_s = {hang_s}", text)
     path = out.parent / f"{out.name}-stack.toml"
     path.write_text(text.replace(head, head + "standby = true\n", 1))
     return path
 
 
-def fly_with(out: Path, service: str, fault: str, at_s: float, seed: int, standby: bool = False) -> dict:
+def fly_with(out: Path, service: str, fault: str, at_s: float, seed: int, standby: bool = False,
+             hang_s: float | None = None) -> dict:
     argv = [sys.executable, "-m", "deploy.cli", "fly", "--mission", "hover", "--seed", str(seed),
             "--out", str(out), "--no-plots"]
     if standby:
         out.parent.mkdir(parents=True, exist_ok=True)
-        argv += ["--stack", str(standby_stack(out))]
+        argv += ["--stack", str(standby_stack(out, hang_s))]
     proc = subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     cpu = {}
     try:
@@ -145,6 +150,8 @@ def after_fault(out: Path, injected: float, window_s: float = 5.0) -> dict:
     gaps = [b[0] - a[0] for a, b in zip(pwm, pwm[1:])]
     got["gap_ms"] = 1e3 * max(gaps) if gaps else None
     got["sources"] = sorted({src for _, src in pwm})
+    # hand-overs: 1 for a clean takeover; more where a resumed driver sent again
+    got["switches"] = sum(1 for a, b in zip(pwm, pwm[1:]) if a[1] != b[1])
     return got
 
 
@@ -157,9 +164,14 @@ def main() -> int:
     ap.add_argument("--out", default="runs/bench-supervised-faults")
     ap.add_argument("--standby", action="store_true", help="the motor driver's hot standby on")
     ap.add_argument("--load", type=int, default=0, metavar="N", help="N busy-loop processes beside each flight")
+    ap.add_argument("--hang-restart-s", type=float, metavar="S",
+                    help="with --standby: the motor driver's hang bound (e.g. 10: a stop2's driver is "
+                         "continued, not killed, and must step back)")
     args = ap.parse_args()
     if args.load < 0:
         ap.error("--load: expected N >= 0")
+    if args.hang_restart_s is not None and not (args.standby and 0.1 <= args.hang_restart_s <= 60.0):
+        ap.error("--hang-restart-s: with --standby, 0.1..60 s")
     print("$ python bench/supervised_faults.py " + " ".join(sys.argv[1:]), flush=True)
     rows = []
     for service in args.services:
@@ -168,7 +180,7 @@ def main() -> int:
             hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.load)]
             try:
                 load = os.getloadavg()[0]
-                r = fly_with(out.resolve(), service, fault, args.at, args.seed, args.standby)
+                r = fly_with(out.resolve(), service, fault, args.at, args.seed, args.standby, args.hang_restart_s)
                 load = max(load, os.getloadavg()[0])
             finally:
                 for h in hogs:
@@ -184,7 +196,7 @@ def main() -> int:
             fig = (f"z {a['z_min']:.2f}..{a['z_max']:.2f} m, tilt <= {a['tilt_max_deg']:.0f} deg" if "z_min" in a
                    else a.get("error", "no truth"))
             if a.get("gap_ms") is not None:
-                fig += f", pwm gap {a['gap_ms']:.0f} ms from {'+'.join(a['sources'])}"
+                fig += f", pwm gap {a['gap_ms']:.0f} ms from {'+'.join(a['sources'])} ({a['switches']} hand-overs)"
             if r["cpu"]:
                 fig += ", cpu " + " ".join(f"{n} {c:.1f}%" for n, c in r["cpu"].items())
             print(f"{service:9} {fault:6} seen after {seen:>5} ms | {did} | failsafes: {fs} | 5 s after: {fig} | "

@@ -28,6 +28,10 @@ command line with `--restarted` (the service then takes control only once settle
 in the launcher's warm spare (deploy/spare.py: its imports done, ~0.2 s to a first output instead
 of ~0.5 s); its output is appended to the service's log.
 
+With the motor driver's hot standby (`[services.motors] standby = true`, services/standby.py) its
+second process `motors.b` is watched as a service of its own, with the driver's policy and bounds;
+either, restarted, comes back as the standby (the other has taken over within ~25 ms).
+
 Restarts happen in real time only. In lockstep a lost participant is dropped from the clock
 (services/lockstep.py) and a new process cannot rejoin a clock already running, so there the
 supervisor reports and the flight stops as it did without it. The simulator is never restarted

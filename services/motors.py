@@ -30,6 +30,13 @@ disarms). A fresh command before that gives control back ("failsafe_recovered").
 mid-flight by the supervisor (`--restarted`), the driver sends nothing until it has heard the
 planner and, armed, a fresh command: its idle output would cut the motors of a vehicle in the air.
 
+Hot standby (`[services.motors] standby = true`, real time; services/standby.py): a second driver
+process (`--instance motors.b`) runs this same loop on the same inputs, its state warm, and sends
+nothing while the active driver's output arrives; it takes over when that output has been missing
+for `standby_takeover_s`, and an active driver whose own last output is that old steps back before
+it sends again. Each hears only the other's motors/pwm (counted "standby_took_over",
+"standby_stepped_back"); the active one holds the liveliness token zp/<v>/motors/active/<instance>.
+
 Output `sim` (default): motors/pwm for the simulator (or ESCs). Output
 `mavlink`: the same, and at the motor rate the mixer's result goes to an
 external autopilot as SET_ACTUATOR_CONTROL_TARGET group 0 (normalised FRD

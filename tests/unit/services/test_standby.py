@@ -1,9 +1,14 @@
 """The hot standby's arbitration (services/standby.py) and the motor driver with it, no I/O."""
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 
 import schemas
+from deploy.launcher import Launcher
 from services.motors import PARAMS, MotorDriver
-from services.stack import ServiceSpec
+from services.stack import ServiceSpec, StackError, load_stack, service_of, standby_processes
 from services.standby import START_GRACE_S, Standby
 from tests.unit.services.fake_io import FakeIO
 from tests.unit.services.test_motors import HOVER_N, planner
@@ -169,3 +174,49 @@ def test_without_the_option_the_driver_has_no_standby_and_hears_no_peers():
     io.tick_rate = 400.0
     d = MotorDriver(io)
     assert d.standby is None and ("motor_pwm", "motors") not in io.inboxes
+
+
+# ---------------------------------------------------------------- the stack option and the processes
+STACK = (Path(__file__).resolve().parents[3] / "deploy" / "stacks" / "default.toml").read_text()
+
+
+def _stack(tmp_path, text):
+    p = tmp_path / "s.toml"
+    p.write_text(text)
+    return load_stack(p)
+
+
+def test_the_stack_option_starts_a_second_driver_in_real_time_only(tmp_path):
+    stack = _stack(tmp_path, STACK.replace("[services.motors]\n", "[services.motors]\nstandby = true\n"))
+    assert stack.service("motors").standby and not stack.service("attitude").standby
+    assert standby_processes(stack, list(stack.services), real_time=True) == ["motors.b"]
+    assert standby_processes(stack, list(stack.services), real_time=False) == []
+    assert standby_processes(load_stack(), list(stack.services), real_time=True) == []
+    assert service_of("motors.b") == "motors" and service_of("attitude") == "attitude"
+    launcher = Launcher(stack, tmp_path / "run", "tcp/127.0.0.1:7447", params={"motors": ["standby_takeover_s=0.03"]})
+    argv = launcher.service_argv("motors.b")
+    assert argv[1:3] == ["-m", "services.motors"] and argv[argv.index("--instance") + 1] == "motors.b"
+    assert argv[argv.index("--param") + 1] == "standby_takeover_s=0.03"   # the service's overrides
+    assert "--instance" not in launcher.service_argv("motors")
+
+
+@pytest.mark.parametrize("text, needle", [
+    ("[services.attitude]\nstandby = true\n", "[services.attitude]: standby: only motors has a hot standby"),
+    ("[services.motors]\nstandby = 1\n", "[services.motors] standby: expected bool"),
+])
+def test_a_bad_standby_option_is_refused_with_where(tmp_path, text, needle):
+    head = text.split("\n", 1)[0] + "\n"
+    with pytest.raises(StackError) as exc:
+        _stack(tmp_path, STACK.replace(head, text, 1))
+    assert needle in str(exc.value)
+
+
+def test_the_standby_driver_refuses_to_run_without_the_option_or_in_lockstep(tmp_path):
+    on = tmp_path / "on.toml"
+    on.write_text(STACK.replace("[services.motors]\n", "[services.motors]\nstandby = true\n"))
+    for extra, needle in ((["--stack", str(load_stack().path)], "has no standby = true"),
+                          (["--stack", str(on), "--lockstep"], "the hot standby runs in real time only")):
+        r = subprocess.run([sys.executable, "-m", "services.motors", "--instance", "motors.b", *extra,
+                            "-e", "tcp/127.0.0.1:9"], capture_output=True, text=True, timeout=60,
+                           cwd=Path(__file__).resolve().parents[3])
+        assert r.returncode == 2 and needle in r.stderr and "Traceback" not in r.stderr, r.stderr
