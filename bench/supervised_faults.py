@@ -2,8 +2,10 @@
 
 Per (service, fault), a real-time hover on the estimates (the default stack); 5 s after the
 simulator's first tick the fault: `kill` (SIGKILL), `stop2` (SIGSTOP, SIGCONT 2 s later) or
-`freeze` (SIGSTOP, never continued). Printed per flight: when the supervisor saw it (after the
-fault), what it did (its events), the failsafes the services counted, and the flight's outcome
+`freeze` (SIGSTOP, never continued); with `--standby`, `kill2` (the active driver killed, and 3 s
+later the driver that took over: the restarted one, now the standby, must take over in turn).
+Printed per flight: when the supervisor saw it (after the fault), what it did (its events), the
+failsafes the services counted, and the flight's outcome
 on the simulator's truth (completed, crashed, touchdown speed).
 
 `--standby`: the default stack with the motor driver's hot standby (`[services.motors] standby =
@@ -35,6 +37,7 @@ from flight.quat import quat_tilt  # noqa: E402
 from schemas.flightlog import LogError, read_log  # noqa: E402
 SERVICES = ("attitude", "position", "motors", "planner", "vision")
 FAULTS = ("kill", "stop2", "freeze")
+KILL2 = "kill2"   # --standby: the active driver killed, then 3 s later the one that took over (a second failure)
 
 
 def cmdline(pid: int) -> list[bytes]:
@@ -111,7 +114,10 @@ def fly_with(out: Path, service: str, fault: str, at_s: float, seed: int, standb
             time.sleep(at_s)
         pid = service_pid(out, service)
         injected = time.time()
-        os.kill(pid, signal.SIGKILL if fault == "kill" else signal.SIGSTOP)
+        os.kill(pid, signal.SIGKILL if fault in ("kill", KILL2) else signal.SIGSTOP)
+        if fault == KILL2:   # the restarted driver is the standby now: the new active fails too
+            time.sleep(3.0)
+            os.kill(service_pid(out, service, "motors.b"), signal.SIGKILL)
         if fault == "stop2":
             time.sleep(2.0)
             try:
@@ -124,7 +130,7 @@ def fly_with(out: Path, service: str, fault: str, at_s: float, seed: int, standb
             proc.kill()
             proc.wait()
     record = json.loads((out / "supervisor.json").read_text())
-    events = [e for e in record["events"] if e["service"] == service]
+    events = [e for e in record["events"] if e["service"] in (service, service + ".b")]   # a standby's too
     metrics = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").exists() else {}
     return {"rc": proc.returncode, "events": events, "after": after_fault(out, injected), "cpu": cpu,
             "seen_ms": (record["started_unix"] + events[0]["t_s"] - injected) * 1e3 if events else None,
@@ -158,7 +164,7 @@ def after_fault(out: Path, injected: float, window_s: float = 5.0) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--services", nargs="+", default=list(SERVICES), choices=SERVICES)
-    ap.add_argument("--faults", nargs="+", default=list(FAULTS), choices=FAULTS)
+    ap.add_argument("--faults", nargs="+", default=list(FAULTS), choices=(*FAULTS, KILL2))
     ap.add_argument("--at", type=float, default=5.0, help="wall seconds after the first tick")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="runs/bench-supervised-faults")
@@ -170,6 +176,8 @@ def main() -> int:
     args = ap.parse_args()
     if args.load < 0:
         ap.error("--load: expected N >= 0")
+    if KILL2 in args.faults and not (args.standby and args.services == ["motors"]):
+        ap.error(f"--faults {KILL2}: with --standby --services motors")
     if args.hang_restart_s is not None and not (args.standby and 0.1 <= args.hang_restart_s <= 60.0):
         ap.error("--hang-restart-s: with --standby, 0.1..60 s")
     print("$ python bench/supervised_faults.py " + " ".join(sys.argv[1:]), flush=True)
@@ -187,7 +195,8 @@ def main() -> int:
                     h.kill()
                     h.wait()
             m = r["metrics"]
-            did = "; ".join(f"+{e['t_s']:.2f} {e['event']}" for e in r["events"]) or "nothing"
+            did = "; ".join(f"+{e['t_s']:.2f} {'' if e['service'] == service else e['service'] + ' '}{e['event']}"
+                            for e in r["events"]) or "nothing"
             fs = ", ".join(f"{k}" for svc in (m.get("failsafes") or {}).values() for k in svc) or "-"
             seen = f"{r['seen_ms']:.0f}" if r["seen_ms"] is not None else "-"
             rows.append((service, fault, seen, did, fs, m.get("completed"), m.get("crashed"),
