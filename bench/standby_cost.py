@@ -52,7 +52,7 @@ def speaks(box, sb):
     t = sb.last_out + 0.0025 if sb.last_out is not None else clock["t"]   # its own 400 Hz clock
     for m in box.take():
         h = m["header"]
-        sb.heard(h["source"], h["t_s"])
+        sb.heard(h["source"], h["t_s"], t)
     return sb.may_publish(t)
 
 

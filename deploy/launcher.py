@@ -181,7 +181,7 @@ class Launcher:
 
     def start_services(self, names: list[str]) -> None:
         if self.stack.security is not None:   # another machine's login would have no way to its peers
-            elsewhere = [n for n in names if self.stack.service(n).machine != self.machine]
+            elsewhere = [n for n in names if self.stack.service(service_of(n)).machine != self.machine]
             if elsewhere:
                 raise StackError(f"{self.stack.path}: with [security] a machine starts only its own services "
                                  f"(`zenpilot up --machine NAME`); not here: {', '.join(elsewhere)}")

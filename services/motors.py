@@ -149,10 +149,10 @@ class MotorDriver:
         sb = self.standby
         if sb is None:
             return True
+        was = sb.active
         for m in self.peers.take():
             h = m["header"]
-            sb.heard(h["source"], h["t_s"])
-        was = sb.active
+            sb.heard(h["source"], h["t_s"], t)
         speak = sb.may_publish(t)
         if sb.active != was:
             self.count("standby_took_over" if sb.active else "standby_stepped_back")

@@ -12,8 +12,12 @@ tick and sends nothing while the active's output arrives. Per tick, before anyth
   stopped, frozen or starved that long: the standby will have taken over). Decided before it
   sends, so a driver resumed by SIGCONT never sends a tick, whether or not Zenoh has yet delivered
   the other's output (its receiving thread was stopped too: an epoch carried in the messages
-  would be read only after that delivery). It then listens, and takes over again only after
-  `takeover_s` of silence (the other is dead as well);
+  would be read only after that delivery). It then listens for REJOIN_S before it may take over
+  again (the other dead as well): after a 2 s stop its first fresh message from the other took
+  more than 28 ms to come (measured: the backlog of the stop first, then a pause), and silence
+  read from a stale inbox had it take control back, on a failsafe started from 2 s-old state;
+* silence is judged by both clocks: no output heard with a sample time within `takeover_s`, and
+  nothing heard at all (however old: a backlog still arriving) for `takeover_s`;
 * active -> standby, on hearing output sent after its own takeover by a driver of higher rank
   (INSTANCES order): two actives at once (a takeover raced an output delivered late) resolve to
   one within a message's delivery, always the same one: no livelock.
@@ -29,6 +33,7 @@ import math
 INSTANCES = ("motors", "motors.b")   # the two drivers, highest rank first
 STANDBY_INSTANCE = INSTANCES[1]
 START_GRACE_S = 1.0   # a standby started with the stack waits this long for the active's first output
+REJOIN_S = 0.25       # a driver that stepped back on its own gap listens this long before it may take over
 
 
 class Standby:
@@ -43,6 +48,7 @@ class Standby:
         self.since = now                    # the last change of role
         self.last_out = None                # this driver's last output (None: none yet, a start-up is no gap)
         self.other_t = -math.inf            # the newest output heard from another driver (sample time)
+        self.other_arrived = -math.inf      # when the last one (of any age) was heard, on this driver's clock
         self.listen_until = now if active else now + grace_s
         self.takeovers = 0
         self.stepped_back = 0
@@ -52,9 +58,11 @@ class Standby:
     def role(self) -> str:
         return "active" if self.active else "standby"
 
-    def heard(self, source: str, t_s: float) -> None:
+    def heard(self, source: str, t_s: float, now: float) -> None:
+        """Output of `source` sampled at t_s, read at `now` (this driver's clock)."""
         if source == self.me or source not in INSTANCES:
             return
+        self.other_arrived = now
         if t_s > self.other_t:
             self.other_t = t_s
         if self.active and t_s > self.since and INSTANCES.index(source) < self.rank:
@@ -64,12 +72,12 @@ class Standby:
         if self.active:
             gap = now - self.last_out if self.last_out is not None else 0.0
             if gap > self.takeover_s:
-                self._step_back(now, f"own output {gap * 1e3:.0f} ms ago (stopped or starved)")
+                self._step_back(now, f"own output {gap * 1e3:.0f} ms ago (stopped or starved)", REJOIN_S)
                 return False
             self.last_out = now
             return True
         silent = now - self.other_t
-        if silent > self.takeover_s and now >= self.listen_until:
+        if silent > self.takeover_s and now - self.other_arrived > self.takeover_s and now >= self.listen_until:
             self.active, self.since, self.last_out = True, now, now
             self.takeovers += 1
             self.changed = (f"took over: no output from the other driver for {silent * 1e3:.0f} ms"
@@ -77,7 +85,8 @@ class Standby:
             return True
         return False
 
-    def _step_back(self, now: float, why: str) -> None:
-        self.active, self.since, self.listen_until = False, now, now + self.takeover_s
+    def _step_back(self, now: float, why: str, listen_s: float | None = None) -> None:
+        self.active, self.since = False, now
+        self.listen_until = now + (self.takeover_s if listen_s is None else max(listen_s, self.takeover_s))
         self.stepped_back += 1
         self.changed = f"stepped back to standby: {why}"

@@ -9,7 +9,7 @@ import schemas
 from deploy.launcher import Launcher
 from services.motors import PARAMS, MotorDriver
 from services.stack import ServiceSpec, StackError, load_stack, service_of, standby_processes
-from services.standby import START_GRACE_S, Standby
+from services.standby import REJOIN_S, START_GRACE_S, Standby
 from tests.unit.services.fake_io import FakeIO
 from tests.unit.services.test_motors import HOVER_N, planner
 
@@ -29,9 +29,9 @@ def run(a: Standby, b: Standby, t0: float, t1: float, a_runs=lambda t: True, b_r
     while t < t1:
         for src, ts in pending:
             if a_runs(t):
-                a.heard(src, ts)
+                a.heard(src, ts, t)
             if b_runs(t):
-                b.heard(src, ts)
+                b.heard(src, ts, t)
         pending = []
         who = [d.me for d, runs in ((a, a_runs), (b, b_runs)) if runs(t) and d.may_publish(t)]
         pending = [(w, t) for w in who]
@@ -72,16 +72,30 @@ def test_resumed_before_anyone_heard_it_the_driver_steps_back_on_its_own_clock()
     assert a.may_publish(0.0) and a.may_publish(0.0025)
     assert not a.may_publish(2.0) and not a.active
     assert not a.may_publish(2.0 + T / 2)        # it listens a bound first
-    a.heard("motors.b", 2.01)                    # ... and hears the new active: it stays standby
+    a.heard("motors.b", 2.01, 2.02)              # ... and hears the new active: it stays standby
     assert not a.may_publish(2.03) and not a.active
 
 
-def test_both_silent_the_resumed_driver_takes_over_again_after_a_bound():
+def test_both_silent_the_resumed_driver_takes_over_again_after_its_rejoin_bound():
     a = Standby("motors", active=True, now=0.0, takeover_s=T)
     assert a.may_publish(0.0)
     assert not a.may_publish(1.0)
-    assert not a.may_publish(1.0 + T - TICK)     # not yet (it listens a full bound)
-    assert a.may_publish(1.0 + T + TICK) and a.active and a.takeovers == 1
+    assert not a.may_publish(1.0 + REJOIN_S - TICK)     # not yet (it listens REJOIN_S)
+    assert a.may_publish(1.0 + REJOIN_S + TICK) and a.active and a.takeovers == 1
+
+
+def test_a_backlog_still_arriving_is_no_silence():
+    """Resumed after a 2 s stop, the stop's backlog of the other's output comes first (old sample
+    times), then fresh output after a pause: no takeover while either arrives."""
+    a = Standby("motors", active=True, now=0.0, takeover_s=T)
+    assert a.may_publish(0.0) and not a.may_publish(2.0)
+    t = 2.0
+    while t < 2.0 + REJOIN_S + 0.1:   # old messages keep coming in, one a tick
+        a.heard("motors.b", 0.3 + (t - 2.0) / 10, t)
+        assert not a.may_publish(t), t
+        t += TICK
+    assert not a.may_publish(t + T - TICK)   # the backlog just ended: a bound of real silence first
+    assert a.may_publish(t + T + TICK)      # the other is dead too
 
 
 def test_two_actives_at_once_resolve_to_the_higher_rank():
@@ -89,9 +103,9 @@ def test_two_actives_at_once_resolve_to_the_higher_rank():
     assert a.may_publish(0.0975)
     b.listen_until = -1.0
     assert b.may_publish(0.1)          # b took over (a's output late in delivery): two actives
-    a.heard("motors.b", 0.1)           # a, higher rank, keeps going
+    a.heard("motors.b", 0.1, 0.101)    # a, higher rank, keeps going
     assert a.active and a.may_publish(0.1025)
-    b.heard("motors", 0.1025)          # b hears a's output sent after its takeover: steps back
+    b.heard("motors", 0.1025, 0.103)   # b hears a's output sent after its takeover: steps back
     assert not b.active and b.stepped_back == 1 and "higher rank" in b.changed
     assert not b.may_publish(0.105)
 
@@ -99,14 +113,14 @@ def test_two_actives_at_once_resolve_to_the_higher_rank():
 def test_output_sent_before_the_takeover_does_not_make_the_new_active_step_back():
     b = Standby("motors.b", active=False, now=0.0, takeover_s=T, grace_s=0.0)
     assert b.may_publish(1.0) and b.active
-    b.heard("motors", 0.99)            # the old active's last output, delivered late
+    b.heard("motors", 0.99, 1.001)     # the old active's last output, delivered late
     assert b.active and b.may_publish(1.0025)
 
 
 def test_a_standby_waits_its_start_grace_and_ignores_its_own_and_unknown_sources():
     b = Standby("motors.b", active=False, now=0.0, takeover_s=T)
-    b.heard("motors.b", 0.5)
-    b.heard("intruder", 0.5)
+    b.heard("motors.b", 0.5, 0.5)
+    b.heard("intruder", 0.5, 0.5)
     assert not b.may_publish(START_GRACE_S - 0.01)
     assert b.may_publish(START_GRACE_S + 0.01) and b.changed == "took over: no other driver heard"
 
