@@ -131,9 +131,11 @@ def fly_with(out: Path, service: str, fault: str, at_s: float, seed: int, standb
             proc.wait()
     record = json.loads((out / "supervisor.json").read_text())
     events = [e for e in record["events"] if e["service"] in (service, service + ".b")]   # a standby's too
+    # the fault's own detection (not an earlier event, e.g. a start-up's under load)
+    seen = [e for e in events if e["service"] == service and record["started_unix"] + e["t_s"] >= injected - 0.05]
     metrics = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").exists() else {}
     return {"rc": proc.returncode, "events": events, "after": after_fault(out, injected), "cpu": cpu,
-            "seen_ms": (record["started_unix"] + events[0]["t_s"] - injected) * 1e3 if events else None,
+            "seen_ms": (record["started_unix"] + seen[0]["t_s"] - injected) * 1e3 if seen else None,
             "metrics": metrics, "said": said}
 
 

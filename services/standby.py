@@ -63,8 +63,7 @@ class Standby:
         if source == self.me or source not in INSTANCES:
             return
         self.other_arrived = now
-        if t_s > self.other_t:
-            self.other_t = t_s
+        self.other_t = max(self.other_t, t_s)
         if self.active and t_s > self.since and INSTANCES.index(source) < self.rank:
             self._step_back(t_s, f"{source} (higher rank) is active too")
 

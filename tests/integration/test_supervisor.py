@@ -9,8 +9,8 @@ import time
 
 import pytest
 
-from schemas.flightlog import read_log
 from flight.quat import quat_tilt
+from schemas.flightlog import read_log
 
 from .conftest import ROOT, fly, processes_mentioning
 
