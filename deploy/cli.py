@@ -351,9 +351,9 @@ def _machine_services(stack, machine: str | None) -> tuple[str, list[str], bool]
 def _status_lines(session, stack) -> list[str]:
     alive = alive_services(session, stack.vehicle_id)
     # a hot standby's drivers: the active one holds zp/<v>/motors/active/<instance> (services/motors.py)
-    active = {str(r.ok.key_expr).rsplit("/", 1)[1] for r in session.liveliness().get(
-        f"zp/{stack.vehicle_id}/motors/active/*", timeout=0.5) if r.ok is not None}
     standbys = standby_processes(stack, stack.services, True)
+    active = {str(r.ok.key_expr).rsplit("/", 1)[1] for r in session.liveliness().get(
+        f"zp/{stack.vehicle_id}/motors/active/*", timeout=0.5) if r.ok is not None} if standbys else set()
     lines = [f"{'service':<10} {'alive':<6} {'state':<9} {'rate Hz':>8} {'target':>7} {'overruns':>8}  rejected"]
     replies = {}
 

@@ -67,8 +67,10 @@ class MotorDriver:
     PWM map, and its own failsafe when the attitude level is gone. `io` is the service's Runtime
     in flight, a fake in the unit tests; no Zenoh here."""
 
-    def __init__(self, io):
+    def __init__(self, io, on_role=None):
+        """on_role(active): told when this driver's hot-standby role changes (and at start, active)."""
         self.io = io
+        self.on_role = on_role
         vehicle = self.vehicle = load_vehicle(io.vehicle_name)
         self.link = actuator_link(io, vehicle) if io.params["output"] == "mavlink" else None
         self.command = io.inbox(schemas.ATTITUDE_COMMAND, "attitude")
@@ -98,6 +100,8 @@ class MotorDriver:
                                    takeover_s=io.params["standby_takeover_s"])
             self.peers = io.inbox(schemas.MOTOR_PWM, "motors", keep=16, others_only=True)
             io.problem(f"hot standby: {me} starts {self.standby.role}")
+            if self.standby.active and on_role is not None:
+                on_role(True)
 
     def count(self, reason: str) -> None:
         rejected = self.io.rejected
@@ -157,7 +161,8 @@ class MotorDriver:
         if sb.active != was:
             self.count("standby_took_over" if sb.active else "standby_stepped_back")
             self.io.problem(f"hot standby: {sb.changed} at t={t:.3f}")
-            self.io.role_changed(sb.active)
+            if self.on_role is not None:
+                self.on_role(sb.active)
         return speak
 
     def step(self, t: float) -> None:
@@ -232,10 +237,7 @@ def run(args) -> None:
                              f"is one driver, deterministic)")
         # said, not kept as the health's detail: the lockstep log stays the one a stack without it writes
         print(f"zenpilot-{NAME}: hot standby: real time only; this lockstep run flies one driver", flush=True)
-    rt.role_changed = active_token(rt)
-    driver = MotorDriver(rt)
-    if driver.standby is not None and driver.standby.active:
-        rt.role_changed(True)
+    driver = MotorDriver(rt, on_role=active_token(rt))
     # a new attitude command is mixed and sent at once; between commands the 400 Hz timer runs
     rt.run(driver.step, wake_on=driver.command, min_gap=0.0)
 

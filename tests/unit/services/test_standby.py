@@ -142,9 +142,6 @@ class StandbyIO(FakeIO):
     def now(self):
         return self.t
 
-    def role_changed(self, active):
-        self.roles.append(active)
-
 
 def _feed(io, t):
     io.received(schemas.PLANNER_SETPOINT, "planner").push(t, planner())
@@ -154,7 +151,7 @@ def _feed(io, t):
 
 def test_the_standby_driver_computes_every_tick_sends_nothing_then_takes_over_with_the_same_output():
     io_a, io_b = StandbyIO("motors", 10.0), StandbyIO("motors.b", 10.0)
-    a, b = MotorDriver(io_a), MotorDriver(io_b)
+    a, b = MotorDriver(io_a, on_role=io_a.roles.append), MotorDriver(io_b, on_role=io_b.roles.append)
     assert a.standby.active and not b.standby.active and io_b.problems == ["hot standby: motors.b starts standby"]
     t = 11.0
     for _ in range(20):   # both hear the same inputs; b hears a's output
@@ -174,7 +171,7 @@ def test_the_standby_driver_computes_every_tick_sends_nothing_then_takes_over_wi
     sent = io_b.sent(schemas.MOTOR_PWM)
     assert sent and sent[0][0] - (t - 12 * TICK) >= T - TICK
     assert sent[-1][1]["pwm_us"] == pytest.approx(last_a["pwm_us"])   # warm: what a would have sent
-    assert io_b.rejected == {"standby_took_over": 1} and io_b.roles == [True]
+    assert io_b.rejected == {"standby_took_over": 1} and io_b.roles == [True] and io_a.roles == [True]
 
 
 def test_a_restarted_primary_driver_starts_as_the_standby():
