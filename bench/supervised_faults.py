@@ -3,7 +3,9 @@
 Per (service, fault), a real-time hover on the estimates (the default stack); 5 s after the
 simulator's first tick the fault: `kill` (SIGKILL), `stop2` (SIGSTOP, SIGCONT 2 s later) or
 `freeze` (SIGSTOP, never continued); with `--standby`, `kill2` (the active driver killed, and 3 s
-later the driver that took over: the restarted one, now the standby, must take over in turn).
+later the driver that took over: the restarted one, now the standby, must take over in turn);
+`stutter15` / `stutter40` (stopped 15 / 40 ms every 200 ms, ten times: under and over the
+standby's 25 ms bound).
 Printed per flight: when the supervisor saw it (after the fault), what it did (its events), the
 failsafes the services counted, and the flight's outcome
 on the simulator's truth (completed, crashed, touchdown speed).
@@ -38,6 +40,9 @@ from schemas.flightlog import LogError, read_log  # noqa: E402
 SERVICES = ("attitude", "position", "motors", "planner", "vision")
 FAULTS = ("kill", "stop2", "freeze")
 KILL2 = "kill2"   # --standby: the active driver killed, then 3 s later the one that took over (a second failure)
+# a stuttering process: stopped for MS milliseconds every 200 ms, ten times (a loop starved in bursts):
+# under the standby's 25 ms bound nothing must change hands; over it, one hand-over and no flapping
+STUTTERS = {"stutter15": 0.015, "stutter40": 0.040}
 
 
 def cmdline(pid: int) -> list[bytes]:
@@ -114,7 +119,23 @@ def fly_with(out: Path, service: str, fault: str, at_s: float, seed: int, standb
             time.sleep(at_s)
         pid = service_pid(out, service)
         injected = time.time()
-        os.kill(pid, signal.SIGKILL if fault in ("kill", KILL2) else signal.SIGSTOP)
+        if fault in STUTTERS:   # timed at real-time priority where allowed: a starved bench would stop it longer
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(95))
+            except OSError:
+                pass
+            stopped = []
+            for _ in range(10):
+                os.kill(pid, signal.SIGSTOP)
+                t0 = time.monotonic()
+                time.sleep(STUTTERS[fault])
+                os.kill(pid, signal.SIGCONT)
+                stopped.append(time.monotonic() - t0)
+                time.sleep(0.2 - STUTTERS[fault])
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+            print(f"bench: {fault}: stopped {1e3 * min(stopped):.1f}..{1e3 * max(stopped):.1f} ms", flush=True)
+        else:
+            os.kill(pid, signal.SIGKILL if fault in ("kill", KILL2) else signal.SIGSTOP)
         if fault == KILL2:   # the restarted driver is the standby now: the new active fails too
             time.sleep(3.0)
             os.kill(service_pid(out, service, "motors.b"), signal.SIGKILL)
@@ -166,7 +187,7 @@ def after_fault(out: Path, injected: float, window_s: float = 5.0) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--services", nargs="+", default=list(SERVICES), choices=SERVICES)
-    ap.add_argument("--faults", nargs="+", default=list(FAULTS), choices=(*FAULTS, KILL2))
+    ap.add_argument("--faults", nargs="+", default=list(FAULTS), choices=(*FAULTS, KILL2, *STUTTERS))
     ap.add_argument("--at", type=float, default=5.0, help="wall seconds after the first tick")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="runs/bench-supervised-faults")
