@@ -99,6 +99,7 @@ class MotorDriver:
             self.standby = Standby(me, active=(me == INSTANCES[0] and not io.restarted), now=io.now(),
                                    takeover_s=io.params["standby_takeover_s"])
             self.peers = io.inbox(schemas.MOTOR_PWM, "motors", keep=16, others_only=True)
+            io.on_param("standby_takeover_s", lambda v: setattr(self.standby, "takeover_s", float(v)))   # both drivers
             io.problem(f"hot standby: {me} starts {self.standby.role}")
             if self.standby.active and on_role is not None:
                 on_role(True)

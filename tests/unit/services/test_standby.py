@@ -174,6 +174,13 @@ def test_the_standby_driver_computes_every_tick_sends_nothing_then_takes_over_wi
     assert io_b.rejected == {"standby_took_over": 1} and io_b.roles == [True] and io_a.roles == [True]
 
 
+def test_the_takeover_bound_follows_a_param_set():
+    io = StandbyIO("motors.b", 10.0)
+    d = MotorDriver(io)
+    io.set_param("standby_takeover_s", [0.04])
+    assert d.standby.takeover_s == 0.04
+
+
 def test_a_restarted_primary_driver_starts_as_the_standby():
     io = StandbyIO("motors", 10.0, restarted=True)
     d = MotorDriver(io)
