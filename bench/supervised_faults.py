@@ -2,17 +2,30 @@
 
 Per (service, fault), a real-time hover on the estimates (the default stack); 5 s after the
 simulator's first tick the fault: `kill` (SIGKILL), `stop2` (SIGSTOP, SIGCONT 2 s later) or
-`freeze` (SIGSTOP, never continued). Printed per flight: when the supervisor saw it (after the
-fault), what it did (its events), the failsafes the services counted, and the flight's outcome
+`freeze` (SIGSTOP, never continued); with `--standby`, `kill2` (the active driver killed, and 3 s
+later the driver that took over: the restarted one, now the standby, must take over in turn);
+`stutter15` / `stutter40` (stopped 15 / 40 ms every 200 ms, ten times: under and over the
+standby's 25 ms bound).
+Printed per flight: when the supervisor saw it (after the fault), what it did (its events), the
+failsafes the services counted, and the flight's outcome
 on the simulator's truth (completed, crashed, touchdown speed).
 
+`--standby`: the default stack with the motor driver's hot standby (`[services.motors] standby =
+true`, services/standby.py); the fault goes to the active driver, and per flight the output gap
+(the longest pause between motors/pwm sample times in the flight log after the fault), which
+drivers sent it, and each driver's CPU (% of one core, from /proc, over the seconds before the
+fault). `--load N`: N busy-loop processes (normal priority) beside each flight, from before its
+start to its end: the heavy load under which the warm spare started too late.
+
     python bench/supervised_faults.py [--services attitude position ...] [--faults kill stop2 freeze]
+    python bench/supervised_faults.py --services motors --standby --load 3
 """
 from __future__ import annotations
 
 import argparse
 import json
 import math
+import re
 import os
 import signal
 import subprocess
@@ -26,6 +39,10 @@ from flight.quat import quat_tilt  # noqa: E402
 from schemas.flightlog import LogError, read_log  # noqa: E402
 SERVICES = ("attitude", "position", "motors", "planner", "vision")
 FAULTS = ("kill", "stop2", "freeze")
+KILL2 = "kill2"   # --standby: the active driver killed, then 3 s later the one that took over (a second failure)
+# a stuttering process: stopped for MS milliseconds every 200 ms, ten times (a loop starved in bursts):
+# under the standby's 25 ms bound nothing must change hands; over it, one hand-over and no flapping
+STUTTERS = {"stutter15": 0.015, "stutter40": 0.040}
 
 
 def cmdline(pid: int) -> list[bytes]:
@@ -36,22 +53,52 @@ def cmdline(pid: int) -> list[bytes]:
         return []
 
 
-def service_pid(out: Path, service: str) -> int:
-    """The flight's service process: the one started with the recorder's router endpoint."""
+def service_pid(out: Path, service: str, instance: str | None = None) -> int:
+    """The flight's service process: the one started with the recorder's router endpoint (with a
+    hot standby, `instance` names which driver: None, the one without --instance)."""
     procs = [int(p) for p in os.listdir("/proc") if p.isdigit()]
     recorder = next(p for p in procs if b"services.recorder" in cmdline(p) and str(out).encode() in b" ".join(cmdline(p)))
     argv = cmdline(recorder)
     endpoint = argv[argv.index(b"-e") + 1]
-    found = [p for p in procs if endpoint in cmdline(p) and f"services.{service}".encode() in cmdline(p)]
+    found = [p for p in procs if endpoint in cmdline(p) and f"services.{service}".encode() in cmdline(p)
+             and (instance.encode() in cmdline(p) if instance else b"--instance" not in cmdline(p))]
     if len(found) != 1:
         raise SystemExit(f"bench: expected one {service} process of {out}, found {found}")
     return found[0]
 
 
-def fly_with(out: Path, service: str, fault: str, at_s: float, seed: int) -> dict:
+def cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) a process has used so far."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            fields = fh.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return float("nan")
+
+
+def standby_stack(out: Path, hang_s: float | None = None) -> Path:
+    """The default stack with the motor driver's hot standby on (and its hang bound hang_s),
+    written beside the flight."""
+    text = (ROOT / "deploy" / "stacks" / "default.toml").read_text()
+    head = "[services.motors]\n"
+    assert head in text, "deploy/stacks/default.toml: no [services.motors] table"
+    if hang_s is not None:
+        text = re.sub(r"(\[services\.motors\][^\[]*?)hang_restart_s = [0-9.]+", rf"\g<1>hang_restart_s = {hang_s}", text)
+    path = out.parent / f"{out.name}-stack.toml"
+    path.write_text(text.replace(head, head + "standby = true\n", 1))
+    return path
+
+
+def fly_with(out: Path, service: str, fault: str, at_s: float, seed: int, standby: bool = False,
+             hang_s: float | None = None) -> dict:
     argv = [sys.executable, "-m", "deploy.cli", "fly", "--mission", "hover", "--seed", str(seed),
             "--out", str(out), "--no-plots"]
+    if standby:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        argv += ["--stack", str(standby_stack(out, hang_s))]
     proc = subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    cpu = {}
     try:
         deadline = time.monotonic() + 120
         sim_log = out / "logs" / "sim.log"
@@ -59,10 +106,39 @@ def fly_with(out: Path, service: str, fault: str, at_s: float, seed: int) -> dic
             if proc.poll() is not None or time.monotonic() > deadline:
                 raise SystemExit(f"bench: the flight did not start:\n{proc.stdout.read()}")
             time.sleep(0.05)
-        time.sleep(at_s)
+        drivers = {}
+        if service == "motors":   # each driver's CPU over the seconds before the fault
+            drivers = {"motors": service_pid(out, "motors")}
+            if standby:
+                drivers["motors.b"] = service_pid(out, "motors", "motors.b")
+            time.sleep(1.0)
+            c0, w0 = {n: cpu_s(p) for n, p in drivers.items()}, time.monotonic()
+            time.sleep(max(0.0, at_s - 1.0))
+            cpu = {n: 100.0 * (cpu_s(p) - c0[n]) / (time.monotonic() - w0) for n, p in drivers.items()}
+        else:
+            time.sleep(at_s)
         pid = service_pid(out, service)
         injected = time.time()
-        os.kill(pid, signal.SIGKILL if fault == "kill" else signal.SIGSTOP)
+        if fault in STUTTERS:   # timed at real-time priority where allowed: a starved bench would stop it longer
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(95))
+            except OSError:
+                pass
+            stopped = []
+            for _ in range(10):
+                os.kill(pid, signal.SIGSTOP)
+                t0 = time.monotonic()
+                time.sleep(STUTTERS[fault])
+                os.kill(pid, signal.SIGCONT)
+                stopped.append(time.monotonic() - t0)
+                time.sleep(0.2 - STUTTERS[fault])
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+            print(f"bench: {fault}: stopped {1e3 * min(stopped):.1f}..{1e3 * max(stopped):.1f} ms", flush=True)
+        else:
+            os.kill(pid, signal.SIGKILL if fault in ("kill", KILL2) else signal.SIGSTOP)
+        if fault == KILL2:   # the restarted driver is the standby now: the new active fails too
+            time.sleep(3.0)
+            os.kill(service_pid(out, service, "motors.b"), signal.SIGKILL)
         if fault == "stop2":
             time.sleep(2.0)
             try:
@@ -75,43 +151,75 @@ def fly_with(out: Path, service: str, fault: str, at_s: float, seed: int) -> dic
             proc.kill()
             proc.wait()
     record = json.loads((out / "supervisor.json").read_text())
-    events = [e for e in record["events"] if e["service"] == service]
+    events = [e for e in record["events"] if e["service"] in (service, service + ".b")]   # a standby's too
+    # the fault's own detection (not an earlier event, e.g. a start-up's under load)
+    seen = [e for e in events if e["service"] == service and record["started_unix"] + e["t_s"] >= injected - 0.05]
     metrics = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").exists() else {}
-    return {"rc": proc.returncode, "events": events, "after": after_fault(out, injected),
-            "seen_ms": (record["started_unix"] + events[0]["t_s"] - injected) * 1e3 if events else None,
+    return {"rc": proc.returncode, "events": events, "after": after_fault(out, injected), "cpu": cpu,
+            "seen_ms": (record["started_unix"] + seen[0]["t_s"] - injected) * 1e3 if seen else None,
             "metrics": metrics, "said": said}
 
 
 def after_fault(out: Path, injected: float, window_s: float = 5.0) -> dict:
     """On the simulator's truth, the window_s after the fault: lowest and highest height, most tilt."""
     try:
-        truth = read_log(out / "flight.mcap")["zp/0/sim/truth"]
+        log = read_log(out / "flight.mcap")
+        truth = log["zp/0/sim/truth"]
     except (OSError, KeyError, LogError) as exc:   # a log the flight left unreadable is a result too
         return {"error": str(exc)}
     seen = [m for m in truth if injected <= m["header"]["t_s"] <= injected + window_s]
     if not seen:
         return {}
     z = [m["position_m"][2] for m in seen]
-    return {"z_min": min(z), "z_max": max(z), "tilt_max_deg": max(math.degrees(quat_tilt(m["quaternion_wxyz"])) for m in seen)}
+    got = {"z_min": min(z), "z_max": max(z), "tilt_max_deg": max(math.degrees(quat_tilt(m["quaternion_wxyz"])) for m in seen)}
+    # the motors' output: the longest pause between sample times from just before the fault on
+    # (the simulator holds the last PWM meanwhile), and which drivers sent it
+    pwm = sorted((m["header"]["t_s"], m["header"]["source"]) for m in log.get("zp/0/motors/pwm", [])
+                 if injected - 0.1 <= m["header"]["t_s"] <= injected + window_s)
+    gaps = [b[0] - a[0] for a, b in zip(pwm, pwm[1:])]
+    got["gap_ms"] = 1e3 * max(gaps) if gaps else None
+    got["sources"] = sorted({src for _, src in pwm})
+    # hand-overs: 1 for a clean takeover; more where a resumed driver sent again
+    got["switches"] = sum(1 for a, b in zip(pwm, pwm[1:]) if a[1] != b[1])
+    return got
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--services", nargs="+", default=list(SERVICES), choices=SERVICES)
-    ap.add_argument("--faults", nargs="+", default=list(FAULTS), choices=FAULTS)
+    ap.add_argument("--faults", nargs="+", default=list(FAULTS), choices=(*FAULTS, KILL2, *STUTTERS))
     ap.add_argument("--at", type=float, default=5.0, help="wall seconds after the first tick")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="runs/bench-supervised-faults")
+    ap.add_argument("--standby", action="store_true", help="the motor driver's hot standby on")
+    ap.add_argument("--load", type=int, default=0, metavar="N", help="N busy-loop processes beside each flight")
+    ap.add_argument("--hang-restart-s", type=float, metavar="S",
+                    help="with --standby: the motor driver's hang bound (e.g. 10: a stop2's driver is "
+                         "continued, not killed, and must step back)")
     args = ap.parse_args()
+    if args.load < 0:
+        ap.error("--load: expected N >= 0")
+    if KILL2 in args.faults and not (args.standby and args.services == ["motors"]):
+        ap.error(f"--faults {KILL2}: with --standby --services motors")
+    if args.hang_restart_s is not None and not (args.standby and 0.1 <= args.hang_restart_s <= 60.0):
+        ap.error("--hang-restart-s: with --standby, 0.1..60 s")
     print("$ python bench/supervised_faults.py " + " ".join(sys.argv[1:]), flush=True)
     rows = []
     for service in args.services:
         for fault in args.faults:
-            out = Path(args.out) / f"{service}-{fault}"
-            load = os.getloadavg()[0]
-            r = fly_with(out.resolve(), service, fault, args.at, args.seed)
+            out = Path(args.out) / f"{service}-{fault}{'-standby' if args.standby else ''}"
+            hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.load)]
+            try:
+                load = os.getloadavg()[0]
+                r = fly_with(out.resolve(), service, fault, args.at, args.seed, args.standby, args.hang_restart_s)
+                load = max(load, os.getloadavg()[0])
+            finally:
+                for h in hogs:
+                    h.kill()
+                    h.wait()
             m = r["metrics"]
-            did = "; ".join(f"+{e['t_s']:.2f} {e['event']}" for e in r["events"]) or "nothing"
+            did = "; ".join(f"+{e['t_s']:.2f} {'' if e['service'] == service else e['service'] + ' '}{e['event']}"
+                            for e in r["events"]) or "nothing"
             fs = ", ".join(f"{k}" for svc in (m.get("failsafes") or {}).values() for k in svc) or "-"
             seen = f"{r['seen_ms']:.0f}" if r["seen_ms"] is not None else "-"
             rows.append((service, fault, seen, did, fs, m.get("completed"), m.get("crashed"),
@@ -119,6 +227,10 @@ def main() -> int:
             a = r["after"]
             fig = (f"z {a['z_min']:.2f}..{a['z_max']:.2f} m, tilt <= {a['tilt_max_deg']:.0f} deg" if "z_min" in a
                    else a.get("error", "no truth"))
+            if a.get("gap_ms") is not None:
+                fig += f", pwm gap {a['gap_ms']:.0f} ms from {'+'.join(a['sources'])} ({a['switches']} hand-overs)"
+            if r["cpu"]:
+                fig += ", cpu " + " ".join(f"{n} {c:.1f}%" for n, c in r["cpu"].items())
             print(f"{service:9} {fault:6} seen after {seen:>5} ms | {did} | failsafes: {fs} | 5 s after: {fig} | "
                   f"completed {m.get('completed')} crashed {m.get('crashed')} {m.get('crash_reason') or ''} "
                   f"| load {load:.1f} | {out}", flush=True)

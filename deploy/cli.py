@@ -44,7 +44,8 @@ from deploy.supervisor import POLL_S, Supervisor
 from flight.control.mission import MissionError
 from schemas.flightlog import LOG_NAME, LogError, LogScan, log_is_complete, read_log, recover, scan
 from services.runtime import on_stop_signals, tie_to_parent
-from services.stack import StackError, available_missions, load_mission, load_stack, lockstep_services
+from services.stack import (StackError, available_missions, load_mission, load_stack, lockstep_services,
+                            STANDBY_SERVICES, service_of, standby_processes)
 
 DEFAULT_MISSION = "steps"
 STATE_DIR = Path(os.environ.get("ZENPILOT_STATE_DIR", Path.home() / ".zenpilot"))
@@ -84,6 +85,7 @@ def cmd_fly(args) -> int:
                         vehicle=mission.vehicle, mission=mission.path, params=_param_overrides(args.set, stack),
                         die_with_parent=True)
     names = lockstep_services(stack.services) if args.lockstep else list(stack.services)
+    names += _standbys(stack, names, not args.lockstep)
     # lockstep in one process unless asked otherwise, or the bus is wanted (a live view, a router's port)
     one_process = args.lockstep and not args.processes and args.foxglove is None and args.port is None
     print(f"zenpilot: flying {mission.name} ({mission.vehicle}, "
@@ -111,6 +113,15 @@ def cmd_fly(args) -> int:
     if metrics.get("crashed"):
         print("zenpilot: the vehicle crashed (truth on the ground mid-mission, or tilted past 60 deg)", file=sys.stderr)
     return 0 if metrics.get("completed") and not metrics.get("crashed") else 1
+
+
+def _standbys(stack, names: list[str], real_time: bool) -> list[str]:
+    """The hot-standby processes to start beside `names` (services/standby.py); in lockstep, said
+    to be off: one driver keeps the flight deterministic."""
+    if not real_time and any(stack.services[n].standby for n in names):
+        print("zenpilot: [services.motors] standby = true: the hot standby runs in real time only; "
+              "this lockstep flight flies one motor driver", file=sys.stderr, flush=True)
+    return standby_processes(stack, names, real_time)
 
 
 def _fly_processes(launcher: Launcher, names: list[str], args, mission, out: Path) -> bool:
@@ -339,6 +350,10 @@ def _machine_services(stack, machine: str | None) -> tuple[str, list[str], bool]
 
 def _status_lines(session, stack) -> list[str]:
     alive = alive_services(session, stack.vehicle_id)
+    # a hot standby's drivers: the active one holds zp/<v>/motors/active/<instance> (services/motors.py)
+    standbys = standby_processes(stack, stack.services, True)
+    active = {str(r.ok.key_expr).rsplit("/", 1)[1] for r in session.liveliness().get(
+        f"zp/{stack.vehicle_id}/motors/active/*", timeout=0.5) if r.ok is not None} if standbys else set()
     lines = [f"{'service':<10} {'alive':<6} {'state':<9} {'rate Hz':>8} {'target':>7} {'overruns':>8}  rejected"]
     replies = {}
 
@@ -354,10 +369,12 @@ def _status_lines(session, stack) -> list[str]:
     while time.monotonic() < deadline and not alive <= set(replies):
         time.sleep(0.1)
     sub.undeclare()
-    for name in [*stack.services, *(["supervisor"] if "supervisor" in replies else [])]:
+    for name in [*stack.services, *standbys, *(["supervisor"] if "supervisor" in replies else [])]:
         h = replies.get(name)
         if h:
             rej = ", ".join(f"{k}={v}" for k, v in h["rejected"].items()) or "-"
+            if standbys and service_of(name) in STANDBY_SERVICES:
+                rej = f"[{'active' if name in active else 'standby'}] " + rej
             live = "yes" if name in alive else "-" if name == "supervisor" else "NO"  # it has no token
             lines.append(f"{name:<10} {live:<6} {h['state']:<9} "
                          f"{h['rate_hz']:>8.1f} {h['target_rate_hz']:>7.0f} {h['overruns']:>8}  {rej}")
@@ -465,6 +482,7 @@ def _write_state(path: Path, stack, router: str, run_dir: Path, launcher) -> dic
 def cmd_up(args) -> int:
     stack = load_stack(args.stack)
     machine, names, runs_router = _machine_services(stack, args.machine)
+    names += _standbys(stack, names, not args.lockstep)
     # `up --lockstep` keeps the MAVLink bridge (unlike `fly`): a ground station is why one runs
     # `up`, and the bridge lives on the wall clock whatever the clock of the rest
     router = args.router or stack.machines[machine].router

@@ -23,7 +23,7 @@ import zenoh
 from schemas.flightlog import LOG_NAME
 from services import security
 from services.runtime import PARENT_ENV
-from services.stack import SERVICE_MODULES, Stack, StackError
+from services.stack import SERVICE_MODULES, Stack, StackError, service_of
 
 ROUTER_START_TIMEOUT_S = 10.0
 STOP_GRACE_S = 5.0        # a service's time to finish after SIGTERM before SIGKILL
@@ -160,8 +160,13 @@ class Launcher:
                              f"(see {self.run_dir / 'logs' / 'router.log'})")
 
     def service_argv(self, name: str) -> list[str]:
-        argv = [sys.executable, "-m", SERVICE_MODULES[name], "--stack", str(self.stack.path),
+        """The command line of process `name`: a service, or a hot standby's second process
+        ("motors.b": the service's module with --instance)."""
+        service = service_of(name)
+        argv = [sys.executable, "-m", SERVICE_MODULES[service], "--stack", str(self.stack.path),
                 "-e", self.router, "--seed", str(self.seed)]
+        if service != name:
+            argv += ["--instance", name]
         if self.lockstep:
             argv.append("--lockstep")
         if self.vehicle:
@@ -170,13 +175,13 @@ class Launcher:
             argv += ["--mission", self.mission]
         if name == "recorder":
             argv += ["--out", str(self.run_dir)]
-        for item in self.params.get(name, []):
+        for item in self.params.get(service, []):
             argv += ["--param", item]
         return argv
 
     def start_services(self, names: list[str]) -> None:
         if self.stack.security is not None:   # another machine's login would have no way to its peers
-            elsewhere = [n for n in names if self.stack.service(n).machine != self.machine]
+            elsewhere = [n for n in names if self.stack.service(service_of(n)).machine != self.machine]
             if elsewhere:
                 raise StackError(f"{self.stack.path}: with [security] a machine starts only its own services "
                                  f"(`zenpilot up --machine NAME`); not here: {', '.join(elsewhere)}")
@@ -204,7 +209,7 @@ class Launcher:
         self._set_nice(name, proc.pid)
 
     def _set_nice(self, name: str, pid: int) -> None:
-        if nice := self.stack.service(name).nice:
+        if nice := self.stack.service(service_of(name)).nice:
             try:
                 os.setpriority(os.PRIO_PROCESS, pid, nice)
             except OSError as exc:  # it still runs, at the default priority: say so

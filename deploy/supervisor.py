@@ -28,6 +28,10 @@ command line with `--restarted` (the service then takes control only once settle
 in the launcher's warm spare (deploy/spare.py: its imports done, ~0.2 s to a first output instead
 of ~0.5 s); its output is appended to the service's log.
 
+With the motor driver's hot standby (`[services.motors] standby = true`, services/standby.py) its
+second process `motors.b` is watched as a service of its own, with the driver's policy and bounds;
+either, restarted, comes back as the standby (the other has taken over within ~25 ms).
+
 Restarts happen in real time only. In lockstep a lost participant is dropped from the clock
 (services/lockstep.py) and a new process cannot rejoin a clock already running, so there the
 supervisor reports and the flight stops as it did without it. The simulator is never restarted
@@ -43,7 +47,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
-from services.stack import DEFAULT_HANG_RESTART_S, NEVER_RESTARTED
+from services.stack import DEFAULT_HANG_RESTART_S, NEVER_RESTARTED, service_of
 
 POLL_S = 0.1
 FIRST_BACKOFF_S = 0.0   # the warm spare (deploy/spare.py) is ready: at once
@@ -118,8 +122,8 @@ class Supervisor:
         self.t0 = clock()
         self.started_unix = time.time()   # events' t_s count from here (to match other logs)
         stack = launcher.stack
-        self.watches = {n: Watch(stack.service(n).restart, stack.service(n).restart_limit,
-                                 stack.service(n).hang_restart_s) for n in names}
+        specs = {n: stack.service(service_of(n)) for n in names}   # a hot standby's process: its service's policy
+        self.watches = {n: Watch(s.restart, s.restart_limit, s.hang_restart_s) for n, s in specs.items()}
         self.remote = {n: RemoteWatch() for n in remote if n not in self.watches} if real_time else {}
         self.events: list[dict] = []
         self._write_failed = False

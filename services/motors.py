@@ -30,6 +30,13 @@ disarms). A fresh command before that gives control back ("failsafe_recovered").
 mid-flight by the supervisor (`--restarted`), the driver sends nothing until it has heard the
 planner and, armed, a fresh command: its idle output would cut the motors of a vehicle in the air.
 
+Hot standby (`[services.motors] standby = true`, real time; services/standby.py): a second driver
+process (`--instance motors.b`) runs this same loop on the same inputs, its state warm, and sends
+nothing while the active driver's output arrives; it takes over when that output has been missing
+for `standby_takeover_s`, and an active driver whose own last output is that old steps back before
+it sends again. Each hears only the other's motors/pwm (counted "standby_took_over",
+"standby_stepped_back"); the active one holds the liveliness token zp/<v>/motors/active/<instance>.
+
 Output `sim` (default): motors/pwm for the simulator (or ESCs). Output
 `mavlink`: the same, and at the motor rate the mixer's result goes to an
 external autopilot as SET_ACTUATOR_CONTROL_TARGET group 0 (normalised FRD
@@ -49,6 +56,7 @@ from flight.motor_model import decay, pwm_to_thrust, thrust_step, thrust_step_fl
 from flight.vehicle import load_vehicle
 from services.params.motors import PARAMS  # every parameter: default, unit, bounds, doc
 from services.runtime import Runtime, main_guard, service_parser
+from services.standby import INSTANCES, Standby
 
 NAME = "motors"
 HELD_PLANS = 16   # the plans received last: a planner's lead of ~0.1 s of them, and older ones to fall back on
@@ -59,8 +67,10 @@ class MotorDriver:
     PWM map, and its own failsafe when the attitude level is gone. `io` is the service's Runtime
     in flight, a fake in the unit tests; no Zenoh here."""
 
-    def __init__(self, io):
+    def __init__(self, io, on_role=None):
+        """on_role(active): told when this driver's hot-standby role changes (and at start, active)."""
         self.io = io
+        self.on_role = on_role
         vehicle = self.vehicle = load_vehicle(io.vehicle_name)
         self.link = actuator_link(io, vehicle) if io.params["output"] == "mavlink" else None
         self.command = io.inbox(schemas.ATTITUDE_COMMAND, "attitude")
@@ -81,6 +91,18 @@ class MotorDriver:
         self.waiting = io.restarted   # restarted mid-flight: silent until the planner and the level are heard
         self.idle = {"pwm_us": [vehicle.pwm_min_us] * 4, "thrust_n": [0.0] * 4, "armed": False,
                      "saturated": False, "imu_t_s": -1.0}
+        # the hot standby (services/standby.py): two drivers, one publishing; None: a lone driver
+        self.standby = self.peers = None
+        spec = getattr(io, "spec", None)
+        if spec is not None and spec.standby and not io.lockstep:
+            me = getattr(io, "instance", io.name)
+            self.standby = Standby(me, active=(me == INSTANCES[0] and not io.restarted), now=io.now(),
+                                   takeover_s=io.params["standby_takeover_s"])
+            self.peers = io.inbox(schemas.MOTOR_PWM, "motors", keep=16, others_only=True)
+            io.on_param("standby_takeover_s", lambda v: setattr(self.standby, "takeover_s", float(v)))   # both drivers
+            io.problem(f"hot standby: {me} starts {self.standby.role}")
+            if self.standby.active and on_role is not None:
+                on_role(True)
 
     def count(self, reason: str) -> None:
         rejected = self.io.rejected
@@ -126,6 +148,24 @@ class MotorDriver:
         u = plan.control(t, x, self.u_max)
         return self.kf * u * u
 
+    def speaks(self, t: float) -> bool:
+        """Whether this driver sends its output of tick t: always alone; with a hot standby, only
+        while active (services/standby.py). The standby has computed the tick all the same."""
+        sb = self.standby
+        if sb is None:
+            return True
+        was = sb.active
+        for m in self.peers.take():
+            h = m["header"]
+            sb.heard(h["source"], h["t_s"], t)
+        speak = sb.may_publish(t)
+        if sb.active != was:
+            self.count("standby_took_over" if sb.active else "standby_stepped_back")
+            self.io.problem(f"hot standby: {sb.changed} at t={t:.3f}")
+            if self.on_role is not None:
+                self.on_role(sb.active)
+        return speak
+
     def step(self, t: float) -> None:
         """One run at time t: the PWM for the motors."""
         vehicle, failsafe, link, out = self.vehicle, self.failsafe, self.link, self.out
@@ -148,6 +188,8 @@ class MotorDriver:
         if forces is not None:
             pwm = thrust_to_pwm(vehicle, forces)
             self.forces = thrust_step(self.forces, forces, self.dt_tick, tau)
+            if not self.speaks(t):
+                return
             if link:
                 link(t, forces)
             out.put({"pwm_us": pwm, "thrust_n": forces, "armed": True, "saturated": False,
@@ -155,6 +197,8 @@ class MotorDriver:
             return
         if not armed or failsafe.latched or cmd is None:
             self.forces = thrust_step(self.forces, np.zeros(4), self.dt_tick, tau)
+            if not self.speaks(t):
+                return
             out.put({**self.idle, "armed": bool(armed and not failsafe.latched)}, t_s=t)
             if link:
                 link(t, self.idle["thrust_n"])
@@ -176,6 +220,8 @@ class MotorDriver:
         # the plan's motor states: what was sent, as the plan's model (the airframe file's) sees it
         as_planned = scale_collective_floats(vehicle.allocation, forces, thrust_scale)
         self.forces = np.array(thrust_step_floats(self.forces.tolist(), as_planned, self.decay))
+        if not self.speaks(t):
+            return
         if link:
             link(t, np.array(forces))
         out.put({"pwm_us": pwm, "thrust_n": forces,
@@ -184,7 +230,15 @@ class MotorDriver:
 
 def run(args) -> None:
     rt = Runtime(NAME, args, PARAMS)
-    driver = MotorDriver(rt)
+    if rt.instance != NAME and not (rt.spec is not None and rt.spec.standby):
+        raise ValueError(f"--instance {rt.instance}: {rt.stack.path} [services.motors] has no standby = true")
+    if rt.lockstep and rt.spec is not None and rt.spec.standby:
+        if rt.instance != NAME:
+            raise ValueError(f"--instance {rt.instance}: the hot standby runs in real time only (lockstep "
+                             f"is one driver, deterministic)")
+        # said, not kept as the health's detail: the lockstep log stays the one a stack without it writes
+        print(f"zenpilot-{NAME}: hot standby: real time only; this lockstep run flies one driver", flush=True)
+    driver = MotorDriver(rt, on_role=active_token(rt))
     # a new attitude command is mixed and sent at once; between commands the 400 Hz timer runs
     rt.run(driver.step, wake_on=driver.command, min_gap=0.0)
 
@@ -290,8 +344,26 @@ def actuator_link(rt: Runtime, vehicle):
     return send
 
 
+def active_token(rt: Runtime):
+    """role_changed(active): the active driver holds a liveliness token zp/<v>/motors/active/<instance>
+    (`zenpilot status` shows it; gone with the process, as the service's own token)."""
+    held = []
+    key = rt.key(f"motors/active/{rt.instance}")
+
+    def role_changed(active: bool) -> None:
+        if active and not held:
+            held.append(rt.session.liveliness().declare_token(key))
+        elif not active and held:
+            held.pop().undeclare()
+    return role_changed
+
+
 def main(argv=None) -> None:
-    args = service_parser(NAME, __doc__.splitlines()[0]).parse_args(argv)
+    parser = service_parser(NAME, __doc__.splitlines()[0])
+    parser.add_argument("--instance", choices=INSTANCES, default=NAME,
+                        help="which of the two drivers of a hot standby ([services.motors] standby = true): "
+                             f"{INSTANCES[1]} starts as the standby")
+    args = parser.parse_args(argv)
     main_guard(NAME, lambda: run(args))
 
 

@@ -425,7 +425,7 @@ class Publisher:
             reliability=publisher_reliability(message, runtime.lockstep))
         self._put = self._pub.put
         self._encode = message.encode
-        self._source = runtime.name
+        self._source = runtime.instance
         self.tracked = runtime.lockstep   # a lockstep run's last put is noted (Runtime._run_lockstep)
         self.last_t = -1.0
 
@@ -501,6 +501,9 @@ class Runtime(ParamAccess):
     def __init__(self, name: str, args: argparse.Namespace, param_defaults: dict[str, Any] | None = None,
                  announce: bool = True):
         self.name = name
+        # the process's own name on the bus (token, health, beat, messages' source): the service's,
+        # or the hot-standby driver's "motors.b" (services/standby.py); parameters stay the service's
+        self.instance = getattr(args, "instance", None) or name
         self.args = args
         try:
             self.stack: Stack = load_stack(args.stack)
@@ -556,16 +559,16 @@ class Runtime(ParamAccess):
             fail(name, f"cannot open the Zenoh session: {exc}")
         # the liveliness token says "up"; a service whose inputs must be in place first (the
         # recorder's subscription) announces itself later (announce_alive)
-        self._token = self.session.liveliness().declare_token(self.key(f"alive/{name}")) if announce else None
+        self._token = self.session.liveliness().declare_token(self.key(f"alive/{self.instance}")) if announce else None
         self._last_put: Publisher | None = None   # lockstep: the last tracked put of the run
         self._done_light: dict[str, Callable] = {}   # upstream -> callback of its RUN_DONE key's own subscription
         self._done_boxes: set[str] = set()        # ... or an inbox
-        self._health = Publisher(self, schemas.HEALTH, schemas.HEALTH.key(self.vehicle_id, name))
+        self._health = Publisher(self, schemas.HEALTH, schemas.HEALTH.key(self.vehicle_id, self.instance))
         self._health.tracked = False   # nobody on the clock reads health: it may follow a run's last message
         self._next_health = 0.0
         # real time: a beat every BEAT_PERIOD_S from the main loop, for the supervisor's hang watch
         self._beat = None if self.lockstep or LOCAL_BUS is not None else \
-            Publisher(self, schemas.BEAT, schemas.BEAT.key(self.vehicle_id, name))
+            Publisher(self, schemas.BEAT, schemas.BEAT.key(self.vehicle_id, self.instance))
         self._next_beat = 0.0
         self.subscribe(schemas.PARAM_SET.key(self.vehicle_id), self._on_param_set)
         on_stop_request(self.stop_event.set)
@@ -579,14 +582,14 @@ class Runtime(ParamAccess):
 
     def announce_alive(self) -> None:
         if self._token is None:
-            self._token = self.session.liveliness().declare_token(self.key(f"alive/{self.name}"))
+            self._token = self.session.liveliness().declare_token(self.key(f"alive/{self.instance}"))
 
     def now(self) -> float:
         return self._t if self.lockstep else time.time()
 
     def problem(self, text: str) -> None:
         if text != self.detail:
-            print(f"zenpilot-{self.name}: {text}", file=sys.stderr, flush=True)
+            print(f"zenpilot-{self.instance}: {text}", file=sys.stderr, flush=True)
         self.detail = text
 
     def count_dropped(self, key: str, n: int = 1) -> None:
@@ -608,8 +611,10 @@ class Runtime(ParamAccess):
             self._reported.add((key, reason))
             self.problem(f"dropped a message on {key}: {reason}")
 
-    def inbox(self, message: schemas.Message, upstream: str, key: str | None = None, keep: int = 4) -> Inbox:
-        """Subscribe to `message` from `upstream` ("sim" or a service name)."""
+    def inbox(self, message: schemas.Message, upstream: str, key: str | None = None, keep: int = 4,
+              others_only: bool = False) -> Inbox:
+        """Subscribe to `message` from `upstream` ("sim" or a service name). others_only (real time):
+        not this process's own messages on that key (the hot-standby drivers hear each other only)."""
         key = key or message.key(self.vehicle_id)
         box = Inbox(self, message, key, upstream, keep)
         if self.lockstep and not box.clocked:
@@ -622,7 +627,8 @@ class Runtime(ParamAccess):
         if self.lockstep or self.rate_hz <= 0:   # lockstep tags on arrival; an event-driven loop wakes on it
             box._subscriber = self.subscribe(key, box._on_sample)
         else:
-            box._subscriber = self.session.declare_subscriber(key, zenoh.handlers.RingChannel(RAW_QUEUE_MAX))
+            box._subscriber = self.session.declare_subscriber(
+                key, zenoh.handlers.RingChannel(RAW_QUEUE_MAX), allowed_origin=zenoh.Locality.REMOTE if others_only else None)
             box._channel = box._subscriber.handler
         self.inboxes.append(box)
         return box
@@ -864,7 +870,7 @@ class Runtime(ParamAccess):
             if "refused" in self.scheduling:
                 self.problem(f"scheduling: {self.scheduling}")
             elif self.scheduling != "normal":
-                print(f"zenpilot-{self.name}: scheduling {self.scheduling}", flush=True)
+                print(f"zenpilot-{self.instance}: scheduling {self.scheduling}", flush=True)
         gc.collect()
         gc.freeze()  # start-up objects (modules, JAX, tables) are never scanned again
 
@@ -917,7 +923,7 @@ class Runtime(ParamAccess):
         if self.state != "stopping":
             cpu = os.times()   # one process of several threads: this service's thread and its inline runs
             used = cpu.user + cpu.system if LOCAL_BUS is None else time.thread_time() + self.cpu_inline_s
-            print(f"zenpilot-{self.name}: stopping; cpu {used:.2f} s; {self.cycles} runs, "
+            print(f"zenpilot-{self.instance}: stopping; cpu {used:.2f} s; {self.cycles} runs, "
                   f"step {self.step_s:.3f} s, waited {self.wait_s:.3f} s", flush=True)
         self.state = "stopping"
         try:

@@ -28,6 +28,9 @@ A stack file is TOML:
     restart_limit = 3         # ... at most this many times (deploy/supervisor.py)
     hang_restart_s = 0.5      # stopped or stuck this long: killed and restarted by its policy
     [services.attitude.params]
+    ...
+    [services.motors]
+    standby = true            # real time: a second driver runs beside it, taking over (services/standby.py)
     state_source = "truth"
 
 Every service checks its own parameters against its declarations (services/params/:
@@ -60,6 +63,19 @@ NEVER_RESTARTED = ("sim",)  # a new world mid-flight
 # a hung level is no better than a dead one: killed and restarted while the failsafes still fly
 DEFAULT_HANG_RESTART_S = 0.5
 DEFAULT_STACK = STACKS_DIR / "default.toml"
+# services with a hot standby (`standby = true`): a second process of the service, running beside it
+STANDBY_SERVICES = ("motors",)
+STANDBY_SUFFIX = ".b"   # the second process's name: "motors.b" (services/standby.py INSTANCES)
+
+
+def service_of(process: str) -> str:
+    """The service a process runs: "motors" for the standby driver "motors.b" too."""
+    return process[:-len(STANDBY_SUFFIX)] if process.endswith(STANDBY_SUFFIX) else process
+
+
+def standby_processes(stack: "Stack", names, real_time: bool) -> list[str]:
+    """The standby processes to start beside `names` (real time only: lockstep runs one driver)."""
+    return [n + STANDBY_SUFFIX for n in names if n in STANDBY_SERVICES and real_time and stack.services[n].standby]
 
 # service name -> python module that runs it (console script zenpilot-<name>)
 SERVICE_MODULES = {
@@ -101,6 +117,7 @@ class ServiceSpec:
     restart: str = "on-failure"  # the supervisor's policy (deploy/supervisor.py): on-failure | always | never
     restart_limit: int = 3       # restarts at most, per run
     hang_restart_s: float = DEFAULT_HANG_RESTART_S  # stopped or stuck this long: a hang, killed and restarted
+    standby: bool = False   # motors only: a hot-standby second driver (services/standby.py), real time
 
 
 # Where a service listens unless its machine says otherwise: its own host only. A peer that
@@ -197,7 +214,7 @@ def load_stack(path: str | Path | None = None) -> Stack:
         if name not in SERVICE_MODULES:
             raise StackError(f"{where}: unknown service (known: {', '.join(SERVICE_MODULES)})")
         unknown = set(s) - {"machine", "rate_hz", "params", "nice", "priority", "cpu", "restart", "restart_limit",
-                             "hang_restart_s"}
+                             "hang_restart_s", "standby"}
         if unknown:
             raise StackError(f"{where}: unknown key(s) {sorted(unknown)}")
         machine = _expect(s.get("machine", next(iter(machines))), str, f"{where} machine")
@@ -227,8 +244,11 @@ def load_stack(path: str | Path | None = None) -> Stack:
         hang_restart_s = _expect(s.get("hang_restart_s", DEFAULT_HANG_RESTART_S), float, f"{where} hang_restart_s")
         if not 0.1 <= hang_restart_s <= 60.0:
             raise StackError(f"{where}: hang_restart_s {hang_restart_s} must be within 0.1..60 s")
+        standby = _expect(s.get("standby", False), bool, f"{where} standby")
+        if standby and name not in STANDBY_SERVICES:
+            raise StackError(f"{where}: standby: only {', '.join(STANDBY_SERVICES)} has a hot standby")
         services[name] = ServiceSpec(name, machine, rate, dict(_expect(s.get("params", {}), dict, f"{where} params")),
-                                     nice, priority, tuple(cpu), restart, restart_limit, hang_restart_s)
+                                     nice, priority, tuple(cpu), restart, restart_limit, hang_restart_s, standby)
     for needed in ("sim", "motors", "attitude", "position", "planner"):
         if needed not in services:
             raise StackError(f"{path}: the stack needs a [services.{needed}] section")

@@ -24,5 +24,12 @@ PARAMS = {
                     doc="sim: motors/pwm only; mavlink: also the mixer's result to an external autopilot "
                         "(SET_ACTUATOR_CONTROL_TARGET) on mavlink_endpoint"),
     "mavlink_endpoint": Param("udpout:127.0.0.1:14560", doc="pymavlink connection string (output = \"mavlink\")"),
+    # the hot standby ([services.motors] standby = true, real time; services/standby.py): well under the
+    # vehicle's margin (its last PWM held, 20 deg of tilt in 0.45 s) and well over a late tick under load
+    # (lateness max ~6 ms with a core kept busy, docs/performance.md)
+    "standby_takeover_s": Param(0.025, "s", 0.005, 0.5,
+                                doc="hot standby: the standby driver takes over when the active's output has "
+                                    "been missing this long; an active driver whose own last output is older "
+                                    "steps back to standby (it was stopped or starved)"),
     "mavlink_target_system": Param(1, "", 1, 255, doc="the external autopilot's MAVLink system id"),
 }

@@ -2,13 +2,17 @@
 is seen at once, restarted after its back-off (a frozen one killed first, once it has hung for
 its bound), and the flight goes on without a crash."""
 import json
+import math
 import os
 import signal
 import time
 
 import pytest
 
-from .conftest import fly, processes_mentioning
+from flight.quat import quat_tilt
+from schemas.flightlog import read_log
+
+from .conftest import ROOT, fly, processes_mentioning
 
 pytestmark = [pytest.mark.integration, pytest.mark.realtime]
 
@@ -25,19 +29,21 @@ def _cmdline(pid: int) -> list[bytes]:
         return fh.read().split(b"\0")
 
 
-def _service_pid(out, module: str) -> int:
-    """The pid of a flight's service: by the router endpoint of its recorder (--out names the run)."""
+def _service_pid(out, module: str, instance: str | None = None) -> int:
+    """The pid of a flight's service: by the router endpoint of its recorder (--out names the run);
+    with a hot standby, `instance` says which driver (None: the one started without --instance)."""
     recorder = next(p for p in processes_mentioning(str(out)) if b"services.recorder" in _cmdline(p))
     argv = _cmdline(recorder)
     endpoint = argv[argv.index(b"-e") + 1].decode()
-    pids = [p for p in processes_mentioning(endpoint) if f"services.{module}".encode() in _cmdline(p)]
+    pids = [p for p in processes_mentioning(endpoint) if f"services.{module}".encode() in _cmdline(p)
+            and (instance.encode() in _cmdline(p) if instance else b"--instance" not in _cmdline(p))]
     assert len(pids) == 1, pids
     return pids[0]
 
 
-def _fly_and(out, fault):
+def _fly_and(out, fault, *extra):
     """A real-time hover on the estimates; `fault()` 5 s after its first tick; what `fly` said."""
-    proc = fly(out, "hover", lockstep=False, background=True)
+    proc = fly(out, "hover", *extra, lockstep=False, background=True)
     try:
         deadline = time.monotonic() + 120
         while "first tick" not in _read(out / "logs" / "sim.log"):
@@ -100,3 +106,37 @@ def test_position_frozen_in_real_time_is_killed_restarted_and_the_vehicle_does_n
     m = _not_crashed(out)
     health = m["rejected_messages"].get("supervisor") or {}
     assert health.get("hung_position") == 1 and health.get("restarted_position") == 1, m["rejected_messages"]
+
+
+def test_the_active_motor_driver_killed_the_hot_standby_takes_over_at_once_and_the_vehicle_holds(tmp_path):
+    """kill -9 of the active motor driver 5 s into a real-time hover with the hot standby
+    (`[services.motors] standby = true`): the standby, already running its loop, sends within
+    ~25 ms of the last output (no held PWM for the supervisor's restart), the vehicle stays level
+    on the truth, and the supervisor restarts the dead driver as the new standby."""
+    stack = tmp_path / "standby.toml"
+    text = (ROOT / "deploy" / "stacks" / "default.toml").read_text()
+    stack.write_text(text.replace("[services.motors]\n", "[services.motors]\nstandby = true\n", 1))
+    out = tmp_path / "run"
+    killed = []
+
+    def kill():
+        killed.append(time.time())
+        os.kill(_service_pid(out, "motors"), signal.SIGKILL)
+    said = _fly_and(out, kill, "--stack", str(stack))
+    assert "supervisor: motors killed by signal 9" in said and "restart 1 of 3" in said, said
+    logs = out / "logs"
+    assert "hot standby: took over: no output from the other driver for" in (logs / "motors.b.log").read_text()
+    restarted = (logs / "motors.log").read_text().split("restarted at", 1)[1]
+    assert "hot standby: motors starts standby" in restarted and "took over" not in restarted, restarted
+    m = _not_crashed(out)
+    log = read_log(out / "flight.mcap")
+    pwm = sorted((x["header"]["t_s"], x["header"]["source"]) for x in log["zp/0/motors/pwm"]
+                 if killed[0] - 0.1 <= x["header"]["t_s"] <= killed[0] + 3.0)
+    gap = max(b[0] - a[0] for a, b in zip(pwm, pwm[1:]))
+    assert gap < 0.1, gap   # the takeover bound (25 ms) and a loaded machine's lateness; the spare took 0.3-0.5 s
+    assert [s for _, s in pwm][-1] == "motors.b" and {s for _, s in pwm} == {"motors", "motors.b"}
+    tilt = max(math.degrees(quat_tilt(x["quaternion_wxyz"])) for x in log["zp/0/sim/truth"]
+               if killed[0] <= x["header"]["t_s"] <= killed[0] + 3.0)
+    assert tilt < 10.0, tilt   # held PWM for the 0.3-0.5 s of a restart: 20-44 deg
+    health = m["rejected_messages"].get("motors.b") or {}
+    assert health.get("standby_took_over") == 1, m["rejected_messages"]

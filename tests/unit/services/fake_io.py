@@ -69,7 +69,8 @@ class FakeIO(ParamAccess):
     def where(self) -> str:
         return f"test: [services.{self.name}.params]"
 
-    def inbox(self, message: schemas.Message, upstream: str, key: str | None = None, keep: int = 4) -> FakeInbox:
+    def inbox(self, message: schemas.Message, upstream: str, key: str | None = None, keep: int = 4,
+              others_only: bool = False) -> FakeInbox:
         return self.inboxes.setdefault((message.name, upstream), FakeInbox(message))
 
     def publisher(self, message: schemas.Message, key: str | None = None) -> FakePublisher:
