@@ -171,7 +171,12 @@ def _find_steps(sp: list[dict], sp_t: np.ndarray, truth_t: np.ndarray, truth_val
             continue
         if mode == "position" and (k < 0 or landed[k]):
             continue  # only steps while airborne
-        jumps = [a for a in range(len(axes)) if abs(ref[i, a] - prev[a]) > threshold]
+        if mode == "attitude" and modes[i - 1] != mode:
+            # entering attitude mode, an axis the item leaves level is no step: the tilt flown
+            # then is the position law's own correction (±1-3° in a hold), not a commanded one
+            jumps = [a for a in range(len(axes)) if abs(ref[i, a]) > threshold and abs(ref[i, a] - prev[a]) > threshold]
+        else:
+            jumps = [a for a in range(len(axes)) if abs(ref[i, a] - prev[a]) > threshold]
         if not jumps:
             continue
         later = changes[changes > i]

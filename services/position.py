@@ -23,6 +23,7 @@ vehicle ("vision_lost"); a fix fused again resumes it. A camera fix older than
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import deque
 
@@ -32,7 +33,7 @@ import schemas
 from flight.control.laws import (DisturbanceObserver, altitude_law, hold_integral_update, position_law,
                                  thrust_accel_xy)
 from flight.estimation.camera_delay import CameraDelayEstimator, CameraDelayParams
-from flight.estimation.position_ekf import LaggedMotorInput, PositionEKF, PositionEKFParams
+from flight.estimation.position_ekf import DISTURBANCE, LaggedMotorInput, PositionEKF, PositionEKFParams
 from flight.quat import quat_tilt, quat_to_euler
 from flight.vehicle import load_vehicle
 from services.params.position import PARAMS  # every parameter: default, unit, bounds, doc
@@ -75,7 +76,10 @@ class PositionLoop:
         self.dt = 1.0 / io.rate_hz
         self.estimate = p["state_source"] == "estimate"
         if self.estimate:
-            self.ekf = PositionEKF(vehicle, io.table("ekf", PositionEKFParams.from_dict), dt=self.dt)
+            ekf_params = io.table("ekf", PositionEKFParams.from_dict)
+            if not p["wind_estimation"]:   # the disturbance states held at 0: the filter of (1) as before them
+                ekf_params = dataclasses.replace(ekf_params, q_disturbance_m2_s5=0.0, init_std_disturbance_m_s2=0.0)
+            self.ekf = PositionEKF(vehicle, ekf_params, dt=self.dt)
             self.attitude = io.inbox(schemas.ATTITUDE_STATE, "attitude")
             self.motors = io.inbox(schemas.MOTOR_PWM, "motors", keep=32)  # every 400 Hz command of a step
             self.poses = io.inbox(schemas.VISION_POSE, "vision", keep=16)
@@ -105,6 +109,11 @@ class PositionLoop:
         self.vision_lost = False
         self.integral = np.zeros(2)  # hold_ki's integral of the position error
         self.bias = None
+        self.ekf_disturbance = None   # (x, y) of the EKF, m/s^2: read_state
+        if p["disturbance_bandwidth_rad_s"] > 0.0 and p["wind_estimation"] and self.estimate:
+            # both estimate the same pull: fed forward together they would ask for it twice
+            raise ValueError(f"{io.where()}: wind_estimation and disturbance_bandwidth_rad_s > 0 (the observer) "
+                             "both feed the wind forward: use one of them")
         self.observer = (DisturbanceObserver(p["disturbance_bandwidth_rad_s"], p["disturbance_limit_m_s2"],
                                              vehicle.drag_n_per_m_s / vehicle.mass_kg)
                          if p["disturbance_bandwidth_rad_s"] > 0.0 else None)
@@ -197,6 +206,8 @@ class PositionLoop:
             self.next_ekf_health = (math.floor(t / EKF_HEALTH_PERIOD_S) + 1) * EKF_HEALTH_PERIOD_S
             self.publish_ekf_health(t)
         x = ekf.x
+        d0, d1 = x[DISTURBANCE]
+        self.ekf_disturbance = (float(d0), float(d1))
         return x[0:3], x[3:6], x[6:9], ekf.position_cov, float(x[12])
 
     def publish_ekf_health(self, t: float) -> None:
@@ -294,6 +305,13 @@ class PositionLoop:
                     self.observer.update(vel[:2], thrust_accel_xy(
                         collective * thrust_scale, vehicle.mass_kg, roll, pitch, yaw), self.dt)
                 d0, d1 = self.observer.d
+                bias = np.array([-d0, -d1]) if bias is None else bias - (d0, d1)
+            if p["wind_estimation"] and self.estimate and self.ekf_disturbance is not None \
+                    and (stale or not sp["phase"].startswith("flip")):
+                d0, d1 = self.ekf_disturbance
+                norm = math.hypot(d0, d1)
+                if norm > p["disturbance_limit_m_s2"]:
+                    d0, d1 = d0 * p["disturbance_limit_m_s2"] / norm, d1 * p["disturbance_limit_m_s2"] / norm
                 bias = np.array([-d0, -d1]) if bias is None else bias - (d0, d1)
             r, pt, thrust = position_law(m_eff, g, pos, vel, ref_pos, k, alpha, yaw_ref,
                                          max_tilt_rad=self.tilt_rad, accel_bias_xy=bias)

@@ -15,7 +15,8 @@ position and velocity (z up), ZYX Euler angles listed [roll, pitch, yaw]
 (``R = Rz(yaw) Ry(pitch) Rx(roll)``), body FLU angular rates.  Input
 ``u = [u1, u2, u3, u4]``: total thrust (N) and body torques (N m), held over a
 step (zero-order hold, as the controller applies it).  The filter adds a 13th
-state, the thrust scale s (:class:`PositionEKF`): the model runs with s u1.
+state, the thrust scale s (:class:`PositionEKF`): the model runs with s u1; and a 14th
+and 15th, the horizontal disturbance acceleration d (the wind's pull), added to v'.
 
 Model (:func:`f`)::
 
@@ -130,12 +131,14 @@ from flight.vehicle import Vehicle
 __all__ = [
     "PositionEKFError", "PositionEKFParams", "PositionEKF",
     "f", "jacobian_f", "rk4_step", "discretize",
-    "POSITION", "VELOCITY", "EULER", "RATES", "THRUST_SCALE", "N_MODEL", "N_STATE", "LaggedMotorInput",
+    "POSITION", "VELOCITY", "EULER", "RATES", "THRUST_SCALE", "DISTURBANCE", "N_MODEL", "N_STATE",
+    "LaggedMotorInput",
 ]
 
 N_MODEL = 12       # the states of (1)-(2)
 THRUST_SCALE = 12  # the filter's 13th state (see PositionEKF)
-N_STATE = 13
+DISTURBANCE = slice(13, 15)   # its 14th and 15th: the horizontal disturbance acceleration (see PositionEKF)
+N_STATE = 15
 POSITION = slice(0, 3)
 VELOCITY = slice(3, 6)
 EULER = slice(6, 9)
@@ -201,17 +204,31 @@ class PositionEKFParams(Declared):
     init_std_thrust_scale: float = declared(0.1, "", 0.0, min_exclusive=True,
                                             doc="initial thrust scale std (1 sigma)")
 
+    # the wind's pull on the airframe (drag of the air speed, not of the ground speed: 2 m/s on
+    # the x250 is 0.5 m/s^2), a payload's, a tilt bias: a random walk, so the model's prediction
+    # between fixes carries it instead of the gate refusing every fix once it has built up.
+    # 0.01 (m/s^2)^2/s lets it move 0.3 m/s^2 in 10 s (1 sigma): a gust front, not the
+    # turbulence's fast part (that stays in q_velocity)
+    q_disturbance_m2_s5: float = declared(0.01, "m^2/s^5", 0.0,
+                                          doc="random walk density of the horizontal disturbance acceleration "
+                                              "(wind, payload pull)")
+    # a 2 m/s wind on the ground at start is 0.5 m/s^2 on the x250
+    init_std_disturbance_m_s2: float = declared(0.5, "m/s^2", 0.0,
+                                                doc="initial horizontal disturbance acceleration std (1 sigma)")
+
     @property
     def process_noise_density(self) -> np.ndarray:
-        """Diagonal of Q_c (13,)."""
+        """Diagonal of Q_c (N_STATE,)."""
         return np.r_[np.repeat([self.q_position_m2_s, self.q_velocity_m2_s3,
-                                self.q_angles_rad2_s, self.q_rates_rad2_s3], 3), self.q_thrust_scale_1_s]
+                                self.q_angles_rad2_s, self.q_rates_rad2_s3], 3), self.q_thrust_scale_1_s,
+                     self.q_disturbance_m2_s5, self.q_disturbance_m2_s5]
 
     @property
     def initial_covariance(self) -> np.ndarray:
         return np.diag(np.r_[np.repeat([self.init_std_position_m, self.init_std_velocity_m_s,
                                         self.init_std_angles_rad, self.init_std_rates_rad_s], 3),
-                             self.init_std_thrust_scale] ** 2)
+                             self.init_std_thrust_scale, self.init_std_disturbance_m_s2,
+                             self.init_std_disturbance_m_s2] ** 2)
 
 
 # --------------------------------------------------------------------------- #
@@ -312,9 +329,10 @@ def rk4_step(x, u, vehicle: Vehicle, dt: float) -> np.ndarray:
 def discretize(x, u, vehicle: Vehicle, dt: float, q_density=None):
     """One step: (x_next by RK4, F_d = I + A + A^2/2 with A = J dt, Q_d = diag(q_density) dt).
 
-    x has the 12 states of (1)-(2), or 13 with the thrust scale s last (the filter's
-    state): then the model runs with u1 scaled by s, and J gets the column
-    d v' / d s = (u1 / m) R e3 (s itself is a random walk)."""
+    x has the 12 states of (1)-(2), or the filter's 15 with the thrust scale s and the
+    horizontal disturbance acceleration d: then the model runs with u1 scaled by s and
+    d added to the horizontal acceleration, and J gets the column d v' / d s = (u1 / m) R e3
+    and the unit entries d v'_xy / d d (s and d themselves are random walks)."""
     x = np.asarray(x, dtype=np.float64)
     u = np.asarray(u, dtype=np.float64)
     n = x.shape[0]
@@ -328,7 +346,7 @@ def discretize(x, u, vehicle: Vehicle, dt: float, q_density=None):
         x_next, vals = _step(xs, u1, u2, u3, u4, dt, _constants(vehicle))
     else:
         x_next, vals = _step(xs, u1 * xs[THRUST_SCALE], u2, u3, u4, dt, _constants(vehicle), u_col=u1)
-        x_next.append(xs[THRUST_SCALE])
+        x_next += xs[N_MODEL:]
     F = _transition(vals, n)
     Q = None if q_density is None else np.diag(np.asarray(q_density, dtype=np.float64) * dt)
     return np.array(x_next), F, Q
@@ -344,33 +362,37 @@ def _constants(vehicle: Vehicle) -> tuple:
             izz - iyy, ixx - izz, iyy - ixx)
 
 
-# where the non-zero entries of J (13x13, row-major) go; the last three only with the thrust scale
+# where the non-zero entries of J (row-major) go; the last five only with the filter's states
+# (the thrust scale's column, the disturbance's two)
 _J_ROWS = (0, 1, 2, 3, 4, 5, 3, 3, 3, 4, 4, 4, 5, 5, 6, 6, 6, 6, 6, 7, 7, 7, 8, 8, 8, 8,
-           9, 9, 10, 10, 11, 11, 3, 4, 5)
+           9, 9, 10, 10, 11, 11, 3, 4, 5, 3, 4)
 _J_COLS = (3, 4, 5, 3, 4, 5, 6, 7, 8, 6, 7, 8, 6, 7, 6, 7, 9, 10, 11, 6, 10, 11, 6, 7, 10, 11,
-           10, 11, 9, 11, 9, 10, 12, 12, 12)
+           10, 11, 9, 11, 9, 10, 12, 12, 12, 13, 14)
 _J_FLAT = {n: np.array([r * n + c for r, c in zip(_J_ROWS, _J_COLS) if c < n]) for n in (N_MODEL, N_STATE)}
 _EYE = {n: np.eye(n) for n in (N_MODEL, N_STATE)}
-_J_FLAT13, _EYE13 = _J_FLAT[N_STATE], _EYE[N_STATE]
+_J_FLAT_FULL, _EYE_FULL = _J_FLAT[N_STATE], _EYE[N_STATE]
 
 
 def _step(xs, u1, u2, u3, u4, dt, C, u_col=None, jacobian=True):
     """RK4 step of (1)-(2) from the floats xs[:12] with u held: (x_next as 12 floats,
     the entries of A = J dt at _J_ROWS/_J_COLS, or None).  u1 is the thrust the model
-    runs with (s u1 for the filter); u_col, when given, the commanded u1 of the thrust
-    scale's column d v' / d s = (u_col / m) R e3.  Written out stage by stage: each stage
-    is f (a .. i its rows 3..11; rows 0..2 are the stage's velocity)."""
+    runs with (s u1 for the filter); u_col, when given (the filter's full state), the
+    commanded u1 of the thrust scale's column d v' / d s = (u_col / m) R e3, followed by the
+    disturbance's unit columns.  The filter's disturbance xs[13:15], when there, is added
+    to the horizontal acceleration (+ 0.0 without it: the same numbers).  Written out stage
+    by stage: each stage is f (a .. i its rows 3..11; rows 0..2 are the stage's velocity)."""
     m, k, g, ixx, iyy, izz, dzy, dxz, dyx = C
     sin, cos = math.sin, math.cos
     a = u1 / m
     px, py, pz, vx, vy, vz, r, p, y, wx, wy, wz = xs[:12]
+    dx, dy = (xs[13], xs[14]) if len(xs) == N_STATE else (0.0, 0.0)
     hh = 0.5 * dt
     # stage 1, at the start (its sines and cosines serve the Jacobian too)
     sr0, cr0, sp0, cp0, sy0, cy0 = sin(r), cos(r), sin(p), cos(p), sin(y), cos(y)
     tp0 = sp0 / cp0
     q0 = sr0 * wy + cr0 * wz
-    a1 = a * (sy0 * sr0 + cy0 * cr0 * sp0) - k * vx
-    b1 = a * (-cy0 * sr0 + sy0 * cr0 * sp0) - k * vy
+    a1 = a * (sy0 * sr0 + cy0 * cr0 * sp0) - k * vx + dx
+    b1 = a * (-cy0 * sr0 + sy0 * cr0 * sp0) - k * vy + dy
     c1 = a * (cr0 * cp0) - k * vz - g
     d1 = wx + tp0 * q0
     e1 = cr0 * wy - sr0 * wz
@@ -385,8 +407,8 @@ def _step(xs, u1, u2, u3, u4, dt, C, u_col=None, jacobian=True):
     sr, cr, sp, cp, sy, cy = sin(r2), cos(r2), sin(p2), cos(p2), sin(y2), cos(y2)
     tp = sp / cp
     q = sr * wy2 + cr * wz2
-    a2 = a * (sy * sr + cy * cr * sp) - k * vx2
-    b2 = a * (-cy * sr + sy * cr * sp) - k * vy2
+    a2 = a * (sy * sr + cy * cr * sp) - k * vx2 + dx
+    b2 = a * (-cy * sr + sy * cr * sp) - k * vy2 + dy
     c2 = a * (cr * cp) - k * vz2 - g
     d2 = wx2 + tp * q
     e2 = cr * wy2 - sr * wz2
@@ -401,8 +423,8 @@ def _step(xs, u1, u2, u3, u4, dt, C, u_col=None, jacobian=True):
     sr, cr, sp, cp, sy, cy = sin(r3), cos(r3), sin(p3), cos(p3), sin(y3), cos(y3)
     tp = sp / cp
     q = sr * wy3 + cr * wz3
-    a3 = a * (sy * sr + cy * cr * sp) - k * vx3
-    b3 = a * (-cy * sr + sy * cr * sp) - k * vy3
+    a3 = a * (sy * sr + cy * cr * sp) - k * vx3 + dx
+    b3 = a * (-cy * sr + sy * cr * sp) - k * vy3 + dy
     c3 = a * (cr * cp) - k * vz3 - g
     d3 = wx3 + tp * q
     e3 = cr * wy3 - sr * wz3
@@ -417,8 +439,8 @@ def _step(xs, u1, u2, u3, u4, dt, C, u_col=None, jacobian=True):
     sr, cr, sp, cp, sy, cy = sin(r4), cos(r4), sin(p4), cos(p4), sin(y4), cos(y4)
     tp = sp / cp
     q = sr * wy4 + cr * wz4
-    a4 = a * (sy * sr + cy * cr * sp) - k * vx4
-    b4 = a * (-cy * sr + sy * cr * sp) - k * vy4
+    a4 = a * (sy * sr + cy * cr * sp) - k * vx4 + dx
+    b4 = a * (-cy * sr + sy * cr * sp) - k * vy4 + dy
     c4 = a * (cr * cp) - k * vz4 - g
     d4 = wx4 + tp * q
     e4 = cr * wy4 - sr * wz4
@@ -458,7 +480,7 @@ def _step(xs, u1, u2, u3, u4, dt, C, u_col=None, jacobian=True):
             -dyx * wy / izz * dt, -dyx * wx / izz * dt]
     if u_col is not None:
         b = u_col / m
-        vals += (b * (sy * sr + cy * cr * sp) * dt, b * (-cy * sr + sy * cr * sp) * dt, b * (cr * cp) * dt)
+        vals += (b * (sy * sr + cy * cr * sp) * dt, b * (-cy * sr + sy * cr * sp) * dt, b * (cr * cp) * dt, dt, dt)
     return x_next, vals
 
 
@@ -490,7 +512,7 @@ class _Node:
     def __init__(self, t, u, x, P):
         self.t = t
         self.u = u   # [u1, u2, u3, u4] as floats (None for the first node)
-        self.x = x   # the 13 states as floats
+        self.x = x   # the filter's states as floats
         self.P = P
         self.meas: list[tuple] = []  # (kind, z, R, offset_s), in the order applied
         self.post = (x, P)
@@ -507,6 +529,14 @@ class PositionEKF:
     collective by it (PX4 estimates its hover thrust for the same reason). Without
     it the laws of 000, which have no integral action, hold a heavier vehicle low,
     and the EKF's velocity is biased by the wrong acceleration.
+
+    Its 14th and 15th elements, d (DISTURBANCE), are a horizontal acceleration the model
+    lacks, added to (1)'s: above all the wind's pull (the drag of the air speed, where the
+    model has the ground speed's: 0.5 m/s^2 on the x250 in a 2 m/s wind), a random walk the
+    camera's positions make observable. Without it a wind's pull built up between fixes until
+    the gate refused them (after a take-off's drift before the first fix, in a loop of
+    resets); the position level feeds it forward as the law's disturbance (PX4's EKF2
+    estimates the wind for the same drag).
 
     One filter is for one thread: its steps share a scratch array.
     """
@@ -526,11 +556,11 @@ class PositionEKF:
         self._ikh = {}
         for first, n in ((6, 6), (0, 3)):
             ikh = np.eye(N_STATE)
-            self._ikh[first] = (ikh, ikh[:, first:first + n], ikh.T, _EYE13[:, first:first + n].copy())
+            self._ikh[first] = (ikh, ikh[:, first:first + n], ikh.T, _EYE_FULL[:, first:first + n].copy())
         p = self.params.gate_probability
         self._gate = {n: (math.inf if p >= 1.0 else _chi2_ppf(p, n)) for n in (3, 6)}
         self._eps = 1e-6 * self.dt
-        self._x: list | None = None  # the 13 states as floats: the step's arithmetic is in floats
+        self._x: list | None = None  # the states as floats: the step's arithmetic is in floats
         self._P: np.ndarray | None = None
         # the first node of the history whose prior and posterior are out of date (None: none
         # is; then self._x, self._P are the newest node's posterior): see _current
@@ -539,7 +569,7 @@ class PositionEKF:
         self._hist: list[_Node] = []
         self._counts = {k: {"accepted": 0, **{r: 0 for r in _REASONS}} for k in _KINDS}
         self.last_nis = {k: math.nan for k in _KINDS}
-        # the last camera fix's (innovation (3,), velocity at its time (3 floats), gain K (13x3)
+        # the last camera fix's (innovation (3,), velocity at its time (3 floats), gain K (N_STATE x 3)
         # or None when gated), for the delay estimator (flight/estimation/camera_delay.py); None
         # when the fix was refused before its innovation was formed (invalid, too old, future)
         self.camera_fix: tuple | None = None
@@ -647,10 +677,13 @@ class PositionEKF:
         the fix is (its exposure before the filter's time): the vehicle has moved since by
         up to velocity_std_m_s x age_s, so the position's variance grows by that (held at
         the camera's own, the next fixes of a moving vehicle were gated again: a loop of
-        resets)."""
+        resets). The disturbance starts again from 0 (one learnt while losing the vehicle is
+        suspect: kept, a turbulent take-off's crashed) with the variance it had (at its initial
+        one the first fixes after a restart moved it wildly: the delay-step flight diverged)."""
         self._current()
         x, P = np.array(self._x), self._P.copy()
         x[POSITION] = _vec(position, 3, "position")
+        x[DISTURBANCE] = 0.0
         P[:6, :] = 0.0
         P[:, :6] = 0.0
         P[:3, :3] = np.array(cov, dtype=np.float64).reshape(3, 3) + np.eye(3) * (velocity_std_m_s * max(age_s, 0.0))**2
@@ -774,17 +807,17 @@ class PositionEKF:
             Qd = self._Qd[sub] = self._Qc * sub
         xs = x
         u1, u2, u3, u4 = u
-        s = xs[THRUST_SCALE]
+        s, dx, dy = xs[THRUST_SCALE], xs[13], xs[14]
         u1s = u1 * s   # the model runs with s u1 (discretize)
         C = self._C
         for _ in range(n):
             xs, vals = _step(xs, u1s, u2, u3, u4, sub, C, u_col=u1)
-            xs.append(s)
+            xs += (s, dx, dy)
             A = self._A   # _transition, inline; the same entries are written every time
-            A.put(_J_FLAT13, vals)
+            A.put(_J_FLAT_FULL, vals)
             AA = A.dot(A)
             AA *= 0.5
-            F = _EYE13 + A
+            F = _EYE_FULL + A
             F += AA
             P = F.dot(P).dot(F.T)
             P += Qd
@@ -804,14 +837,14 @@ class PositionEKF:
         0: the camera at a node's time) where it only selects states: then P H' is P's
         columns and I - K H the identity less K in them, exactly what the products with the
         0/1 matrix give (every other term of those sums is an exact zero), written into a
-        scratch identity kept per first state; else the 3x13 H of a camera offset."""
+        scratch identity kept per first state; else the 3 x N_STATE H of a camera offset."""
         if H.__class__ is int:
             IKH, cols, IKH_T, eye_cols = self._ikh[H]
             K = P[:, H:H + len(y)].dot(S_inv)
             np.subtract(eye_cols, K, out=cols)
         else:
             K = P.dot(H.T).dot(S_inv)
-            IKH = _EYE13 - K.dot(H)
+            IKH = _EYE_FULL - K.dot(H)
             IKH_T = IKH.T
         self._K = K
         xs = [a + b for a, b in zip(x, K.dot(y).tolist())]

@@ -33,6 +33,12 @@ PARAMS = {
     "disturbance_bandwidth_rad_s": Param(0.0, "rad/s", 0.0, 50.0, doc="the horizontal disturbance observer's bandwidth "
                                          "(flight/control/laws.py DisturbanceObserver), its estimate fed forward in "
                                          "the position mode; 0: off"),
+    # off by default as PX4's EKF2 has its wind estimate (EKF2_DRAG_CTRL): in still air it adds
+    # ~0.3 deg of noise to the hold's attitude references, and an unstamped camera delay step is
+    # absorbed worse (docs/results.md, "Hold in wind")
+    "wind_estimation": Param(False, doc="the EKF learns the wind's pull (its horizontal disturbance states, "
+                             "`ekf.q_disturbance_m2_s5`) and the position law feeds it forward; false: the "
+                             "states held at 0"),
     "disturbance_limit_m_s2": Param(3.0, "m/s^2", 0.0, doc="the most acceleration the disturbance feed-forward may "
                                     "ask for"),
     "setpoint_timeout_s": Param(0.5, "s", 0.0, min_exclusive=True,

@@ -187,6 +187,24 @@ def test_attitude_steps_are_timed_where_the_attitude_level_gets_the_reference():
     assert m["attitude_settle_s_max"] == roll["settle_s"]
     assert m["attitude_command_settle_s_max"] == roll["command_settle_s"]
 
+def test_entering_attitude_mode_an_axis_left_level_is_no_step():
+    """The hold flies pitched 1.8 deg (the position law's own correction) when the attitude item
+    starts with roll 10, pitch 0: the roll is a step, the pitch's return to level is not."""
+    d2r = math.pi / 180
+    tr, sp = [], []
+    for k in range(3001):
+        t = k / 1000
+        roll = 10 * d2r * (1 - math.exp(-(t - 1) / TAU_ROLL)) if t > 1 else 0.0
+        pitch = 1.8 * d2r * (math.exp(-(t - 1) / TAU_ROLL) if t > 1 else 1.0)
+        tr.append(truth(t, k, (0, 0, 2), roll=roll, pitch=pitch))
+    for j in range(151):
+        t = j / 50
+        sp.append(setpoint(t, j, mode="position" if t < 1.0 else "attitude", pos=(0, 0, 2),
+                           att=(10 * d2r if t >= 1 else 0.0, 0.0, 0.0)))
+    steps = compute_metrics({P + "sim/truth": tr, P + "planner/setpoint": sp}, INFO)["attitude_steps"]
+    assert [s["axis"] for s in steps] == ["roll"]
+
+
 def test_attitude_steps_match_analytic_responses():
     m = compute_metrics(attitude_log(), INFO)
     assert_json_clean(m)

@@ -116,6 +116,7 @@ def _tcp_bytes_received(port: int) -> int:
     return sum(int(w.split(":")[1]) for w in lines if w.startswith("bytes_received:"))
 
 
+@pytest.mark.realtime   # Zenoh's handshakes time out: at the idle class, starved by a loaded machine, the routers once never linked in 30 s
 def test_two_routers_carry_best_effort_streams_on_their_udp_link_and_reliable_messages_on_tcp():
     """Routers linked as two-hosts-ground.toml links them (TCP and UDP for the control priorities):
     a best-effort stream crosses without touching the TCP link (no retransmission can hold it
