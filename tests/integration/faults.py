@@ -25,7 +25,6 @@ from pathlib import Path
 import schemas
 from deploy.cli import _param_overrides, analyse
 from deploy.launcher import Launcher, client_session, free_port
-from schemas.flightlog import LOG_NAME, read_log
 from services.stack import load_mission, load_stack, lockstep_services
 
 TRUTH_STATE = ("attitude.state_source=truth", "position.state_source=truth", "sim.truth_rate_hz=200")
@@ -101,9 +100,10 @@ def fly_with_fault(out: Path, service: str, fault: str = "kill", at_s: float = 8
         time.sleep(0.3)
         launcher.stop(["recorder"], grace_s=60.0)
         launcher.stop(["router"])
+    kept: dict = {}
     metrics = analyse(out, {"mission": mission, "mode": "lockstep" if lockstep else "realtime",
-                            "seed": seed, "vehicle": m.vehicle}, plots=False)
-    log = read_log(out / LOG_NAME)
+                            "seed": seed, "vehicle": m.vehicle}, plots=False, keep=kept)
+    log = kept["log"]   # the log analyse read (not read again)
     p = f"zp/{stack.vehicle_id}/"
     truth = sorted(log.get(p + "sim/truth", []), key=lambda x: x["header"]["t_s"])
     after = [x for x in truth if x["header"]["t_s"] >= fault_info["injected_at_s"]]   # same clock
