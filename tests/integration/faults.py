@@ -43,7 +43,7 @@ def first_tick(out: Path, deadline_s: float) -> float:
 
 def fly_with_fault(out: Path, service: str, fault: str = "kill", at_s: float = 8.0, stop_s: float = 2.0,
                    mission: str = "hover", settings: tuple[str, ...] = (), lockstep: bool = True,
-                   seed: int = 0, wall_limit_s: float = 600.0) -> dict:
+                   seed: int = 0, wall_limit_s: float = 600.0, keep: dict | None = None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     stack = load_stack(None)
     m = load_mission(mission)
@@ -104,6 +104,8 @@ def fly_with_fault(out: Path, service: str, fault: str = "kill", at_s: float = 8
     metrics = analyse(out, {"mission": mission, "mode": "lockstep" if lockstep else "realtime",
                             "seed": seed, "vehicle": m.vehicle}, plots=False, keep=kept)
     log = kept["log"]   # the log analyse read (not read again)
+    if keep is not None:   # for a caller that reads it too
+        keep["log"] = log
     p = f"zp/{stack.vehicle_id}/"
     truth = sorted(log.get(p + "sim/truth", []), key=lambda x: x["header"]["t_s"])
     after = [x for x in truth if x["header"]["t_s"] >= fault_info["injected_at_s"]]   # same clock
