@@ -109,7 +109,7 @@ def main() -> None:
         return np.asarray(states, np.float64), np.asarray(controls, np.float64), float(cost)
 
     def project_once():  # the jitted solve on the same device arrays, every output ready
-        jax.block_until_ready(planner._solve(*args))
+        jax.block_until_ready(planner._solve(*args, *planner._stops))
 
     t0 = time.perf_counter()
     thesis_once()

@@ -21,8 +21,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from flight.control.laws import altitude_law, attitude_law, position_law
-from flight.control.mixer import mix
-from flight.motor_model import thrust_to_pwm
+from flight.control.mixer import mix_floats
+from flight.motor_model import thrust_to_pwm_floats
 from flight.quat import quat_to_euler, wrap_angle
 from flight.vehicle import Vehicle
 from simulator.config import SimConfig
@@ -197,10 +197,12 @@ def fly(vehicle: Vehicle, segments, seed: int = 0, config: SimConfig = TRAINING_
     flip_rate = min(FLIP_RATE_RAD_S, math.sqrt(2.0 * vehicle.max_angular_accel_rad_s2[0] * FLIP_STOP_RAD))
     flip_thrust = max(FLIP_THRUST_G * m * g,
                       min(0.5 * full_n, FLIP_ROLL_ACCEL_RAD_S2 / vehicle.max_angular_accel_rad_s2[0] * 0.5 * full_n))
+    zero3 = np.zeros(3)
     for seg in segments:
         n_ticks = int(round(seg.duration_s * config.tick_rate_hz))
         flip_roll = 0.0
         flip_phase = "climb"
+        k = np.full(3, seg.gains)   # per segment, not per tick (~2 s of a ten-minute flight's Python)
         for i in range(n_ticks):
             tau = i / config.tick_rate_hz
             for topic, t_s, fields in sim.outputs():
@@ -237,15 +239,16 @@ def fly(vehicle: Vehicle, segments, seed: int = 0, config: SimConfig = TRAINING_
                 yaw_cmd = float(wrap_angle(yaw_cmd + np.clip(wrap_angle(yaw_ref - yaw_cmd), -max_yaw_step,
                                                                       max_yaw_step)))
                 yaw_ref = yaw_cmd
-                k = np.full(3, seg.gains)
                 # velocity feed-forward: the law acts on the error (p - p_ref, v - v_ref)
-                roll_ref, pitch_ref, thrust = position_law(m, g, pos - p_ref, vel - v_ref, np.zeros(3), k, k,
+                roll_ref, pitch_ref, thrust = position_law(m, g, pos - p_ref, vel - v_ref, zero3, k, k,
                                                            yaw_ref, max_tilt_rad=max_tilt)
                 torque = attitude_law(inertia, euler, rates, [roll_ref, pitch_ref, yaw_ref], att_k, att_k)
-            forces, _ = mix(vehicle, thrust, torque)
-            while len(rows_u) < len(rows_t):
-                rows_u.append((vehicle.allocation @ forces)[1:])
-            sim.step(thrust_to_pwm(vehicle, forces), armed=True)
+            forces, _ = mix_floats(vehicle, thrust, torque)   # mix and thrust_to_pwm's floats, no arrays between
+            if len(rows_u) < len(rows_t):
+                u = (vehicle.allocation @ np.array(forces))[1:]
+                while len(rows_u) < len(rows_t):
+                    rows_u.append(u)
+            sim.step(thrust_to_pwm_floats(vehicle, forces), armed=True)
         yaw_hold = yaw_cmd
     q = np.asarray(rows_q)
     w, x, y, z = q.T

@@ -467,7 +467,9 @@ def _backward_pass(derivs, mu):
 
 def make_solver(dynamics, stage_cost, terminal_cost, config: ILQRConfig, u_min, u_max,
                 cost_derivatives=None) -> Callable:
-    """solve(x0, controls_init, x_targets, u_targets) -> Solution; pure, jit it once.
+    """solve(x0, controls_init, x_targets, u_targets, max_iterations=None, relative_tolerance=None)
+    -> Solution; pure, jit it once. The two stops default to config's (constants in the program);
+    given, they are arguments, so configs that differ only in them compile to one program.
 
     cost_derivatives: (stage_derivatives, terminal_derivatives) as make_cost_derivatives
     returns; None: jax.grad / jax.hessian of the costs."""
@@ -505,7 +507,9 @@ def make_solver(dynamics, stage_cost, terminal_cost, config: ILQRConfig, u_min, 
         _, (xs, us) = jax.lax.scan(step, states[0], (states[:-1], controls, gains, ffs))
         return jnp.concatenate([states[:1], xs]), us
 
-    def solve(x0, controls_init, x_targets, u_targets):
+    def solve(x0, controls_init, x_targets, u_targets, max_iterations=None, relative_tolerance=None):
+        max_iterations = config.max_iterations if max_iterations is None else max_iterations
+        relative_tolerance = config.relative_tolerance if relative_tolerance is None else relative_tolerance
         controls0 = jnp.clip(controls_init, u_min, u_max)
         states0 = rollout(dynamics, x0, controls0)
         cost0 = cost_of(states0, controls0, x_targets, u_targets)
@@ -519,7 +523,7 @@ def make_solver(dynamics, stage_cost, terminal_cost, config: ILQRConfig, u_min, 
             best = jnp.argmin(cand_costs)
             accept = pd & (cand_costs[best] < cost)
             rel_decrease = (cost - cand_costs[best]) / jnp.maximum(jnp.abs(cost), 1e-12)
-            converged = accept & (rel_decrease < config.relative_tolerance)
+            converged = accept & (rel_decrease < relative_tolerance)
             mu = jnp.where(accept, jnp.maximum(mu / factor, mu_min), jnp.minimum(mu * factor, mu_max))
             return (jnp.where(accept, cand_states[best], states), jnp.where(accept, cand_controls[best], controls),
                     jnp.where(accept, cand_costs[best], cost), mu, it + 1, converged)
@@ -540,7 +544,7 @@ def make_solver(dynamics, stage_cost, terminal_cost, config: ILQRConfig, u_min, 
             else:
                 states, controls, cost, mu, it, converged = improve(
                     states, controls, cost, mu, it, gains, ffs, pd)
-            now_over = converged | (it >= config.max_iterations) | (mu >= mu_max)
+            now_over = converged | (it >= max_iterations) | (mu >= mu_max)
             return states, controls, cost, mu, it, converged, gains, ffs, now_over, over
 
         init = (states0, controls0, cost0, jnp.asarray(config.regularisation_init, cost0.dtype),
@@ -626,6 +630,9 @@ class ILQRSolver:
                                  sol.converged.astype(sol.cost.dtype)])
             return sol.states, sol.controls, sol.gains, sol.feedforward, scalars
         self._solve = jax.jit(solve_packed, compiler_options=solver_compiler_options())
+        # the stops as arguments: configs that differ only in them are one program, which the
+        # compilation cache (use_compile_cache) then loads instead of compiling again
+        self._stops = (np.int32(config.max_iterations), np.float32(config.relative_tolerance))
         # the default warm start and control targets, converted once (the same float32s each solve)
         self._hover_controls_f32 = np.asarray(self.hover_controls(), np.float32)
         self._hover_controls_f32.flags.writeable = False
@@ -656,7 +663,8 @@ class ILQRSolver:
         # numpy in (jit converts it on the way; jnp.asarray per argument costs more), one copy out
         states, controls, gains, ffs, (cost, cost0, iterations, converged) = jax.device_get(self._solve(
             np.asarray(x0, np.float32), hover if warm is None else np.asarray(warm, np.float32),
-            np.asarray(x_targets, np.float32), hover if u_targets is None else np.asarray(u_targets, np.float32)))
+            np.asarray(x_targets, np.float32), hover if u_targets is None else np.asarray(u_targets, np.float32),
+            *self._stops))
         return Plan(np.asarray(states, np.float64), np.asarray(controls, np.float64),
                     np.asarray(gains, np.float64), np.asarray(ffs, np.float64),
                     float(cost), float(cost0), int(iterations), bool(converged > 0.5), self.config.dt_s)
@@ -668,7 +676,7 @@ class ILQRSolver:
         args = [np.zeros(shape, np.float32) for shape in (
             x0.shape, (self.config.horizon, CONTROL_DIM), (self.config.horizon + 1,) + x0.shape,
             (self.config.horizon, CONTROL_DIM))]
-        return self._solve.lower(*args).compile().as_text().count('xla_cpu_small_call="true"')
+        return self._solve.lower(*args, *self._stops).compile().as_text().count('xla_cpu_small_call="true"')
 
     def compiled_count(self) -> int:
         """Number of compiled versions of the solve (1 after warm-up if shapes never change)."""

@@ -25,7 +25,6 @@ from pathlib import Path
 import schemas
 from deploy.cli import _param_overrides, analyse
 from deploy.launcher import Launcher, client_session, free_port
-from schemas.flightlog import LOG_NAME, read_log
 from services.stack import load_mission, load_stack, lockstep_services
 
 TRUTH_STATE = ("attitude.state_source=truth", "position.state_source=truth", "sim.truth_rate_hz=200")
@@ -44,7 +43,7 @@ def first_tick(out: Path, deadline_s: float) -> float:
 
 def fly_with_fault(out: Path, service: str, fault: str = "kill", at_s: float = 8.0, stop_s: float = 2.0,
                    mission: str = "hover", settings: tuple[str, ...] = (), lockstep: bool = True,
-                   seed: int = 0, wall_limit_s: float = 600.0) -> dict:
+                   seed: int = 0, wall_limit_s: float = 600.0, keep: dict | None = None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     stack = load_stack(None)
     m = load_mission(mission)
@@ -101,9 +100,12 @@ def fly_with_fault(out: Path, service: str, fault: str = "kill", at_s: float = 8
         time.sleep(0.3)
         launcher.stop(["recorder"], grace_s=60.0)
         launcher.stop(["router"])
+    kept: dict = {}
     metrics = analyse(out, {"mission": mission, "mode": "lockstep" if lockstep else "realtime",
-                            "seed": seed, "vehicle": m.vehicle}, plots=False)
-    log = read_log(out / LOG_NAME)
+                            "seed": seed, "vehicle": m.vehicle}, plots=False, keep=kept)
+    log = kept["log"]   # the log analyse read (not read again)
+    if keep is not None:   # for a caller that reads it too
+        keep["log"] = log
     p = f"zp/{stack.vehicle_id}/"
     truth = sorted(log.get(p + "sim/truth", []), key=lambda x: x["header"]["t_s"])
     after = [x for x in truth if x["header"]["t_s"] >= fault_info["injected_at_s"]]   # same clock

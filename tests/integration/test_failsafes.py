@@ -8,8 +8,6 @@ vision gone -> the EKF coasts, then the attitude level lands."""
 
 import pytest
 
-from schemas.flightlog import LOG_NAME, read_log
-
 from .faults import TRUTH_STATE, fly_with_fault
 
 pytestmark = pytest.mark.integration
@@ -18,9 +16,10 @@ GENTLE_M_S = 1.0     # touchdown speed of a controlled descent (0.5 m/s sink; a 
 LEVEL_DEG = 15.0
 
 
-def assert_no_stale_command_acted_on(out, bound_s=0.05 + 0.0025):
-    """Every armed motor output came from an IMU sample at most the command bound (and a tick) old."""
-    pwm = [x for x in read_log(out / LOG_NAME)["zp/0/motors/pwm"] if x["armed"] and x["imu_t_s"] >= 0]
+def assert_no_stale_command_acted_on(log, bound_s=0.05 + 0.0025):
+    """Every armed motor output came from an IMU sample at most the command bound (and a tick) old
+    (log: the flight's, as fly_with_fault read it)."""
+    pwm = [x for x in log["zp/0/motors/pwm"] if x["armed"] and x["imu_t_s"] >= 0]
     worst = max(x["header"]["t_s"] - x["imu_t_s"] for x in pwm)
     assert worst <= bound_s, worst
 
@@ -36,9 +35,10 @@ def assert_landed_gently(m, within_s):
 
 
 def test_attitude_killed_the_motor_driver_lands(tmp_path):
-    m = fly_with_fault(tmp_path, "attitude", "kill", settings=TRUTH_STATE)
+    kept = {}
+    m = fly_with_fault(tmp_path, "attitude", "kill", settings=TRUTH_STATE, keep=kept)
     assert_landed_gently(m, within_s=6.0)
-    assert_no_stale_command_acted_on(tmp_path)
+    assert_no_stale_command_acted_on(kept["log"])
     assert m["failsafes"]["motors"]["failsafe_engaged"] == 1 and m["failsafes"]["motors"]["failsafe_landed"] == 1
     assert m["failsafes"]["sim"] == {"lockstep_dropped_attitude": 1}
 
@@ -75,14 +75,15 @@ def test_vision_killed_the_ekf_coasts_then_lands(tmp_path):
 
 @pytest.mark.realtime
 def test_attitude_frozen_2s_real_time_the_motor_driver_covers_and_hands_back(tmp_path):
-    m = fly_with_fault(tmp_path, "attitude", "stop", stop_s=2.0, lockstep=False, settings=TRUTH_STATE)
+    kept = {}
+    m = fly_with_fault(tmp_path, "attitude", "stop", stop_s=2.0, lockstep=False, settings=TRUTH_STATE, keep=kept)
     f = m["fault"]
     assert not m["crashed"], m["crash_reason"]
     assert f["min_altitude_soon_m"] > 0.2, f            # descending slowly, not falling (fault + 5 s)
     assert m["failsafes"]["motors"]["failsafe_engaged"] >= 1
     assert m["failsafes"]["motors"]["failsafe_recovered"] >= 1   # fresh commands took over again
     assert m["completed"]
-    assert_no_stale_command_acted_on(tmp_path)
+    assert_no_stale_command_acted_on(kept["log"])
 
 
 @pytest.mark.realtime

@@ -39,7 +39,9 @@ def planner():
 @pytest.fixture(scope="module")
 def solver_for():
     """One ILQRSolver per distinct config in this module (compiled at its first solve): tests
-    that ask for the same config share it instead of tracing and compiling it again."""
+    that ask for the same config share it instead of tracing and compiling it again. Configs
+    that differ only in max_iterations or relative_tolerance are one program (the stops are its
+    arguments), loaded from the run's compilation cache after the first."""
     built = {}
 
     def get(config):

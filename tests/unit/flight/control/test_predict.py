@@ -195,16 +195,20 @@ def test_bad_uncertainty_and_the_baseline_are_refused():
 
 
 def test_cli_prints_the_envelope_and_refuses_bad_arguments(tmp_path, jax_compile_cache):
-    """One run (it flies the nominal and 256 rollouts): the table, the JSON, and the item refused
-    when the clearance asked for leaves no room for its loss (exit 1, the reason printed). With the
-    run's compilation cache: the solver and the 256 default rollouts are those the tests above
-    compiled (the same shapes), so it loads them."""
+    """One run (it flies the nominal, the controller on the mass's knots and 256 rollouts): the
+    table, the JSON, and the item refused when the clearance asked for leaves no room for its loss
+    (exit 1, the reason printed). Only the mass drawn among the vehicle's parameters (the thrust's
+    spread scales the inertia too): 4 flights on the knots, not the default's 20 (~11 s of CPU;
+    the default policy is the fixture's, tested above), still the adapted path. With the run's
+    compilation cache: the solver is the one the tests above compiled, so it loads it."""
     out = tmp_path / "p.json"
     run = subprocess.run([sys.executable, "-m", "deploy.cli", "predict", "--mission", "flip", "-n", "256",
+                          "--inertia-frac", "0", "--thrust-frac", "0", "--motor-lag-frac", "0",
                           "--clearance-m", "4.99", "--json", str(out), "--compile-cache-dir", jax_compile_cache],
                          cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert run.returncode == 1, run.stdout + run.stderr
     assert "altitude loss from the hover height" in run.stdout and "REFUSED: predicted" in run.stdout, run.stdout
+    assert f"{2 * len(ANCHOR_KNOTS)} flights on the knots' vehicles" in run.stdout, run.stdout
     item = json.loads(out.read_text())["items"][0]
     assert item["method"] == "ilqr-project" and item["rollouts"] == 256 and "95th-percentile" in item["refused"]
     assert item["loss_from_hover_m"]["p95"] > 0.01
