@@ -3,9 +3,10 @@
 - a short hover with the vehicle's router and services in one, the ground station's recorder in
   the other, joined by a veth pair; the flight log is written on the ground side (about 25 s: what
   it checks, where the log and the sockets are, does not depend on how long it holds);
-- a short hover across an emulated `lan` link (20 +- 5 ms, 1 % loss each way: tc netem, or
-  bench/support/linkemu.py in a third namespace where the kernel has no netem) with the issue's
-  placement: planner, recorder and MAVLink bridge on the ground, a router per host (about 40 s).
+- the short flip mission across an emulated `lan` link (20 +- 5 ms, 1 % loss each way: tc netem,
+  or bench/support/linkemu.py in a third namespace where the kernel has no netem) with the issue's
+  placement: planner, recorder and MAVLink bridge on the ground, a router per host (about 25 s):
+  the plans cross the link at 50 Hz and start ahead by its latency (planner.plan_lead_auto).
 
 Nothing is left behind; needs root."""
 
@@ -83,9 +84,9 @@ def test_hover_over_two_hosts(tmp_path):
         assert link["sockets"][host]["udp_7446"] == 0 and not link["sockets"][host]["scouting_group_joined"], out
 
 
-def test_short_hover_across_a_lossy_link_with_the_planner_on_the_ground(tmp_path):
+def test_the_flip_across_a_lossy_link_with_the_planner_on_the_ground(tmp_path):
     t0 = time.monotonic()
-    out = _two_hosts(tmp_path, "--mission", "hover-short", "--placement", "ground", "--link", "lan")
+    out = _two_hosts(tmp_path, "--mission", "flip-short", "--placement", "ground", "--link", "lan")
     took = time.monotonic() - t0
     namespaces = re.findall(r"removed (zp\d+-vehicle), (zp\d+-ground)(?:, (zp\d+-link))?", out)
     assert namespaces, out
@@ -94,6 +95,11 @@ def test_short_hover_across_a_lossy_link_with_the_planner_on_the_ground(tmp_path
 
     metrics = json.loads((tmp_path / "ground" / "metrics.json").read_text())
     assert metrics["completed"] and not metrics["crashed"], out
+    # docs/flip.md's targets: loss <= 1 m, drift <= 0.27 m, recovery <= 0.5 s (the bench, seeds 0-4,
+    # quiet: loss 0, drift 0.20-0.23 m, recovery 0.41-0.46 s; 0.1 s more allowed for a loaded CI run).
+    # Before the plans' lead, the 50 Hz re-solves and the routers' queue it fell 5 m
+    flip = metrics["flip"]
+    assert flip["altitude_loss_m"] <= 1.0 and flip["xy_drift_m"] <= 0.27 and flip["recovery_s"] <= 0.6, flip
     link = metrics["two_hosts"]
     assert link["emulator"] in ("netem", "forwarder") and link["placement"] == "ground", out
     # the issue's placement: planner, recorder, bridge ran on the ground, the control path on the vehicle
