@@ -198,7 +198,7 @@ POSITION_STATE = Message(
 )
 
 POSITION_EKF_HEALTH = Message(
-    "position_ekf_health", "pos/ekf_health", 1,
+    "position_ekf_health", "pos/ekf_health", 2,
     "The position EKF's health, at 1 Hz beside the service's: its camera fixes, and the camera's "
     "delay watched two ways (flight/estimation/camera_delay.py): as the stamps show it (arrival "
     "minus exposure stamp) and, for a delay the stamps do not show, as the innovations show it "
@@ -222,6 +222,8 @@ POSITION_EKF_HEALTH = Message(
         F("camera_offset_detected_t_s", "float", "when the last was detected (-1: none)", "s", min=-1.0),
         F("camera_fixes", "counts", "camera fixes since start: accepted, and refused by reason (gate, too_old, "
           "future, invalid)"),
+        _vec("disturbance_m_s2", "the EKF's horizontal disturbance acceleration, world x and y: the wind's pull "
+             "with position.wind_estimation (0 without)", "m/s^2", n=2, lo=-100.0, hi=100.0),
     ),
 )
 

@@ -202,12 +202,12 @@ class PositionLoop:
                 self.unsettled_t = t
                 count("fusion_position_reset")
                 self.refused = 0
-        if t >= self.next_ekf_health:
-            self.next_ekf_health = (math.floor(t / EKF_HEALTH_PERIOD_S) + 1) * EKF_HEALTH_PERIOD_S
-            self.publish_ekf_health(t)
         x = ekf.x
         d0, d1 = x[DISTURBANCE]
         self.ekf_disturbance = (float(d0), float(d1))
+        if t >= self.next_ekf_health:
+            self.next_ekf_health = (math.floor(t / EKF_HEALTH_PERIOD_S) + 1) * EKF_HEALTH_PERIOD_S
+            self.publish_ekf_health(t)
         return x[0:3], x[3:6], x[6:9], ekf.position_cov, float(x[12])
 
     def publish_ekf_health(self, t: float) -> None:
@@ -220,7 +220,7 @@ class PositionLoop:
             "camera_offset_s": delay.offset_s, "camera_offset_std_s": delay.offset_std_s,
             "camera_offset_confident": delay.confident, "camera_offset_correction_s": delay.correction_s,
             "camera_offset_detections": delay.detections, "camera_offset_detected_t_s": self.offset_detected_t,
-            "camera_fixes": counts}, t_s=t)
+            "camera_fixes": counts, "disturbance_m_s2": list(self.ekf_disturbance)}, t_s=t)
 
     def thrust_scale_settled(self, t: float, scale: float) -> bool:
         """Record the EKF's thrust scale at t (each camera fix) and say whether it stayed within

@@ -1,7 +1,11 @@
 """Position hold in Dryden gusts (issue 26), on the stack's estimates, in lockstep, with the
 wind estimation on."""
 
+import numpy as np
 import pytest
+
+from flight.vehicle import load_vehicle
+from schemas.flightlog import read_log
 
 from .conftest import fly
 
@@ -25,3 +29,10 @@ def test_short_hover_in_dryden_gusts_holds_within_3_cm(tmp_path, seed):
     assert m["measured_s"] >= 2.9
     assert m["position_rms_m"] < 0.03
     assert m["rejected_messages"]["position"].get("fusion_position_reset", 0) == 0
+    # what the EKF learnt is the wind's drag: (drag / mass) x the simulator's wind, averaged over the hold
+    log = read_log(tmp_path / "flight.mcap")
+    vehicle = load_vehicle("x250")
+    wind = np.mean([t["wind_m_s"][:2] for t in log["zp/0/sim/truth"] if t["header"]["t_s"] > 4.0], axis=0)
+    pull = wind * vehicle.drag_n_per_m_s / vehicle.mass_kg
+    learnt = log["zp/0/pos/ekf_health"][-1]["disturbance_m_s2"]
+    assert np.allclose(learnt, pull, atol=0.15), (learnt, pull)

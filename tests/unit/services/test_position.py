@@ -137,6 +137,7 @@ def test_estimate_fuses_camera_fixes_and_counts_stale_ones():
     last = health[-1][1]
     assert last["camera_delay_s"] == pytest.approx(0.05) and last["camera_delay_steps"] == 0
     assert sum(last["camera_fixes"].values()) == 40 and last["camera_fixes"]["accepted"] == 35   # the rest refused
+    assert last["disturbance_m_s2"] == [0.0, 0.0]   # no wind estimation: the states held at 0
     assert not last["camera_offset_confident"]
     assert last["camera_offset_correction_s"] == 0.0 and last["camera_offset_detections"] == 0
 
