@@ -224,6 +224,7 @@ POSITION_EKF_HEALTH = Message(
           "future, invalid)"),
         _vec("disturbance_m_s2", "the EKF's horizontal disturbance acceleration, world x and y: the wind's pull "
              "with position.wind_estimation (0 without)", "m/s^2", n=2, lo=-100.0, hi=100.0),
+        F("disturbance_estimated", "bool", "position.wind_estimation is on (else the disturbance is held at 0)"),
     ),
 )
 

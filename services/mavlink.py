@@ -18,12 +18,14 @@ rejected and counted.
 from __future__ import annotations
 
 import hashlib
+import math
 import time
 from pathlib import Path
 
 import zenoh
 
 import schemas
+from flight.vehicle import load_vehicle
 from services.mavlink_logic import (STREAMS, TUNABLE, TUNABLE_DEFAULTS, Bridge, BridgeConfig, ParamTable,
                                     is_loopback_endpoint, latency_summary, mavutil_v2)
 from services.params.mavlink import PARAMS  # every parameter: default, unit, bounds, doc
@@ -34,7 +36,14 @@ INPUTS = {  # bridge input name -> (message, upstream)
     "att": (schemas.ATTITUDE_STATE, "attitude"), "pos": (schemas.POSITION_STATE, "position"),
     "battery": (schemas.BATTERY, "sim"), "setpoint": (schemas.PLANNER_SETPOINT, "planner"),
     "flip": (schemas.PLANNER_FLIP_STATUS, "planner"),   # once a second while the planner can flip
+    "ekf": (schemas.POSITION_EKF_HEALTH, "position"),   # 1 Hz: the wind estimate (WIND_COV)
 }
+
+
+def wind_per_accel(vehicle_name: str) -> float:
+    """m/s of wind per m/s^2 of the EKF's disturbance: mass / linear drag (NaN without drag)."""
+    vehicle = load_vehicle(vehicle_name)
+    return vehicle.mass_kg / vehicle.drag_n_per_m_s if vehicle.drag_n_per_m_s > 0 else math.nan
 
 
 def read_key(path: str) -> bytes:
@@ -88,7 +97,8 @@ def run(args) -> None:
                           p["gcs_timeout_s"], p["failsafe_hold_s"], p["health_timeout_s"],
                           rates_hz=rates(p["rates_hz"], rt.where()),
                           converged_position_std_m=p["converged_position_std_m"],
-                          converged_attitude_std_deg=p["converged_attitude_std_deg"])
+                          converged_attitude_std_deg=p["converged_attitude_std_deg"],
+                          wind_per_accel_s=wind_per_accel(rt.vehicle_name))
     if not p["signing_key_file"] and not p["allow_unsigned_link"] and not is_loopback_endpoint(p["endpoint"]):
         raise ValueError(f"{rt.where()} endpoint {p['endpoint']!r} leaves this machine: set signing_key_file "
                          f"(MAVLink 2 signing; the ground station needs the same key), or allow_unsigned_link = true")

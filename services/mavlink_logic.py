@@ -88,6 +88,7 @@ STREAMS = {
     "ATTITUDE_QUATERNION": (31, 10.0), "LOCAL_POSITION_NED": (32, 25.0), "GLOBAL_POSITION_INT": (33, 10.0),
     "MISSION_CURRENT": (42, 1.0), "HIGHRES_IMU": (105, 0.0), "BATTERY_STATUS": (147, 1.0),
     "HOME_POSITION": (242, 0.2), "EXTENDED_SYS_STATE": (245, 1.0), "AUTOPILOT_VERSION": (148, 0.0),
+    "WIND_COV": (231, 1.0),
 }
 STREAM_BY_ID = {mid: name for name, (mid, _) in STREAMS.items()}
 
@@ -144,6 +145,9 @@ def is_loopback_endpoint(endpoint: str) -> bool:
     return host.startswith(LOOPBACK_HOSTS)
 
 
+EKF_HEALTH_TIMEOUT_S = 2.5   # pos/ekf_health comes at 1 Hz
+
+
 @dataclass
 class BridgeConfig:
     """The bridge's settings; defaults (and their meaning) as declared in services/params/mavlink.py."""
@@ -159,6 +163,8 @@ class BridgeConfig:
     converged_position_std_m: float = BRIDGE_PARAMS["converged_position_std_m"].default
     converged_attitude_std_deg: float = BRIDGE_PARAMS["converged_attitude_std_deg"].default
     rates_hz: dict = field(default_factory=dict)  # stream name -> rate override
+    # wind speed per m/s^2 of the EKF's disturbance (the vehicle's mass / linear drag): WIND_COV
+    wind_per_accel_s: float = math.nan
 
 
 def _finite(*values) -> bool:
@@ -519,6 +525,16 @@ class Bridge:
         return self.mav.home_position_encode(int(round(c.home_lat_deg * 1e7)), int(round(c.home_lon_deg * 1e7)),
                                              int(round(c.home_alt_m * 1000)), 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0],
                                              0.0, 0.0, 0.0, int(now * 1e6) if now > 0 else 0)
+
+    def _msg_wind_cov(self, now, wall):
+        """The EKF's wind (its disturbance acceleration x mass / drag), as PX4 sends it; nothing
+        without the wind estimation (the disturbance is then held at 0, not estimated)."""
+        ekf = self.fresh("ekf", now, timeout_s=EKF_HEALTH_TIMEOUT_S)
+        if ekf is None or not ekf["disturbance_estimated"] or not math.isfinite(self.cfg.wind_per_accel_s):
+            return None
+        east, north = (a * self.cfg.wind_per_accel_s for a in ekf["disturbance_m_s2"])   # ENU x, y
+        return self.mav.wind_cov_encode(int(max(0.0, ekf["header"]["t_s"] - self.t_origin_s) * 1e6), north, east,
+                                        math.nan, math.nan, math.nan, math.nan, 0.0, 0.0)
 
     def _msg_extended_sys_state(self, now, wall):
         return self.mav.extended_sys_state_encode(mavlink.MAV_VTOL_STATE_UNDEFINED, self.landed_state())

@@ -220,7 +220,8 @@ class PositionLoop:
             "camera_offset_s": delay.offset_s, "camera_offset_std_s": delay.offset_std_s,
             "camera_offset_confident": delay.confident, "camera_offset_correction_s": delay.correction_s,
             "camera_offset_detections": delay.detections, "camera_offset_detected_t_s": self.offset_detected_t,
-            "camera_fixes": counts, "disturbance_m_s2": list(self.ekf_disturbance)}, t_s=t)
+            "camera_fixes": counts, "disturbance_m_s2": list(self.ekf_disturbance),
+            "disturbance_estimated": bool(self.p["wind_estimation"])}, t_s=t)
 
     def thrust_scale_settled(self, t: float, scale: float) -> bool:
         """Record the EKF's thrust scale at t (each camera fix) and say whether it stayed within

@@ -127,6 +127,24 @@ def test_streams_carry_ned_frd_telemetry(link):
     assert "HOME_POSITION" in got and "SYS_STATUS" in got
 
 
+def test_wind_cov_carries_the_ekf_wind_only_when_estimated(link):
+    """WIND_COV (as PX4 sends it): the EKF's disturbance times mass / drag, ENU x, y -> NED east,
+    north; nothing without the wind estimation (its disturbance is then held at 0) or its health."""
+    bridge, gcs, send, received, _ = link
+    assert not bridge.send_stream("WIND_COV", NOW, NOW)   # no pos/ekf_health yet
+    bridge.cfg.wind_per_accel_s = 4.0                      # the x250: 0.4 kg / 0.1 N s/m
+    ekf = {"header": header(NOW - 0.8), "disturbance_m_s2": [0.5, -0.1], "disturbance_estimated": False}
+    bridge.inputs["ekf"] = ekf
+    assert not bridge.send_stream("WIND_COV", NOW, NOW)
+    ekf["disturbance_estimated"] = True
+    assert bridge.send_stream("WIND_COV", NOW, NOW)
+    (wind,) = [m for m in received() if m.get_type() == "WIND_COV"]
+    assert (wind.wind_x, wind.wind_y) == pytest.approx((-0.4, 2.0)) and math.isnan(wind.wind_z)
+    assert wind.time_usec == int((NOW - 0.8 - 900.0) * 1e6)
+    ekf["header"] = header(NOW - 3.0)                      # its 1 Hz health lost: no wind
+    assert not bridge.send_stream("WIND_COV", NOW, NOW)
+
+
 def test_sys_status_health_bits_follow_service_health(link):
     bridge, gcs, send, received, _ = link
     healthy(bridge)
