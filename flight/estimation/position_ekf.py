@@ -534,9 +534,9 @@ class PositionEKF:
     lacks, added to (1)'s: above all the wind's pull (the drag of the air speed, where the
     model has the ground speed's: 0.5 m/s^2 on the x250 in a 2 m/s wind), a random walk the
     camera's positions make observable. Without it a wind's pull built up between fixes until
-    the gate refused them (after a take-off's drift before the first fix, in a loop of
-    resets); the position level feeds it forward as the law's disturbance (PX4's EKF2
-    estimates the wind for the same drag).
+    the gate refused them. With `position.wind_estimation` the position level feeds it
+    forward as the law's disturbance (PX4's EKF2 estimates the wind for the same drag);
+    without, its noise and initial variance are 0 and it stays 0.
 
     One filter is for one thread: its steps share a scratch array.
     """
