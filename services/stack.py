@@ -28,10 +28,9 @@ A stack file is TOML:
     restart_limit = 3         # ... at most this many times (deploy/supervisor.py)
     hang_restart_s = 0.5      # stopped or stuck this long: killed and restarted by its policy
     [services.attitude.params]
-    ...
+    state_source = "truth"
     [services.motors]
     standby = true            # real time: a second driver runs beside it, taking over (services/standby.py)
-    state_source = "truth"
 
 Every service checks its own parameters against its declarations (services/params/:
 type, bounds, choices; `resolve_params`), so a typo is refused with the file, section and

@@ -30,8 +30,9 @@ from __future__ import annotations
 
 import math
 
-INSTANCES = ("motors", "motors.b")   # the two drivers, highest rank first
-STANDBY_INSTANCE = INSTANCES[1]
+from services.stack import STANDBY_SUFFIX
+
+INSTANCES = ("motors", "motors" + STANDBY_SUFFIX)   # the two drivers, highest rank first
 START_GRACE_S = 1.0   # a standby started with the stack waits this long for the active's first output
 REJOIN_S = 0.25       # a driver that stepped back on its own gap listens this long before it may take over
 
