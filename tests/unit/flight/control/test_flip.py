@@ -356,13 +356,14 @@ def test_baseline_needs_its_climb_to_keep_its_height(climb_m):
         assert lowest_m < 5.0 - 2.0, lowest_m
 
 
-def test_stopping_point_is_braking_reference_at_rest_bit_for_bit():
-    """stopping_point computes in floats; braking_reference at t = inf is its definition."""
+def test_stopping_point_is_braking_reference_at_rest_to_rounding():
+    """stopping_point computes in floats; braking_reference at t = inf is its definition (the
+    same to the last bits: numpy's SIMD kernels round differently on some CPUs)."""
     from flight.control.flip import braking_reference, stopping_point
     rng = np.random.default_rng(4)
     for i in range(20000):
         start, v = rng.normal(size=3) * 3, rng.normal(size=2) * 10 ** rng.uniform(-10, 1)
         decel = (0.5, 1.0, float(rng.uniform(0.1, 3)))[i % 3]
         expected = braking_reference(start, v, [np.inf], decel)[0][0]
-        assert stopping_point(start, v, decel).tobytes() == expected.tobytes()
+        np.testing.assert_allclose(stopping_point(start, v, decel), expected, rtol=1e-14, atol=1e-15)
     assert stopping_point(np.array([1.0, 2.0, 3.0]), np.zeros(2), 0.5).tolist() == [1.0, 2.0]

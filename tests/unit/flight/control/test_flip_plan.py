@@ -133,9 +133,9 @@ def test_scale_collective_keeps_torques_and_inverts():
     np.testing.assert_allclose(scale_collective(veh.allocation, sent, 0.9), forces, atol=1e-12)
 
 
-def test_body_state_floats_match_numpy_bit_for_bit():
+def test_body_state_floats_match_numpy_to_rounding():
     """body_state runs in Python floats; its numpy definition (_body_state_arrays) gives the
-    same bits, with and without the model's carry, fresh and aged messages, at rest and turning."""
+    same numbers to the last bits (numpy's SIMD kernels round differently on some CPUs), with and without the model's carry, fresh and aged messages, at rest and turning."""
     from flight.control.plan import _body_state_arrays, _body_state_floats
     from flight.vehicle import load_vehicle
     vehicle = load_vehicle("q820")
@@ -150,7 +150,8 @@ def test_body_state_floats_match_numpy_bit_for_bit():
         a_age, p_age = 10.0 - att["header"]["t_s"], 10.0 - pos["header"]["t_s"]
         for v in (vehicle, None):
             expected = _body_state_arrays(a_age, p_age, att, pos, v, forces)
-            assert np.array(_body_state_floats(a_age, p_age, att, pos, v, forces)).tobytes() == expected.tobytes()
+            np.testing.assert_allclose(_body_state_floats(a_age, p_age, att, pos, v, forces), expected,
+                                       rtol=1e-14, atol=1e-15)
     att["quaternion_wxyz"] = [0.0, 0.0, 0.0, 0.0]   # numpy's way decides: its error, not ZeroDivisionError
     with pytest.raises(ValueError, match="zero or non-finite"):
         body_state(10.0, att, pos, vehicle, np.full(4, 5.0))
