@@ -47,6 +47,9 @@ LAND_BELOW_M = 0.3
 LANDED_HEIGHT_M = 0.1
 LANDED_SPEED_M_S = 0.2
 LANDED_FOR_S = 1.0
+# the accelerometer as the air's force (fuse_drag): above the ground's reach and thrusting
+DRAG_MIN_HEIGHT_M = 0.05
+DRAG_MIN_THRUST = 0.5     # of the weight
 VISION_MIN_HEIGHT_M = 0.3   # below this the camera's silence is not a loss (too close to the markers)
 EKF_HEALTH_PERIOD_S = 1.0   # pos/ekf_health, beside the service's own health
 # the planner's phases where the integral learns: a hold and the settling before it (a take-off's
@@ -78,11 +81,14 @@ class PositionLoop:
         if self.estimate:
             ekf_params = io.table("ekf", PositionEKFParams.from_dict)
             if not p["wind_estimation"]:   # the disturbance states held at 0: the filter of (1) as before them
-                ekf_params = dataclasses.replace(ekf_params, q_disturbance_m2_s5=0.0, init_std_disturbance_m_s2=0.0)
+                ekf_params = dataclasses.replace(ekf_params, q_disturbance_m2_s5=0.0, init_std_disturbance_m_s2=0.0,
+                                                 q_accel_bias_m2_s5=0.0, init_std_accel_bias_m_s2=0.0)
             self.ekf = PositionEKF(vehicle, ekf_params, dt=self.dt)
             self.attitude = io.inbox(schemas.ATTITUDE_STATE, "attitude")
             self.motors = io.inbox(schemas.MOTOR_PWM, "motors", keep=32)  # every 400 Hz command of a step
             self.poses = io.inbox(schemas.VISION_POSE, "vision", keep=16)
+            # the accelerometer observes the wind's pull (PositionEKF.update_drag): only when it is learnt
+            self.imu = io.inbox(schemas.IMU, "sim", keep=16) if p["wind_estimation"] and p["drag_fusion"] else None
             self.rotor_forces = LaggedMotorInput(vehicle.motor_time_constant_s)  # the plant's motor lag
             self.delay = CameraDelayEstimator(io.table("camera_delay", CameraDelayParams.from_dict))
             self.ekf_health_out = io.publisher(schemas.POSITION_EKF_HEALTH)
@@ -151,16 +157,20 @@ class PositionLoop:
                 count("stale_att_state")
             att = None   # the attitude level gone or late: predict on, never re-fuse an old estimate
         # the messages' lists go to the EKF as they are (it takes plain floats)
+        pinned = False
         if att is not None and att["state_source"] == "estimate" \
                 and quat_tilt(att["quaternion_wxyz"]) > math.radians(p["attitude_pin_tilt_deg"]):
             ekf.pin_attitude(att["header"]["t_s"], att["euler_rad"], att["rate_rad_s"])
             count("attitude_pinned_tilted")
             self.unsettled_t = t
+            pinned = True
         elif att is not None and att["state_source"] == "estimate":
             if not ekf.update_attitude(att["header"]["t_s"], att["euler_rad"], att["rate_rad_s"],
                                        [max(v, f) for v, f in zip(att["euler_var_rad2"], p["attitude_var_floor"])],
                                        [max(v, f) for v, f in zip(att["rate_var_rad2_s2"], p["rate_var_floor"])]):
                 count("fusion_attitude_gate")
+        if self.imu is not None:
+            self.fuse_drag(t, pinned)
         delay = self.delay
         for pose in self.poses.take():
             stamp = pose["header"]["t_s"]
@@ -209,6 +219,27 @@ class PositionLoop:
             self.next_ekf_health = (math.floor(t / EKF_HEALTH_PERIOD_S) + 1) * EKF_HEALTH_PERIOD_S
             self.publish_ekf_health(t)
         return x[0:3], x[3:6], x[6:9], ekf.position_cov, float(x[12])
+
+    def fuse_drag(self, t: float, pinned) -> None:
+        """The accelerometer's body x and y since the last run, averaged, to the EKF as the air's
+        force: in the air only (on the ground its friction holds against the wind), thrusting
+        (not in a flip's coast or a cut), not while the attitude is pinned (a flip)."""
+        samples = self.imu.take()
+        ekf = self.ekf
+        if not samples or pinned or self.collective_n is None \
+                or self.collective_n < DRAG_MIN_THRUST * self.vehicle.mass_kg * self.vehicle.gravity_m_s2 \
+                or ekf.x[2] < self.p["home_position_m"][2] + DRAG_MIN_HEIGHT_M:
+            return
+        ax = ay = 0.0
+        for sample in samples:
+            a = sample["accel_m_s2"]
+            ax += a[0]
+            ay += a[1]
+        n = len(samples)
+        var = ekf.params.r_drag_m2_s4
+        accepted, _ = ekf.update_drag(min(samples[-1]["header"]["t_s"], ekf.t), (ax / n, ay / n), (var, var))
+        if not accepted:
+            self.count("fusion_drag_rejected")
 
     def publish_ekf_health(self, t: float) -> None:
         delay, counts = self.delay, self.ekf.counters["position"]

@@ -131,21 +131,22 @@ from flight.vehicle import Vehicle
 __all__ = [
     "PositionEKFError", "PositionEKFParams", "PositionEKF",
     "f", "jacobian_f", "rk4_step", "discretize",
-    "POSITION", "VELOCITY", "EULER", "RATES", "THRUST_SCALE", "DISTURBANCE", "N_MODEL", "N_STATE",
+    "POSITION", "VELOCITY", "EULER", "RATES", "THRUST_SCALE", "DISTURBANCE", "ACCEL_BIAS", "N_MODEL", "N_STATE",
     "LaggedMotorInput",
 ]
 
 N_MODEL = 12       # the states of (1)-(2)
 THRUST_SCALE = 12  # the filter's 13th state (see PositionEKF)
 DISTURBANCE = slice(13, 15)   # its 14th and 15th: the horizontal disturbance acceleration (see PositionEKF)
-N_STATE = 15
+ACCEL_BIAS = slice(15, 17)    # its 16th and 17th: the accelerometer's bias on body x and y (update_drag)
+N_STATE = 17
 POSITION = slice(0, 3)
 VELOCITY = slice(3, 6)
 EULER = slice(6, 9)
 RATES = slice(9, 12)
 THRUST_SCALE_LIMITS = (0.5, 2.0)  # a physical bound: beyond it the vehicle cannot hover anyway
 
-_KINDS = ("attitude", "position", "pin")
+_KINDS = ("attitude", "position", "pin", "drag")
 _REASONS = ("gate", "too_old", "future", "invalid")
 
 
@@ -216,19 +217,37 @@ class PositionEKFParams(Declared):
     init_std_disturbance_m_s2: float = declared(0.5, "m/s^2", 0.0,
                                                 doc="initial horizontal disturbance acceleration std (1 sigma)")
 
+    # the accelerometer's body x and y averaged over a 10 ms step: its noise (0.01 m/s^2 a sample)
+    # is small against what the linear drag leaves out (rotor drag grows with the rotors'
+    # speed, the air's pull on a tilted body): a 0.1 m/s^2 std, a fifth of 2 m/s of wind's pull
+    r_drag_m2_s4: float = declared(0.01, "m^2/s^4", 0.0, min_exclusive=True,
+                                   doc="variance of the accelerometer's body x and y as a measurement of the "
+                                       "air's force (update_drag, with position.wind_estimation)")
+
+    # the accelerometer's bias on body x and y, which the drag reading would otherwise take for a
+    # wind: a MEMS part's residual after calibration (the simulator draws 0.01 m/s^2, 1 sigma), and
+    # a slow walk; learnt where the camera says the vehicle does not accelerate as the reading would
+    init_std_accel_bias_m_s2: float = declared(0.03, "m/s^2", 0.0,
+                                               doc="initial accelerometer bias std on body x and y (1 sigma; "
+                                                   "with the drag fusion)")
+    q_accel_bias_m2_s5: float = declared(1e-6, "m^2/s^5", 0.0,
+                                         doc="random walk density of the accelerometer bias on body x and y")
+
     @property
     def process_noise_density(self) -> np.ndarray:
         """Diagonal of Q_c (N_STATE,)."""
         return np.r_[np.repeat([self.q_position_m2_s, self.q_velocity_m2_s3,
                                 self.q_angles_rad2_s, self.q_rates_rad2_s3], 3), self.q_thrust_scale_1_s,
-                     self.q_disturbance_m2_s5, self.q_disturbance_m2_s5]
+                     self.q_disturbance_m2_s5, self.q_disturbance_m2_s5,
+                     self.q_accel_bias_m2_s5, self.q_accel_bias_m2_s5]
 
     @property
     def initial_covariance(self) -> np.ndarray:
         return np.diag(np.r_[np.repeat([self.init_std_position_m, self.init_std_velocity_m_s,
                                         self.init_std_angles_rad, self.init_std_rates_rad_s], 3),
                              self.init_std_thrust_scale, self.init_std_disturbance_m_s2,
-                             self.init_std_disturbance_m_s2] ** 2)
+                             self.init_std_disturbance_m_s2, self.init_std_accel_bias_m_s2,
+                             self.init_std_accel_bias_m_s2] ** 2)
 
 
 # --------------------------------------------------------------------------- #
@@ -536,7 +555,9 @@ class PositionEKF:
     camera's positions make observable. Without it a wind's pull built up between fixes until
     the gate refused them. With `position.wind_estimation` the position level feeds it
     forward as the law's disturbance (PX4's EKF2 estimates the wind for the same drag);
-    without, its noise and initial variance are 0 and it stays 0.
+    without, its noise and initial variance are 0 and it stays 0. Its 16th and 17th, b
+    (ACCEL_BIAS), are the accelerometer's bias on body x and y, which only the drag reading
+    (update_drag) sees: without it a 0.03 m/s^2 bias read as a wind's pull in still air.
 
     One filter is for one thread: its steps share a scratch array.
     """
@@ -558,7 +579,7 @@ class PositionEKF:
             ikh = np.eye(N_STATE)
             self._ikh[first] = (ikh, ikh[:, first:first + n], ikh.T, _EYE_FULL[:, first:first + n].copy())
         p = self.params.gate_probability
-        self._gate = {n: (math.inf if p >= 1.0 else _chi2_ppf(p, n)) for n in (3, 6)}
+        self._gate = {n: (math.inf if p >= 1.0 else _chi2_ppf(p, n)) for n in (2, 3, 6)}
         self._eps = 1e-6 * self.dt
         self._x: list | None = None  # the states as floats: the step's arithmetic is in floats
         self._P: np.ndarray | None = None
@@ -586,6 +607,7 @@ class PositionEKF:
         self._vehicle = vehicle
         self._C = _constants(vehicle)
         self._weight = vehicle.mass_kg * vehicle.gravity_m_s2
+        self._drag_per_mass = vehicle.drag_n_per_m_s / vehicle.mass_kg
 
     # ---------------------------------------------------------------- state
     @property
@@ -759,6 +781,19 @@ class PositionEKF:
             raise PositionEKFError(f"cov must be 3x3 (got shape {R.shape})")
         return self._fuse("position", float(t_meas_s), z, 0.5 * (R + R.T))
 
+    def update_drag(self, t_s: float, accel_xy, var) -> tuple[bool, float]:
+        """The accelerometer's body x and y (m/s^2, averaged up to t_s) as a measurement of the
+        air's force on the airframe: h = [R' (-(c / m) v + (d, 0))]_xy + b, b the accelerometer's
+        bias (ACCEL_BIAS). The thrust is along body z and drops out, so this observes the wind's
+        pull d where the camera sees only the position it moves, and before the first fix (a
+        take-off in a gust); PX4's EKF2 fuses the same (multirotor drag fusion). var: per axis,
+        m^2/s^4. Gated like a fix; returns (accepted, NIS)."""
+        z = _floats(accel_xy, 2, "accel_xy")
+        var = _floats(var, 2, "var")
+        if any(v <= 0 for v in var):
+            raise PositionEKFError(f"drag variances must be > 0 (got {np.array(var)})")
+        return self._fuse("drag", float(t_s), z, np.diag(var))
+
     # ---------------------------------------------------------------- internals
     def _need_init(self):
         if self._x is None:
@@ -807,12 +842,12 @@ class PositionEKF:
             Qd = self._Qd[sub] = self._Qc * sub
         xs = x
         u1, u2, u3, u4 = u
-        s, dx, dy = xs[THRUST_SCALE], xs[13], xs[14]
+        s, dx, dy, bx, by = xs[THRUST_SCALE], xs[13], xs[14], xs[15], xs[16]
         u1s = u1 * s   # the model runs with s u1 (discretize)
         C = self._C
         for _ in range(n):
             xs, vals = _step(xs, u1s, u2, u3, u4, sub, C, u_col=u1)
-            xs += (s, dx, dy)
+            xs += (s, dx, dy, bx, by)
             A = self._A   # _transition, inline; the same entries are written every time
             A.put(_J_FLAT_FULL, vals)
             AA = A.dot(A)
@@ -832,18 +867,22 @@ class PositionEKF:
                 xs[3] = xs[4] = xs[5] = 0.0  # resting on it: no sliding either
         return xs, Pt
 
-    def _correct(self, x, P, y, H, S_inv, R):
+    def _correct(self, x, P, y, H, S_inv, R, frozen=None):
         """Joseph-form correction (18)-(20).  H is the first state selected (6: the attitude,
         0: the camera at a node's time) where it only selects states: then P H' is P's
         columns and I - K H the identity less K in them, exactly what the products with the
         0/1 matrix give (every other term of those sums is an exact zero), written into a
-        scratch identity kept per first state; else the 3 x N_STATE H of a camera offset."""
+        scratch identity kept per first state; else a full H (a camera offset, the drag).
+        frozen: the states this measurement must not move (a Schmidt "consider" update: their
+        gain rows zeroed, the Joseph form keeps P right for any gain)."""
         if H.__class__ is int:
             IKH, cols, IKH_T, eye_cols = self._ikh[H]
             K = P[:, H:H + len(y)].dot(S_inv)
             np.subtract(eye_cols, K, out=cols)
         else:
             K = P.dot(H.T).dot(S_inv)
+            if frozen is not None:
+                K[frozen] = 0.0
             IKH = _EYE_FULL - K.dot(H)
             IKH_T = IKH.T
         self._K = K
@@ -867,6 +906,22 @@ class PositionEKF:
             y = np.array((wrap_angle_float(z0 - x[6]), wrap_angle_float(z1 - x[7]), wrap_angle_float(z2 - x[8]),
                           z3 - x[9], z4 - x[10], z5 - x[11]))
             return y, 6, P[6:12, 6:12] + R
+        if kind == "drag":  # h = [R' a]_xy + b, a = -(c / m) v + (d, 0): body x and y are R's columns 0 and 1
+            r, p, yw = x[6], x[7], x[8]
+            sr, cr, sp, cp, sy, cy = math.sin(r), math.cos(r), math.sin(p), math.cos(p), math.sin(yw), math.cos(yw)
+            bx = (cy * cp, sy * cp, -sp)
+            by = (cy * sp * sr - sy * cr, sy * sp * sr + cy * cr, cp * sr)
+            k = self._drag_per_mass
+            a = (-k * x[3] + x[13], -k * x[4] + x[14], -k * x[5])
+            H = np.zeros((2, N_STATE))
+            H[0, 3:6] = [-k * c for c in bx]
+            H[1, 3:6] = [-k * c for c in by]
+            H[0, 13:15] = bx[:2]
+            H[1, 13:15] = by[:2]
+            H[0, 15] = H[1, 16] = 1.0
+            y = np.array((z[0] - (bx[0] * a[0] + bx[1] * a[1] + bx[2] * a[2]) - x[15],
+                          z[1] - (by[0] * a[0] + by[1] * a[1] + by[2] * a[2]) - x[16]))
+            return y, H, H.dot(P).dot(H.T) + R
         if not offset:  # the camera, h = p
             return z - np.array(x[0:3]), 0, P[0:3, 0:3] + R
         # the camera offset from the node: h = p + d v
@@ -884,7 +939,7 @@ class PositionEKF:
             x[8] = wrap_angle_float(x[8])
             return x, P
         y, H, S = self._innovate(kind, x, P, z, R, offset)
-        return self._correct(x, P, y, H, _inv(S), R)
+        return self._correct(x, P, y, H, _inv(S), R, _DRAG_FROZEN if kind == "drag" else None)
 
     def _reject(self, kind, reason, nis=math.nan):
         self._counts[kind][reason] += 1
@@ -897,6 +952,8 @@ class PositionEKF:
             self._need_init()
         if kind == "position":
             finite = all(map(math.isfinite, z.tolist())) and all(map(math.isfinite, R.ravel().tolist()))
+        elif kind == "drag":
+            finite = all(map(math.isfinite, z)) and all(map(math.isfinite, R.ravel().tolist()))
         else:
             finite = all(map(math.isfinite, z)) and (var is None or all(map(math.isfinite, var)))
         if not (math.isfinite(t_meas) and finite):
@@ -939,7 +996,7 @@ class PositionEKF:
                     self.camera_fix = (y, x[3:6], None)
                 return self._reject(kind, "gate", nis)
             x0 = x
-            x, P = self._correct(x, P, y, H, S_inv, R)
+            x, P = self._correct(x, P, y, H, S_inv, R, _DRAG_FROZEN if kind == "drag" else None)
             if kind == "position":
                 self.camera_fix = (y, x0[3:6], self._K)
             meas = (kind, z, R, offset)
@@ -969,6 +1026,10 @@ except ImportError:  # pragma: no cover - a numpy without it
 _H_POSITION = np.zeros((3, N_STATE))
 _H_POSITION[:, 0:3] = np.eye(3)
 _ZERO66 = np.zeros((6, 6))
+# what the drag's horizontal force says nothing about: the vertical, the attitude and rates (the
+# attitude level's), the thrust scale (along body z: it drops out; through the tilt's correlation a
+# take-off's wind pull was read as 7 % more thrust and the vehicle sank while the estimate climbed)
+_DRAG_FROZEN = np.array([2, 5, 6, 7, 8, 9, 10, 11, THRUST_SCALE])
 _DIAG6 = np.arange(0, 36, 7)   # the diagonal of a 6x6, flat
 
 

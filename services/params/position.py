@@ -39,6 +39,9 @@ PARAMS = {
     "wind_estimation": Param(False, doc="the EKF learns the wind's pull (its horizontal disturbance states, "
                              "`ekf.q_disturbance_m2_s5`) and the position law feeds it forward; false: the "
                              "states held at 0"),
+    "drag_fusion": Param(True, doc="with wind_estimation: the accelerometer's body x and y fused as the air's "
+                         "force (the EKF's update_drag, PX4's drag fusion), which observes the wind's pull "
+                         "between camera fixes and before the first"),
     "disturbance_limit_m_s2": Param(3.0, "m/s^2", 0.0, doc="the most acceleration the disturbance feed-forward may "
                                     "ask for"),
     "setpoint_timeout_s": Param(0.5, "s", 0.0, min_exclusive=True,

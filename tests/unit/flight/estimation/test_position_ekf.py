@@ -123,7 +123,8 @@ def test_discretisation_transition_matches_rk4_sensitivity():
 
 def _rk4_full(xf, u, dt):
     """The filter's full step, from f itself: (1)-(2) with u1 times the thrust scale xf[12] and
-    the disturbance xf[13:15] added to the horizontal acceleration (RK4, u held); s and d stay."""
+    the disturbance xf[13:15] added to the horizontal acceleration (RK4, u held); s, d and the
+    accelerometer's bias xf[15:17] stay."""
     ue = np.array(u, dtype=float)
     ue[0] *= xf[12]
 
@@ -142,7 +143,7 @@ def _rk4_full(xf, u, dt):
 def test_filter_state_columns_match_finite_differences():
     """The thrust scale's column and the disturbance's two, against finite differences of f."""
     rng = np.random.default_rng(5)
-    x = np.r_[_random_state(rng) * 0.3, 0.9, 0.3, -0.2]
+    x = np.r_[_random_state(rng) * 0.3, 0.9, 0.3, -0.2, 0.02, -0.01]
     x[9:12] = 0.0
     u = np.array([4.2, 0.0, 0.0, 0.0])
     x_next, F, Q = discretize(x, u, VEH, DT, np.ones(N_STATE))
@@ -288,6 +289,71 @@ def test_a_steady_pull_is_learnt_and_the_fixes_stay_in_the_gate():
         _, est, _ = _run(xs, us, params=params, outage=(4.0, 5.0))
         drift[name] = float(np.max(np.linalg.norm(est[outage, 0:3] - xs[outage, 0:3], axis=1)))
     assert drift["learnt"] < drift["blind"] / 3.0, drift
+
+
+def _hover_filter(drag=None, seconds=1.0, tilt=(0.0, 0.0)):
+    """A level (or tilted) hover held 1 m up, no camera: each 10 ms step predicted, its
+    attitude fused, and the accelerometer's body x and y `drag` fused (None: not)."""
+    ekf = PositionEKF(VEH, PositionEKFParams(), dt=DT)
+    ekf.initialize(0.0, [0.0, 0.0, 1.0], euler=(*tilt, 0.3))
+    u = [VEH.mass_kg * VEH.gravity_m_s2, 0.0, 0.0, 0.0]
+    for k in range(1, int(round(seconds / DT)) + 1):
+        ekf.predict(k * DT, u)
+        ekf.update_attitude(k * DT, [*tilt, 0.3], [0.0] * 3, ATT_STD ** 2, RATE_STD ** 2)
+        if drag is not None:
+            assert ekf.update_drag(k * DT, drag, (0.01, 0.01))[0]
+    return ekf
+
+
+def test_drag_fusion_learns_the_pull_from_the_accelerometer_alone():
+    """A wind's pull, read by the accelerometer as the air's force on the airframe in body
+    axes (yaw 0.3 rad here), is learnt in a second without a camera fix, as a world-frame
+    disturbance; the update leaves the vertical, the attitude and the thrust scale exactly
+    where the same filter without it puts them (the thrust is along body z: a drag reading
+    says nothing of it)."""
+    pull = np.array([0.5, -0.2])
+    yaw = 0.3
+    body = [math.cos(yaw) * pull[0] + math.sin(yaw) * pull[1], -math.sin(yaw) * pull[0] + math.cos(yaw) * pull[1]]
+    fused, plain = _hover_filter(drag=body), _hover_filter()
+    k = VEH.drag_n_per_m_s / VEH.mass_kg
+    # what the accelerometer reads is d less the drag of the velocity the pull has built meanwhile
+    np.testing.assert_allclose(np.array(fused.x[13:15]) - k * np.array(fused.x[3:5]), pull, atol=0.02)
+    assert np.linalg.norm(fused.x[3:5]) > 0.2          # ... and the pull moves the vehicle's estimate
+    for i in (2, 5, 6, 7, 8, 9, 10, 11, 12):
+        assert fused.x[i] == plain.x[i], i
+    assert fused.counters["drag"]["accepted"] == 100
+
+
+def test_drag_fusion_refuses_bad_input_and_gates_an_outlier():
+    ekf = _hover_filter(drag=(0.0, 0.0), seconds=0.5)
+    assert ekf.update_drag(ekf.t, (math.nan, 0.0), (0.01, 0.01)) == (False, pytest.approx(math.nan, nan_ok=True))
+    assert ekf.counters["drag"]["invalid"] == 1
+    with pytest.raises(PositionEKFError, match="drag variances"):
+        ekf.update_drag(ekf.t, (0.0, 0.0), (0.0, 0.01))
+    accepted, nis = ekf.update_drag(ekf.t, (30.0, 0.0), (0.01, 0.01))   # a knock, not the air
+    assert not accepted and nis > 100.0 and ekf.counters["drag"]["gate"] == 1
+    assert ekf.update_drag(ekf.t + 0.1, (0.0, 0.0), (0.01, 0.01))[0] is False   # ahead of the filter
+    assert ekf.counters["drag"]["future"] == 1
+
+
+def test_drag_readings_are_replayed_under_a_late_camera_fix():
+    """A camera fix 60 ms old is fused at its node and the predictions after it re-run with the
+    drag readings stored there: the result is the one fusing everything in time order."""
+    late, ordered = (_hover_filter(drag=(0.3, 0.0), seconds=0.5) for _ in range(2))
+    u = [VEH.mass_kg * VEH.gravity_m_s2, 0.0, 0.0, 0.0]
+    fix = ([0.01, -0.02, 1.0], np.eye(3) * 1e-4)
+    # ordered: the fix at 0.51 fused when 0.51 is now, after that step's drag reading (a node's
+    # measurements are applied in the order they came)
+    for ekf, in_time in ((late, False), (ordered, True)):
+        for k in range(51, 58):
+            ekf.predict(k * DT, u)
+            ekf.update_drag(k * DT, (0.3, 0.0), (0.01, 0.01))
+            if in_time and k == 51:
+                ekf.update_position(0.51, *fix)
+        if not in_time:
+            ekf.update_position(0.51, *fix)
+    np.testing.assert_allclose(late.x, ordered.x, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(late.P, ordered.P, rtol=1e-10, atol=1e-18)
 
 
 def _metrics(xs, est, pcov, mask):
@@ -623,10 +689,10 @@ class _RefEKF:
         self.vehicle, self.params, self.dt = vehicle, params or PositionEKFParams(), dt
         self._qc = self.params.process_noise_density[:13]   # without the disturbance's states
         p = self.params.gate_probability
-        self._gate = {n: (math.inf if p >= 1.0 else float(chi2.ppf(p, n))) for n in (3, 6)}
+        self._gate = {n: (math.inf if p >= 1.0 else float(chi2.ppf(p, n))) for n in (2, 3, 6)}
         self._eps = 1e-6 * dt
         self.counts = {k: {"accepted": 0, "gate": 0, "too_old": 0, "future": 0, "invalid": 0}
-                       for k in ("attitude", "position", "pin")}
+                       for k in ("attitude", "position", "pin", "drag")}
         self.last_nis = {}
 
     def initialize(self, t, position, euler):
@@ -798,8 +864,8 @@ def _assert_same(new, ref, what):
 
 def test_model_step_equals_the_reference():
     """rk4_step and discretize (12 states, and the filter's with the thrust scale, the
-    disturbance 0) as before the rewrite (the reference's 13 states: the 14th and 15th, the
-    disturbance, are what it does not have)."""
+    disturbance and the accelerometer's bias 0) as before the rewrite (the reference's 13 states:
+    the 14th to 17th, the disturbance and the bias, are what it does not have)."""
     rng = np.random.default_rng(11)
     veh_unequal = dataclasses.replace(VEH, inertia_kg_m2=(5e-3, 8e-3, 14e-3))
     for veh in (VEH, veh_unequal):
@@ -811,8 +877,8 @@ def test_model_step_equals_the_reference():
             for xx in (x, np.r_[x, rng.uniform(0.6, 1.5)]):
                 n = xx.shape[0]
                 q = rng.uniform(0.0, 1.0, n)
-                full = np.r_[xx, 0.0, 0.0] if n > 12 else xx
-                for new, ref, name in zip(discretize(full, u, veh, dt, np.r_[q, 0.0, 0.0] if n > 12 else q),
+                full = np.r_[xx, 0.0, 0.0, 0.0, 0.0] if n > 12 else xx
+                for new, ref, name in zip(discretize(full, u, veh, dt, np.r_[q, 0.0, 0.0, 0.0, 0.0] if n > 12 else q),
                                           _ref_discretize(xx, u, veh, dt, q), ("x_next", "F", "Q")):
                     new = new[:n] if new.ndim == 1 else new[:n, :n]
                     _assert_same(new, ref, f"discretize {name} ({n} states)")
@@ -868,7 +934,7 @@ def _equivalence_flight(new, ref):
                 assert nis_n == pytest.approx(nis_r, rel=1e-9), k
         _assert_same(new.x[:13], ref.x, f"x at step {k}")
         _assert_same(new.P[:13, :13], ref.P, f"P at step {k}")
-        assert new.x[13:].tolist() == [0.0, 0.0]   # no disturbance: it stays none
+        assert new.x[13:].tolist() == [0.0] * 4   # no disturbance, no bias: they stay none
     return new, ref
 
 
@@ -892,8 +958,8 @@ def test_gate_thresholds_equal_scipys_chi_square_quantiles():
             assert _chi2_ppf(p, dof) == pytest.approx(float(chi2.ppf(p, dof)), rel=1e-12), (dof, p)
     for p in (0.99, 0.999):
         assert PositionEKF(VEH, PositionEKFParams(gate_probability=p))._gate == pytest.approx(
-            {n: float(chi2.ppf(p, n)) for n in (3, 6)}, rel=1e-12)
-    assert PositionEKF(VEH, PositionEKFParams(gate_probability=1.0))._gate == {3: math.inf, 6: math.inf}
+            {n: float(chi2.ppf(p, n)) for n in (2, 3, 6)}, rel=1e-12)
+    assert PositionEKF(VEH, PositionEKFParams(gate_probability=1.0))._gate == {2: math.inf, 3: math.inf, 6: math.inf}
 
 
 def test_filter_module_does_not_import_scipy_stats():
@@ -947,9 +1013,11 @@ def _assert_identical(new, old, what):
     disturbance none."""
     np.testing.assert_allclose(new.x[:13], old.x, rtol=1e-12, atol=1e-14, err_msg=what)
     np.testing.assert_allclose(new.P[:13, :13], old.P, rtol=1e-10, atol=1e-18, err_msg=what)
-    assert new.x[13:].tolist() == [0.0, 0.0], what
+    assert new.x[13:].tolist() == [0.0] * 4, what
     np.testing.assert_allclose(new.position_cov, old.position_cov, rtol=1e-10, atol=1e-18, err_msg=what)
-    assert new.counters == old.counters and new.last_nis == pytest.approx(old.last_nis, nan_ok=True, rel=0), what
+    counters = {k: v for k, v in new.counters.items() if k != "drag"}   # a kind the former filter lacks
+    last_nis = {k: v for k, v in new.last_nis.items() if k != "drag"}
+    assert counters == old.counters and last_nis == pytest.approx(old.last_nis, nan_ok=True, rel=0), what
 
 
 def test_filter_equals_the_former_filter_to_rounding():
