@@ -16,6 +16,9 @@ true`, services/standby.py); the fault goes to the active driver, and per flight
 drivers sent it, and each driver's CPU (% of one core, from /proc, over the seconds before the
 fault). `--load N`: N busy-loop processes (normal priority) beside each flight, from before its
 start to its end: the heavy load under which the warm spare started too late.
+Also printed: what the supervisor judged of the services not faulted (stuck, silent, hung: a
+starved supervisor's mistakes), its scheduling and its own stalls (deploy/supervisor.py).
+`--supervisor-priority P`: the supervisor's priority (0: normal, as before the watch thread).
 
     python bench/supervised_faults.py [--services attitude position ...] [--faults kill stop2 freeze]
     python bench/supervised_faults.py --services motors --standby --load 3
@@ -155,7 +158,11 @@ def fly_with(out: Path, service: str, fault: str, at_s: float, seed: int, standb
     # the fault's own detection (not an earlier event, e.g. a start-up's under load)
     seen = [e for e in events if e["service"] == service and record["started_unix"] + e["t_s"] >= injected - 0.05]
     metrics = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").exists() else {}
-    return {"rc": proc.returncode, "events": events, "after": after_fault(out, injected), "cpu": cpu,
+    # what it judged of the others (a healthy loop taken for hung: a starved supervisor), and its own stalls
+    others = [e for e in record["events"] if e["service"] not in (service, service + ".b", "supervisor")
+              and e["event"] in ("stuck", "silent", "hung")]
+    return {"rc": proc.returncode, "events": events, "after": after_fault(out, injected), "cpu": cpu, "others": others,
+            "own": record.get("own"), "scheduling": record.get("scheduling", "normal (before the watch thread)"),
             "seen_ms": (record["started_unix"] + seen[0]["t_s"] - injected) * 1e3 if seen else None,
             "metrics": metrics, "said": said}
 
@@ -193,6 +200,8 @@ def main() -> int:
     ap.add_argument("--out", default="runs/bench-supervised-faults")
     ap.add_argument("--standby", action="store_true", help="the motor driver's hot standby on")
     ap.add_argument("--load", type=int, default=0, metavar="N", help="N busy-loop processes beside each flight")
+    ap.add_argument("--supervisor-priority", type=int, metavar="P",
+                    help="the supervisor's SCHED_FIFO priority (0: normal scheduling); default: the stack's")
     ap.add_argument("--hang-restart-s", type=float, metavar="S",
                     help="with --standby: the motor driver's hang bound (e.g. 10: a stop2's driver is "
                          "continued, not killed, and must step back)")
@@ -203,8 +212,12 @@ def main() -> int:
         ap.error(f"--faults {KILL2}: with --standby --services motors")
     if args.hang_restart_s is not None and not (args.standby and 0.1 <= args.hang_restart_s <= 60.0):
         ap.error("--hang-restart-s: with --standby, 0.1..60 s")
+    if args.supervisor_priority is not None:   # the flights' `zenpilot fly` read it (deploy/supervisor.py)
+        if not 0 <= args.supervisor_priority <= 99:
+            ap.error("--supervisor-priority: 0..99")
+        os.environ["ZENPILOT_SUPERVISOR_PRIORITY"] = str(args.supervisor_priority)
     print("$ python bench/supervised_faults.py " + " ".join(sys.argv[1:]), flush=True)
-    rows = []
+    rows, misjudged = [], 0
     for service in args.services:
         for fault in args.faults:
             out = Path(args.out) / f"{service}-{fault}{'-standby' if args.standby else ''}"
@@ -218,6 +231,7 @@ def main() -> int:
                     h.kill()
                     h.wait()
             m = r["metrics"]
+            misjudged += bool(r["others"])
             did = "; ".join(f"+{e['t_s']:.2f} {'' if e['service'] == service else e['service'] + ' '}{e['event']}"
                             for e in r["events"]) or "nothing"
             fs = ", ".join(f"{k}" for svc in (m.get("failsafes") or {}).values() for k in svc) or "-"
@@ -231,11 +245,17 @@ def main() -> int:
                 fig += f", pwm gap {a['gap_ms']:.0f} ms from {'+'.join(a['sources'])} ({a['switches']} hand-overs)"
             if r["cpu"]:
                 fig += ", cpu " + " ".join(f"{n} {c:.1f}%" for n, c in r["cpu"].items())
+            others = "; ".join(f"+{e['t_s']:.2f} {e['service']} {e['event']}" for e in r["others"]) or "none"
+            own = r["own"]
+            own = (f"late {own['late']} (max {1e3 * own['late_max_s']:.0f} ms), deaf {own['deaf']} "
+                   f"(max {1e3 * own['deaf_max_s']:.0f} ms)" if own else "not measured")
+            fig += f" | others judged: {others} | supervisor {r['scheduling']}, own stalls: {own}"
             print(f"{service:9} {fault:6} seen after {seen:>5} ms | {did} | failsafes: {fs} | 5 s after: {fig} | "
                   f"completed {m.get('completed')} crashed {m.get('crashed')} {m.get('crash_reason') or ''} "
                   f"| load {load:.1f} | {out}", flush=True)
     bad = [r for r in rows if r[6] is not False]
-    print(f"\n{len(rows) - len(bad)} of {len(rows)} flights not crashed")
+    print(f"\n{len(rows) - len(bad)} of {len(rows)} flights not crashed; {misjudged} with a service not faulted "
+          f"judged stuck, silent or hung")
     return 1 if bad else 0
 
 
