@@ -364,13 +364,14 @@ def test_its_real_time_scheduling_holds_or_is_reported_and_its_children_start_no
             "threading.Thread(target=time.sleep, args=(5,), daemon=True).start()  # another thread: Zenoh's\n"
 
             "def watch():\n"
-            "    global said; said = apply_watch_scheduling(1)\n"
+            "    global said, child; said = apply_watch_scheduling(1)\n"
+            "    pid = os.fork()  # a restart's process, started from the watch\n"
+            "    if pid == 0: os._exit(os.sched_getscheduler(0))\n"
+            "    child = os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])\n"
             "t = threading.Thread(target=watch); t.start(); t.join()\n"
             "threads = {int(t): os.sched_getscheduler(int(t)) & 0xff for t in os.listdir('/proc/self/task')}\n"
-            "pid = os.fork()\n"
-            "if pid == 0: os._exit(os.sched_getscheduler(0))\n"
             "print(json.dumps({'said': said, 'main': threads.pop(os.getpid()), 'others': sorted(threads.values()),\n"
-            "                  'child': os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])}))\n")
+            "                  'child': child}))\n")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
                           cwd=Path(__file__).resolve().parents[3])
     assert done.returncode == 0, done.stderr
