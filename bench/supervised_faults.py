@@ -5,7 +5,8 @@ simulator's first tick the fault: `kill` (SIGKILL), `stop2` (SIGSTOP, SIGCONT 2 
 `freeze` (SIGSTOP, never continued); with `--standby`, `kill2` (the active driver killed, and 3 s
 later the driver that took over: the restarted one, now the standby, must take over in turn);
 `stutter15` / `stutter40` (stopped 15 / 40 ms every 200 ms, ten times: under and over the
-standby's 25 ms bound).
+standby's 25 ms bound); `supstop600`: not a service but the supervisor (`zenpilot fly`'s process)
+stopped 0.6 s, every service healthy (the service named is only the row's label).
 Printed per flight: when the supervisor saw it (after the fault), what it did (its events), the
 failsafes the services counted, and the flight's outcome
 on the simulator's truth (completed, crashed, touchdown speed).
@@ -46,6 +47,9 @@ KILL2 = "kill2"   # --standby: the active driver killed, then 3 s later the one 
 # a stuttering process: stopped for MS milliseconds every 200 ms, ten times (a loop starved in bursts):
 # under the standby's 25 ms bound nothing must change hands; over it, one hand-over and no flapping
 STUTTERS = {"stutter15": 0.015, "stutter40": 0.040}
+# the supervisor itself starved: its `zenpilot fly` process stopped this long (no poll, no beat
+# received), every service healthy: nothing must be judged stuck, nothing killed
+SUPSTOP = {"supstop600": 0.6}
 
 
 def cmdline(pid: int) -> list[bytes]:
@@ -122,7 +126,19 @@ def fly_with(out: Path, service: str, fault: str, at_s: float, seed: int, standb
             time.sleep(at_s)
         pid = service_pid(out, service)
         injected = time.time()
-        if fault in STUTTERS:   # timed at real-time priority where allowed: a starved bench would stop it longer
+        if fault in SUPSTOP:   # the launcher, not the service: timed as the stutters are
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(95))
+            except OSError:
+                pass
+            os.kill(proc.pid, signal.SIGSTOP)
+            t0 = time.monotonic()
+            time.sleep(SUPSTOP[fault])
+            os.kill(proc.pid, signal.SIGCONT)
+            stopped = time.monotonic() - t0
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+            print(f"bench: {fault}: the supervisor stopped {1e3 * stopped:.0f} ms", flush=True)
+        elif fault in STUTTERS:   # timed at real-time priority where allowed: a starved bench would stop it longer
             try:
                 os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(95))
             except OSError:
@@ -159,7 +175,8 @@ def fly_with(out: Path, service: str, fault: str, at_s: float, seed: int, standb
     seen = [e for e in events if e["service"] == service and record["started_unix"] + e["t_s"] >= injected - 0.05]
     metrics = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").exists() else {}
     # what it judged of the others (a healthy loop taken for hung: a starved supervisor), and its own stalls
-    others = [e for e in record["events"] if e["service"] not in (service, service + ".b", "supervisor")
+    faulted = () if fault in SUPSTOP else (service, service + ".b")   # supstop: every service is healthy
+    others = [e for e in record["events"] if e["service"] not in (*faulted, "supervisor")
               and e["event"] in ("stuck", "silent", "hung")]
     return {"rc": proc.returncode, "events": events, "after": after_fault(out, injected), "cpu": cpu, "others": others,
             "own": record.get("own"), "scheduling": record.get("scheduling", "normal (before the watch thread)"),
@@ -194,7 +211,7 @@ def after_fault(out: Path, injected: float, window_s: float = 5.0) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--services", nargs="+", default=list(SERVICES), choices=SERVICES)
-    ap.add_argument("--faults", nargs="+", default=list(FAULTS), choices=(*FAULTS, KILL2, *STUTTERS))
+    ap.add_argument("--faults", nargs="+", default=list(FAULTS), choices=(*FAULTS, KILL2, *STUTTERS, *SUPSTOP))
     ap.add_argument("--at", type=float, default=5.0, help="wall seconds after the first tick")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="runs/bench-supervised-faults")
