@@ -54,6 +54,7 @@ from __future__ import annotations
 import json
 import os
 import threading
+from collections import deque
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -195,7 +196,7 @@ class Supervisor:
         self._beat_at: dict[str, float] = {}   # each source's newest beat's arrival
         self._deaf_from: float | None = None   # an open spell without any beat
         self._thread: threading.Thread | None = None
-        self._lost: list[str] = []
+        self._lost: deque[str] = deque()   # the watch thread appends, the caller takes (thread-safe ends)
         self._failure: BaseException | None = None
         self._write_failed = False
         self.path = Path(launcher.run_dir) / "supervisor.json"
@@ -385,7 +386,9 @@ class Supervisor:
         ended the watch thread, if anything did."""
         if self._failure is not None:
             raise RuntimeError(f"the supervisor's watch failed: {self._failure!r}") from self._failure
-        lost, self._lost[:] = list(self._lost), []
+        lost = []
+        while self._lost:
+            lost.append(self._lost.popleft())
         return lost
 
     def stop(self) -> None:
