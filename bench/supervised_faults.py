@@ -5,7 +5,8 @@ simulator's first tick the fault: `kill` (SIGKILL), `stop2` (SIGSTOP, SIGCONT 2 
 `freeze` (SIGSTOP, never continued); with `--standby`, `kill2` (the active driver killed, and 3 s
 later the driver that took over: the restarted one, now the standby, must take over in turn);
 `stutter15` / `stutter40` (stopped 15 / 40 ms every 200 ms, ten times: under and over the
-standby's 25 ms bound).
+standby's 25 ms bound); `supstop600`: not a service but the supervisor (`zenpilot fly`'s process)
+stopped 0.6 s, every service healthy (the service named is only the row's label).
 Printed per flight: when the supervisor saw it (after the fault), what it did (its events), the
 failsafes the services counted, and the flight's outcome
 on the simulator's truth (completed, crashed, touchdown speed).
@@ -16,6 +17,9 @@ true`, services/standby.py); the fault goes to the active driver, and per flight
 drivers sent it, and each driver's CPU (% of one core, from /proc, over the seconds before the
 fault). `--load N`: N busy-loop processes (normal priority) beside each flight, from before its
 start to its end: the heavy load under which the warm spare started too late.
+Also printed: what the supervisor judged of the services not faulted (stuck, silent, hung: a
+starved supervisor's mistakes), its scheduling and its own stalls (deploy/supervisor.py).
+`--supervisor-priority P`: the supervisor's priority (0: normal, as before the watch thread).
 
     python bench/supervised_faults.py [--services attitude position ...] [--faults kill stop2 freeze]
     python bench/supervised_faults.py --services motors --standby --load 3
@@ -43,6 +47,9 @@ KILL2 = "kill2"   # --standby: the active driver killed, then 3 s later the one 
 # a stuttering process: stopped for MS milliseconds every 200 ms, ten times (a loop starved in bursts):
 # under the standby's 25 ms bound nothing must change hands; over it, one hand-over and no flapping
 STUTTERS = {"stutter15": 0.015, "stutter40": 0.040}
+# the supervisor itself starved: its `zenpilot fly` process stopped this long (no poll, no beat
+# received), every service healthy: nothing must be judged stuck, nothing killed
+SUPSTOP = {"supstop600": 0.6}
 
 
 def cmdline(pid: int) -> list[bytes]:
@@ -119,7 +126,19 @@ def fly_with(out: Path, service: str, fault: str, at_s: float, seed: int, standb
             time.sleep(at_s)
         pid = service_pid(out, service)
         injected = time.time()
-        if fault in STUTTERS:   # timed at real-time priority where allowed: a starved bench would stop it longer
+        if fault in SUPSTOP:   # the launcher, not the service: timed as the stutters are
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(95))
+            except OSError:
+                pass
+            os.kill(proc.pid, signal.SIGSTOP)
+            t0 = time.monotonic()
+            time.sleep(SUPSTOP[fault])
+            os.kill(proc.pid, signal.SIGCONT)
+            stopped = time.monotonic() - t0
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+            print(f"bench: {fault}: the supervisor stopped {1e3 * stopped:.0f} ms", flush=True)
+        elif fault in STUTTERS:   # timed at real-time priority where allowed: a starved bench would stop it longer
             try:
                 os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(95))
             except OSError:
@@ -155,7 +174,12 @@ def fly_with(out: Path, service: str, fault: str, at_s: float, seed: int, standb
     # the fault's own detection (not an earlier event, e.g. a start-up's under load)
     seen = [e for e in events if e["service"] == service and record["started_unix"] + e["t_s"] >= injected - 0.05]
     metrics = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").exists() else {}
-    return {"rc": proc.returncode, "events": events, "after": after_fault(out, injected), "cpu": cpu,
+    # what it judged of the others (a healthy loop taken for hung: a starved supervisor), and its own stalls
+    faulted = () if fault in SUPSTOP else (service, service + ".b")   # supstop: every service is healthy
+    others = [e for e in record["events"] if e["service"] not in (*faulted, "supervisor")
+              and e["event"] in ("stuck", "silent", "hung")]
+    return {"rc": proc.returncode, "events": events, "after": after_fault(out, injected), "cpu": cpu, "others": others,
+            "own": record.get("own"), "scheduling": record.get("scheduling", "normal (before the watch thread)"),
             "seen_ms": (record["started_unix"] + seen[0]["t_s"] - injected) * 1e3 if seen else None,
             "metrics": metrics, "said": said}
 
@@ -187,12 +211,14 @@ def after_fault(out: Path, injected: float, window_s: float = 5.0) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--services", nargs="+", default=list(SERVICES), choices=SERVICES)
-    ap.add_argument("--faults", nargs="+", default=list(FAULTS), choices=(*FAULTS, KILL2, *STUTTERS))
+    ap.add_argument("--faults", nargs="+", default=list(FAULTS), choices=(*FAULTS, KILL2, *STUTTERS, *SUPSTOP))
     ap.add_argument("--at", type=float, default=5.0, help="wall seconds after the first tick")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="runs/bench-supervised-faults")
     ap.add_argument("--standby", action="store_true", help="the motor driver's hot standby on")
     ap.add_argument("--load", type=int, default=0, metavar="N", help="N busy-loop processes beside each flight")
+    ap.add_argument("--supervisor-priority", type=int, metavar="P",
+                    help="the supervisor's SCHED_FIFO priority (0: normal scheduling); default: the stack's")
     ap.add_argument("--hang-restart-s", type=float, metavar="S",
                     help="with --standby: the motor driver's hang bound (e.g. 10: a stop2's driver is "
                          "continued, not killed, and must step back)")
@@ -203,8 +229,12 @@ def main() -> int:
         ap.error(f"--faults {KILL2}: with --standby --services motors")
     if args.hang_restart_s is not None and not (args.standby and 0.1 <= args.hang_restart_s <= 60.0):
         ap.error("--hang-restart-s: with --standby, 0.1..60 s")
+    if args.supervisor_priority is not None:   # the flights' `zenpilot fly` read it (deploy/supervisor.py)
+        if not 0 <= args.supervisor_priority <= 99:
+            ap.error("--supervisor-priority: 0..99")
+        os.environ["ZENPILOT_SUPERVISOR_PRIORITY"] = str(args.supervisor_priority)
     print("$ python bench/supervised_faults.py " + " ".join(sys.argv[1:]), flush=True)
-    rows = []
+    rows, misjudged = [], 0
     for service in args.services:
         for fault in args.faults:
             out = Path(args.out) / f"{service}-{fault}{'-standby' if args.standby else ''}"
@@ -218,6 +248,7 @@ def main() -> int:
                     h.kill()
                     h.wait()
             m = r["metrics"]
+            misjudged += bool(r["others"])
             did = "; ".join(f"+{e['t_s']:.2f} {'' if e['service'] == service else e['service'] + ' '}{e['event']}"
                             for e in r["events"]) or "nothing"
             fs = ", ".join(f"{k}" for svc in (m.get("failsafes") or {}).values() for k in svc) or "-"
@@ -231,11 +262,17 @@ def main() -> int:
                 fig += f", pwm gap {a['gap_ms']:.0f} ms from {'+'.join(a['sources'])} ({a['switches']} hand-overs)"
             if r["cpu"]:
                 fig += ", cpu " + " ".join(f"{n} {c:.1f}%" for n, c in r["cpu"].items())
+            others = "; ".join(f"+{e['t_s']:.2f} {e['service']} {e['event']}" for e in r["others"]) or "none"
+            own = r["own"]
+            own = (f"late {own['late']} (max {1e3 * own['late_max_s']:.0f} ms), deaf {own['deaf']} "
+                   f"(max {1e3 * own['deaf_max_s']:.0f} ms)" if own else "not measured")
+            fig += f" | others judged: {others} | supervisor {r['scheduling']}, own stalls: {own}"
             print(f"{service:9} {fault:6} seen after {seen:>5} ms | {did} | failsafes: {fs} | 5 s after: {fig} | "
                   f"completed {m.get('completed')} crashed {m.get('crashed')} {m.get('crash_reason') or ''} "
                   f"| load {load:.1f} | {out}", flush=True)
     bad = [r for r in rows if r[6] is not False]
-    print(f"\n{len(rows) - len(bad)} of {len(rows)} flights not crashed")
+    print(f"\n{len(rows) - len(bad)} of {len(rows)} flights not crashed; {misjudged} with a service not faulted "
+          f"judged stuck, silent or hung")
     return 1 if bad else 0
 
 

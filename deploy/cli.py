@@ -40,7 +40,7 @@ from deploy.launcher import (DELIVERY_S, ONE_PROCESS, ONE_PROCESS_FAILED, STOP_G
                              client_session, free_port, recorder_grace_s, stop_groups, wait_port)
 from deploy.progress import FlightProgress
 from deploy.report import REPORT_NAME, RUN_FILES, write_report
-from deploy.supervisor import POLL_S, Supervisor
+from deploy.supervisor import POLL_S, Supervisor, supervisor_priority
 from flight.control.mission import MissionError
 from schemas.flightlog import LOG_NAME, LogError, LogScan, log_is_complete, read_log, recover, scan
 from services.runtime import on_stop_signals, tie_to_parent
@@ -127,7 +127,7 @@ def _standbys(stack, names: list[str], real_time: bool) -> list[str]:
 def _fly_processes(launcher: Launcher, names: list[str], args, mission, out: Path) -> bool:
     """A flight with a process per service over the router; True if the simulator ended it."""
     stack = launcher.stack
-    progress = session = None
+    progress = session = supervisor = None
     try:
         launcher.start_router()
         if args.foxglove is not None:   # the live view, ground side: it only listens
@@ -144,7 +144,7 @@ def _fly_processes(launcher: Launcher, names: list[str], args, mission, out: Pat
         supervisor = watch_services(launcher, [n for n in names if n != "sim"], session, not args.lockstep)
         while launcher.procs["sim"].poll() is None:
             progress.show()
-            lost = supervisor.poll()
+            lost = supervisor.take_lost()
             bad = {n: launcher.procs[n].returncode for n in lost if launcher.procs[n].returncode != 0}
             if bad:
                 raise StackError("service(s) failed during the flight: " + ", ".join(
@@ -156,6 +156,8 @@ def _fly_processes(launcher: Launcher, names: list[str], args, mission, out: Pat
             time.sleep(POLL_S)
         return launcher.procs["sim"].returncode == 0
     finally:
+        if supervisor is not None:
+            supervisor.stop()   # before the services stop: their ends are no failures
         if progress is not None:
             progress.close()
         if session is not None:
@@ -238,6 +240,9 @@ def watch_services(launcher: Launcher, names: list[str], session, real_time: boo
         beats = schemas.BEAT.key(vehicle, "")
         supervisor.beats = session.declare_subscriber(
             f"{beats}*", lambda sample: supervisor.beat_seen(str(sample.key_expr)[len(beats):]))
+    # its own thread, in real time at a priority below the loops (with Zenoh's threads, which bring
+    # the beats): a starved supervisor took every loop for hung (deploy/supervisor.py)
+    supervisor.start(supervisor_priority(launcher.stack, names) if real_time else 0)
     return supervisor
 
 
@@ -522,7 +527,7 @@ def cmd_up(args) -> int:
     try:
         drawn = 0.0
         while not stop.is_set():
-            supervisor.poll()
+            supervisor.take_lost()   # `up` flies on whatever is lost (the supervisor said it)
             if background:   # no screen: the state file follows the restarts (`down` stops the new pids)
                 if recorded != {n: p.pid for n, p in launcher.procs.items()}:
                     recorded = _write_state(Path(args.state_file), stack, router, run_dir, launcher)
@@ -536,6 +541,7 @@ def cmd_up(args) -> int:
                     print(f"  supervisor +{event['t_s']:.1f} s: {event['service']} {event['detail']}")
             stop.wait(POLL_S)
     finally:
+        supervisor.stop()
         session.close()
         launcher.stop_all()
         if background:

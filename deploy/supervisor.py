@@ -32,6 +32,17 @@ With the motor driver's hot standby (`[services.motors] standby = true`, service
 second process `motors.b` is watched as a service of its own, with the driver's policy and bounds;
 either, restarted, comes back as the standby (the other has taken over within ~25 ms).
 
+A starved supervisor must not mistake its own stall for the services' (issue 22): under heavy
+load a supervisor at normal priority beside SCHED_FIFO loops saw every loop's beat missing at once
+and killed a healthy motor driver. So (real time) it watches from a thread of its own at a
+real-time priority below every loop of its machine (`supervisor_priority`; reported where the OS
+refuses it), Zenoh's receiving threads with it, and it discounts its own stalls from every beat
+silence: a poll later than STALL_S past its due time (the supervisor starved), and a spell in
+which no beat at all arrived while two or more of this machine's loops had been beating (its
+reception starved: independent processes do not all stop at once). A service is stuck only for
+beats it missed while the supervisor was demonstrably watching. Both are counted in
+supervisor.json (`own`) and its health; one longer than POLL_S is an event.
+
 Restarts happen in real time only. In lockstep a lost participant is dropped from the clock
 (services/lockstep.py) and a new process cannot rejoin a clock already running, so there the
 supervisor reports and the flight stops as it did without it. The simulator is never restarted
@@ -42,6 +53,8 @@ from __future__ import annotations
 
 import json
 import os
+import threading
+from collections import deque
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -57,6 +70,54 @@ HEALTH_SILENCE_S = 3.0
 START_S = 30.0   # a service silent this long before its first beat has hung in its start-up
 BEAT_SILENCE_S = 0.3   # three beats missed (services/runtime.BEAT_PERIOD_S): seen within 0.4 s
 REMOTE_BEAT_SILENCE_S = 0.5   # another host's service: its beats cross a link (jitter, a lost segment)
+STALL_S = 0.05   # a poll this late past its due time: the supervisor was starved, not the services
+DEAF_S = 0.15    # no beat from anyone this long, two or more loops beating: its reception was starved
+BEATING_WITHIN_S = 1.0   # a source counts as beating when the quiet began if it beat this recently
+KEPT_STALLS = 256   # the own stalls remembered (a silence longer than they reach counts them less)
+PRIORITY_ENV = "ZENPILOT_SUPERVISOR_PRIORITY"   # an explicit priority (0: normal), e.g. a bench's comparison
+
+
+def supervisor_priority(stack, names) -> int:
+    """The supervisor's SCHED_FIFO priority: one below the lowest of the loops it watches (it must
+    never take their CPU: its work is a poll and a few stores), 0 (normal) where none has one;
+    PRIORITY_ENV overrides."""
+    given = os.environ.get(PRIORITY_ENV)
+    if given is not None:
+        try:
+            value = int(given)
+        except ValueError:
+            value = -1
+        if not 0 <= value <= 99:
+            raise ValueError(f"{PRIORITY_ENV}={given!r}: expected an integer 0..99 (0: normal scheduling)")
+        return value
+    loops = [p for p in (stack.service(service_of(n)).priority for n in names) if p > 0]
+    return max(1, min(loops) - 1) if loops else 0
+
+
+def apply_watch_scheduling(priority: int) -> str:
+    """SCHED_FIFO at `priority` for the calling thread and every other thread of the process but
+    the main one (Zenoh's, which deliver the beats; the main thread's screen and analysis stay
+    normal), reset on fork (a process started from here, a restart, gets normal scheduling and
+    asks for its own). Returns what holds, as services/runtime.apply_scheduling does."""
+    if priority <= 0:
+        return "normal"
+    policy = os.SCHED_FIFO | getattr(os, "SCHED_RESET_ON_FORK", 0)
+    try:
+        os.sched_setscheduler(0, policy, os.sched_param(priority))
+        try:
+            threads = [int(t) for t in os.listdir("/proc/self/task")]
+        except OSError:
+            threads = []
+        for tid in threads:
+            if tid in (os.getpid(), threading.get_native_id()):
+                continue
+            try:
+                os.sched_setscheduler(tid, policy, os.sched_param(priority))
+            except ProcessLookupError:   # a thread that ended meanwhile
+                pass
+    except (OSError, AttributeError) as exc:
+        return f"priority {priority} refused ({exc}); normal scheduling"
+    return f"fifo {priority}"
 
 
 def backoff_s(restarts: int) -> float:
@@ -126,6 +187,17 @@ class Supervisor:
         self.watches = {n: Watch(s.restart, s.restart_limit, s.hang_restart_s) for n, s in specs.items()}
         self.remote = {n: RemoteWatch() for n in remote if n not in self.watches} if real_time else {}
         self.events: list[dict] = []
+        # its own stalls (real time): spans discounted from every beat silence (see the docstring)
+        self.stalls: list[tuple[float, float]] = []   # (from, to), closed, oldest first
+        self.own = {"late": 0, "late_s": 0.0, "late_max_s": 0.0, "deaf": 0, "deaf_s": 0.0, "deaf_max_s": 0.0}
+        self.scheduling = "normal"
+        self._last_poll: float | None = None
+        self._heard: float | None = None   # the newest beat's arrival, from any source
+        self._beat_at: dict[str, float] = {}   # each source's newest beat's arrival
+        self._deaf_from: float | None = None   # an open spell without any beat
+        self._thread: threading.Thread | None = None
+        self._lost: deque[str] = deque()   # the watch thread appends, the caller takes (thread-safe ends)
+        self._failure: BaseException | None = None
         self._write_failed = False
         self.path = Path(launcher.run_dir) / "supervisor.json"
         self._write()
@@ -138,7 +210,8 @@ class Supervisor:
             w.last_health = self.clock()
 
     def beat_seen(self, service: str) -> None:
-        """A beat of `service`'s main loop arrived (a Zenoh callback: one store)."""
+        """A beat of `service`'s main loop arrived (a Zenoh callback: a few stores)."""
+        self._heard = self._beat_at[service] = self.clock()
         w = self.watches.get(service)
         if w is not None and w.state != "restarting":   # a late beat of the killed process is not the new one's
             w.last_beat = self.clock()
@@ -151,6 +224,8 @@ class Supervisor:
     def poll(self) -> list[str]:
         now = self.clock()
         lost = []
+        if self.real_time:
+            self._own_stalls(now)
         if self.publish is not None and (self._published is None or now - self._published >= 1.0):
             self._published = now
             self.publish(self.health_message())
@@ -189,7 +264,9 @@ class Supervisor:
                     self._event(name, "stopped", "the process is stopped (SIGSTOP or a debugger)")
                 elif state == "stuck":
                     w.stucks += 1
-                    self._event(name, "stuck", f"its loop sent no beat for {now - w.last_beat:.2f} s")
+                    own = self.discounted(w.last_beat, now)
+                    self._event(name, "stuck", f"its loop sent no beat for {now - w.last_beat - own:.2f} s"
+                                + (f" (and {own:.2f} s of the supervisor's own stalls, not counted)" if own else ""))
                 elif state == "silent":
                     w.silences += 1
                     self._event(name, "silent", f"no health message for {now - self._health_since(w):.1f} s")
@@ -199,18 +276,21 @@ class Supervisor:
                                 else "health messages again")
                 w.state, w.since = state, (now if state != "running" else None)
             bound = w.hang_s if state != "silent" else START_S   # silent: not beating yet, maybe starting
-            if w.since is not None and now - w.since >= bound and self._restarts(name, w, -1):
+            # stuck: judged by beats, so only while the supervisor was watching (a stop is /proc's)
+            lasted = None if w.since is None else now - w.since - (self.discounted(w.since, now) if state == "stuck" else 0.0)
+            if lasted is not None and lasted >= bound and self._restarts(name, w, -1):
                 self.launcher.kill(name)   # a stopped process dies of SIGKILL too
                 w.hangs += 1
-                self._restart_later(name, w, now, f"hung ({state} for {now - w.since:.1f} s): killed")
+                self._restart_later(name, w, now, f"hung ({state} for {lasted:.1f} s): killed")
         for name, r in self.remote.items():
             if r.last_beat is None:
                 continue
-            state = "stuck" if now - r.last_beat > REMOTE_BEAT_SILENCE_S else "running"
+            silence = now - r.last_beat - self.discounted(r.last_beat, now)
+            state = "stuck" if silence > REMOTE_BEAT_SILENCE_S else "running"
             if state != r.state:
                 if state == "stuck":
                     r.stucks += 1
-                    self._event(name, "stuck", f"no beat from its host for {now - r.last_beat:.2f} s (another "
+                    self._event(name, "stuck", f"no beat from its host for {silence:.2f} s (another "
                                                f"machine's service: reported, its own supervisor acts)")
                 elif r.state == "stuck":
                     self._event(name, "running", "its loop beats again (another machine's service)")
@@ -224,8 +304,99 @@ class Supervisor:
         if not self.real_time:
             return "running"
         if w.last_beat is not None:
-            return "stuck" if now - w.last_beat > BEAT_SILENCE_S else "running"
+            silence = now - w.last_beat - self.discounted(w.last_beat, now)
+            return "stuck" if silence > BEAT_SILENCE_S else "running"
         return "silent" if now - self._health_since(w) > HEALTH_SILENCE_S else "running"
+
+    # -- its own stalls -----------------------------------------------------------------
+    def _own_stalls(self, now: float) -> None:
+        """Note the spans in which this supervisor could not have seen a beat: its poll woke late
+        (starved), or no beat arrived from anyone while two or more local loops were beating
+        (its reception starved)."""
+        if self._last_poll is not None:
+            late = now - (self._last_poll + POLL_S)
+            if late > STALL_S:
+                self._stalled("late", now - late, now)
+        self._last_poll = now
+        heard = self._heard
+        if self._deaf_from is not None:
+            if heard is not None and heard > self._deaf_from:   # beats again
+                start, self._deaf_from = self._deaf_from, None
+                self._stalled("deaf", start, heard)
+        elif heard is not None and now - heard - self.discounted(heard, now) > DEAF_S:   # not a late wake-up's
+            local = [t for src, t in self._beat_at.items() if src not in self.remote and t >= heard - BEATING_WITHIN_S]
+            if len(local) >= 2:
+                self._deaf_from = heard
+
+    def _stalled(self, kind: str, start: float, end: float) -> None:
+        span = end - start
+        self.stalls.append((start, end))
+        del self.stalls[:-KEPT_STALLS]
+        self.own[kind] += 1
+        self.own[f"{kind}_s"] = round(self.own[f"{kind}_s"] + span, 4)
+        self.own[f"{kind}_max_s"] = round(max(self.own[f"{kind}_max_s"], span), 4)
+        if span > POLL_S:
+            self._event("supervisor", "stalled", f"{'woke' if kind == 'late' else 'heard no beat from any loop for'} "
+                        f"{span:.2f} s{' late' if kind == 'late' else ''}: its own stall, not counted against "
+                        f"the services' beats")
+
+    def discounted(self, start: float, end: float) -> float:
+        """The time within (start, end) the supervisor was stalled (itself or its reception)."""
+        spans = self.stalls if self._deaf_from is None else [*self.stalls, (self._deaf_from, end)]
+        total, reached = 0.0, start   # their union: a late wake-up and a deaf spell often overlap
+        for a, b in sorted((max(a, start), min(b, end)) for a, b in spans if b > start and a < end):
+            if b > reached:
+                total += b - max(a, reached)
+                reached = b
+        return total
+
+    # -- a thread of its own ----------------------------------------------------------
+    def start(self, priority: int = 0) -> None:
+        """Poll from a thread of its own every POLL_S (absolute deadlines), at SCHED_FIFO
+        `priority` with Zenoh's threads (apply_watch_scheduling): the caller's loop (a progress
+        line, a status screen) never delays it. take_lost() gives what poll() returned."""
+        ready = threading.Event()
+
+        def watch() -> None:
+            try:
+                self.scheduling = apply_watch_scheduling(priority)
+                ready.set()
+                due = self.clock()
+                while not self._stopping.is_set():
+                    self._lost.extend(self.poll())
+                    due += POLL_S
+                    now = self.clock()
+                    if due < now:   # starved past a poll: no burst of polls to catch up
+                        due = now
+                    self._stopping.wait(due - now)
+            except BaseException as exc:   # said by take_lost(): a supervisor gone must not go unnoticed
+                self._failure = exc
+            finally:
+                ready.set()
+
+        self._stopping = threading.Event()
+        self._thread = threading.Thread(target=watch, name="zenpilot-supervisor", daemon=True)
+        self._thread.start()
+        ready.wait(5.0)
+        if "refused" in self.scheduling:
+            self.say(f"zenpilot: supervisor: scheduling: {self.scheduling} (its own stalls are still discounted)")
+
+    def take_lost(self) -> list[str]:
+        """The services lost since the last call (the watch thread's poll() results); raises what
+        ended the watch thread, if anything did."""
+        if self._failure is not None:
+            raise RuntimeError(f"the supervisor's watch failed: {self._failure!r}") from self._failure
+        lost = []
+        while self._lost:
+            lost.append(self._lost.popleft())
+        return lost
+
+    def stop(self) -> None:
+        """End the watch thread (before the services are stopped: their ends are no failures)."""
+        if self._thread is not None:
+            self._stopping.set()
+            self._thread.join(timeout=5.0)
+            self._thread = None
 
     def _health_since(self, w: Watch) -> float:
         return w.last_health if w.last_health is not None else self.t0
@@ -259,7 +430,7 @@ class Supervisor:
                 "services": {n: {k: v for k, v in asdict(w).items() if k not in ("restart_at", "last_health", "last_beat", "since")}
                              for n, w in self.watches.items()},
                 "remote": {n: {k: v for k, v in asdict(r).items() if k != "last_beat"} for n, r in self.remote.items()},
-                "events": self.events}
+                "scheduling": self.scheduling, "own": self.own, "events": self.events}
 
     def _write(self) -> None:
         """supervisor.json beside the flight log, rewritten whole on every change (metrics.json
@@ -285,10 +456,13 @@ class Supervisor:
         for n, r in self.remote.items():
             if r.stucks:
                 counts[f"stuck_remote_{n}"] = r.stucks
+        for kind in ("late", "deaf"):   # its own stalls, discounted (the count; max in supervisor.json)
+            if self.own[kind]:
+                counts[f"supervisor_{kind}"] = self.own[kind]
         bad = [f"{n} {w.state}" for n, w in self.watches.items() if w.state != "running"]
         bad += [f"{n} stuck (remote)" for n, r in self.remote.items() if r.state == "stuck"]
         return {"state": "degraded" if bad else "running", "rate_hz": 1.0 / POLL_S, "target_rate_hz": 1.0 / POLL_S,
                 "overruns": 0, "jitter_p99_ms": 0.0, "lateness_p50_ms": 0.0, "lateness_p99_ms": 0.0,
                 "lateness_max_ms": 0.0, "late": 0, "cycles": 0, "step_s": 0.0, "wait_s": 0.0,
-                "rejected": counts, "dropped": {}, "scheduling": "normal",
+                "rejected": counts, "dropped": {}, "scheduling": self.scheduling,
                 "detail": "; ".join(bad) or (self.events[-1]["detail"] if self.events else "")}

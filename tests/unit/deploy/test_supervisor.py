@@ -1,6 +1,7 @@
 """The launcher's supervisor (deploy/supervisor.py): detection and restart policy, on fake
 processes and a fake clock, and a real stopped process."""
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -10,8 +11,8 @@ from pathlib import Path
 import pytest
 
 import deploy.supervisor
-from deploy.supervisor import (BEAT_SILENCE_S, HEALTH_SILENCE_S, REMOTE_BEAT_SILENCE_S, START_S, Supervisor, backoff_s,
-                               process_state)
+from deploy.supervisor import (BEAT_SILENCE_S, HEALTH_SILENCE_S, POLL_S, PRIORITY_ENV, REMOTE_BEAT_SILENCE_S, START_S,
+                               Supervisor, backoff_s, process_state, supervisor_priority)
 from services.stack import StackError, load_stack
 
 
@@ -78,9 +79,11 @@ def test_a_dead_service_is_restarted_after_a_growing_back_off_until_its_limit(tm
     assert (w.exits, w.restarts, w.state, w.last_status) == (3, 2, "exited", 1)
     assert "killed by signal 9" in said[0] and "restart limit 2 reached" in said[-1]
     saved = json.loads((tmp_path / "supervisor.json").read_text())
-    assert saved["services"]["attitude"]["restarts"] == 2 and len(saved["events"]) == 5
-    health = sup.health_message()
-    assert health["state"] == "degraded" and health["rejected"] == {"exited_attitude": 3, "restarted_attitude": 2}
+    assert saved["services"]["attitude"]["restarts"] == 2
+    assert len([e for e in saved["events"] if e["service"] == "attitude"]) == 5   # (and the clock's jumps: stalls)
+    health = sup.health_message()   # (the clock's jumps past a poll are the supervisor's stalls: counted apart)
+    assert health["state"] == "degraded" and {k: v for k, v in health["rejected"].items() if "supervisor" not in k} == {
+        "exited_attitude": 3, "restarted_attitude": 2}
 
 
 def test_back_off_first_short_then_doubling_to_a_bound():
@@ -253,3 +256,128 @@ def test_another_machines_service_is_reported_by_its_beats_never_acted_on(tmp_pa
     assert json.loads((tmp_path / "supervisor.json").read_text())["remote"]["attitude"]["stucks"] == 1
     lockstep = Supervisor(launcher, ["planner"], False, say=said.append, clock=clock, remote=["attitude"])
     assert lockstep.remote == {}   # no beats in lockstep
+
+
+LOOPS = {"motors": ("on-failure", 3), "attitude": ("on-failure", 3), "position": ("on-failure", 3)}
+
+
+def flying(tmp_path):
+    """Three loops beating, the motor driver with its 0.2 s hang bound (the default stack's)."""
+    sup, launcher, clock, said = supervisor(tmp_path, LOOPS)
+    sup.watches["motors"].hang_s = 0.2
+    run_for(sup, clock, 1.0, beating=list(LOOPS))
+    return sup, launcher, clock, said
+
+
+def test_a_supervisor_that_woke_late_kills_no_healthy_loop(tmp_path):
+    # the whole launcher starved 0.6 s (no poll, no beat received), then the beats' backlog
+    # arrives one loop at a time: every loop looked silent 0.7 s, past 0.3 s + the driver's 0.2 s
+    sup, launcher, clock, said = flying(tmp_path)
+    clock.t += 0.6
+    sup.poll()
+    for _ in range(5):
+        clock.t += POLL_S
+        sup.beat_seen("attitude")   # the motor driver's beats still on their way at the first poll
+        sup.poll()
+        sup.beat_seen("motors")
+        sup.beat_seen("position")
+    assert launcher.killed == [] and all(w.state == "running" and w.stucks == 0 for w in sup.watches.values()), said
+    assert sup.own["late"] == 1 and sup.own["late_max_s"] == pytest.approx(0.5)
+    assert "woke 0.50 s late: its own stall" in said[-1] and sup.health_message()["rejected"] == {"supervisor_late": 1}
+
+
+def test_a_supervisor_that_hears_no_beat_from_any_loop_kills_none(tmp_path):
+    # the polls on time, but no beat delivered for 0.6 s (its Zenoh thread starved): all at once
+    sup, launcher, clock, said = flying(tmp_path)
+    run_for(sup, clock, 0.6)
+    assert launcher.killed == [] and all(w.state == "running" for w in sup.watches.values()), said
+    run_for(sup, clock, 1.0, beating=list(LOOPS))
+    assert launcher.killed == [] and all(w.stucks == 0 for w in sup.watches.values()), said
+    assert sup.own["deaf"] == 1 and 0.6 <= sup.own["deaf_max_s"] <= 0.7 and "heard no beat from any loop" in said[-1]
+
+
+def test_a_real_hang_is_still_seen_within_half_a_second_and_killed(tmp_path):
+    sup, launcher, clock, said = flying(tmp_path)
+    hung = clock.t   # its last beat
+    for _ in range(10):   # the others beat on
+        run_for(sup, clock, POLL_S, beating=["attitude", "position"])
+        if sup.watches["motors"].state == "stuck":
+            break
+    assert sup.watches["motors"].state == "stuck" and clock.t - hung <= 0.5, said
+    run_for(sup, clock, 0.3, beating=["attitude", "position"])
+    assert launcher.killed == ["motors"] and clock.t - hung <= 0.8 and "hung (stuck for 0." in said[-1], said
+    # a stall of the supervisor during a hang: the hang is seen later by the stall only
+    sup, launcher, clock, said = flying(tmp_path)
+    hung = clock.t
+    run_for(sup, clock, 0.1, beating=["attitude", "position"])
+    clock.t += 0.4   # starved: a poll 0.3 s late
+    sup.beat_seen("attitude")
+    sup.beat_seen("position")
+    sup.poll()
+    assert sup.watches["motors"].state == "running"   # 0.5 s of silence, 0.3 s of it the supervisor's
+    run_for(sup, clock, 0.2, beating=["attitude", "position"])
+    assert sup.watches["motors"].state == "stuck" and clock.t - hung <= 0.5 + 0.3 + 1e-9, said
+    # one loop alone has no other to vouch for the supervisor's hearing: its silence counts
+    sup, launcher, clock, said = supervisor(tmp_path, {"motors": ("on-failure", 3)})
+    run_for(sup, clock, 1.0, beating=["motors"])
+    run_for(sup, clock, 0.4)
+    assert sup.watches["motors"].state == "stuck" and sup.own["deaf"] == 0
+
+
+def test_the_watch_thread_polls_on_its_own_and_says_what_ended_it(tmp_path):
+    launcher, said = FakeLauncher(tmp_path, {"attitude": ("never", 3)}), []
+    sup = Supervisor(launcher, ["attitude"], True, say=said.append)
+    sup.start(priority=0)
+    try:
+        launcher.procs["attitude"].returncode = -9
+        deadline = time.monotonic() + 10.0
+        lost = []
+        while not lost and time.monotonic() < deadline:
+            lost = sup.take_lost()
+            time.sleep(0.01)
+        assert lost == ["attitude"] and sup.take_lost() == [] and sup.scheduling == "normal"
+        sup.clock = lambda: 1 / 0   # the next poll fails: the caller must hear of it
+        while sup._failure is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        with pytest.raises(RuntimeError, match="watch failed"):
+            sup.take_lost()
+    finally:
+        sup.stop()
+
+
+def test_the_supervisor_runs_below_every_loop_it_watches(monkeypatch):
+    stack = load_stack(None)
+    monkeypatch.delenv(PRIORITY_ENV, raising=False)
+    assert supervisor_priority(stack, ["motors", "motors.b", "attitude", "recorder"]) == stack.service("recorder").priority - 1
+    assert supervisor_priority(stack, ["motors", "attitude"]) == stack.service("attitude").priority - 1
+    assert supervisor_priority(stack, ["mavlink"]) == 0   # no loop at a real-time priority: neither is it
+    monkeypatch.setenv(PRIORITY_ENV, "0")
+    assert supervisor_priority(stack, ["motors"]) == 0
+    for bad in ("x", "100", "-1"):
+        monkeypatch.setenv(PRIORITY_ENV, bad)
+        with pytest.raises(ValueError, match=PRIORITY_ENV):
+            supervisor_priority(stack, ["motors"])
+
+
+def test_its_real_time_scheduling_holds_or_is_reported_and_its_children_start_normal():
+    code = ("import json, os, threading, time; from deploy.supervisor import apply_watch_scheduling\n"
+            "threading.Thread(target=time.sleep, args=(5,), daemon=True).start()  # another thread: Zenoh's\n"
+
+            "def watch():\n"
+            "    global said, child; said = apply_watch_scheduling(1)\n"
+            "    pid = os.fork()  # a restart's process, started from the watch\n"
+            "    if pid == 0: os._exit(os.sched_getscheduler(0))\n"
+            "    child = os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])\n"
+            "t = threading.Thread(target=watch); t.start(); t.join()\n"
+            "threads = {int(t): os.sched_getscheduler(int(t)) & 0xff for t in os.listdir('/proc/self/task')}\n"
+            "print(json.dumps({'said': said, 'main': threads.pop(os.getpid()), 'others': sorted(threads.values()),\n"
+            "                  'child': child}))\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                          cwd=Path(__file__).resolve().parents[3])
+    assert done.returncode == 0, done.stderr
+    got = json.loads(done.stdout)
+    assert got["main"] == os.sched_getscheduler(0)   # the caller's screen and analysis: as they were
+    if got["said"] == "fifo 1":   # permitted: the watch and the other thread real time; a child not
+        assert got["others"] == [os.SCHED_FIFO] and got["child"] == os.SCHED_OTHER, got
+    else:
+        assert got["said"].startswith("priority 1 refused") and got["said"].endswith("normal scheduling"), got

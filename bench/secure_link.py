@@ -1,0 +1,158 @@
+"""Two routers linked as a secured split would link them, again and again: does the link come up?
+
+    python bench/secure_link.py [-n 30] [--mode tls+quic|tls|quic|tcp+udp|tls+quic1-6] [--log FILTER]
+                                [--timeout S] [--reopen S]
+
+Per attempt, on loopback: a "vehicle" router listening on the mode's endpoints (mutual TLS with the
+certificates of `zenpilot certs`, made here for a two-machine stack), a "ground" router connecting
+to them (as deploy/router.py configures a machine's router: no shared memory, `max_links`), a
+subscriber on the ground to a reliable and a best-effort key, and the vehicle publishing both
+every 10 ms until each arrives or `--timeout` (10 s) passes. Printed per attempt: the time to each first arrival
+(about 1 s for every mode when linked), or NOT LINKED; then the count. `--log` passes a Zenoh log
+filter (e.g. "zenoh_transport=trace") to see why an attempt failed: docs/reliability.md ("A
+secured split over an unreliable link").
+
+`--reopen S`: after opening, the ground router's session pings a key that the vehicle router's
+session echoes, and opens itself again when no echo came back within S s (a mitigation of the
+race, prototyped here only).
+
+Modes: tls+quic = `tls/...?prio=0-6` and `quic/...?prio=0-6;rel=0` (QUIC's datagrams for the
+best-effort streams: the reverted link of 0a2d2d3); tls+quic1-6 = the same with QUIC at
+priorities 1-6; tcp+udp = the unsecured split's control and UDP links; tls, quic = one link.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+import zenoh  # noqa: E402
+
+from deploy.launcher import free_port  # noqa: E402
+from deploy.router import MAX_LINKS  # noqa: E402
+from services import security  # noqa: E402
+from services.stack import load_stack  # noqa: E402
+
+MODES = {
+    "tls+quic": lambda a, b: [f"tls/127.0.0.1:{a}?prio=0-6", f"quic/127.0.0.1:{b}?prio=0-6;rel=0"],
+    "tls+quic1-6": lambda a, b: [f"tls/127.0.0.1:{a}?prio=0-6", f"quic/127.0.0.1:{b}?prio=1-6;rel=0"],
+    "tcp+udp": lambda a, b: [f"tcp/127.0.0.1:{a}?prio=0-6", f"udp/127.0.0.1:{b}?prio=0-6;rel=0"],
+    "tls": lambda a, b: [f"tls/127.0.0.1:{a}"],
+    "quic": lambda a, b: [f"quic/127.0.0.1:{b}"],
+}
+STACK = """
+[stack]
+vehicle_id = 0
+[security]
+dir = "keys"
+[machines.vehicle]
+router = "tcp/127.0.0.1:7001"
+runs_router = true
+listen = ["tls/127.0.0.1:7002"]
+[machines.ground]
+router = "tcp/127.0.0.1:7003"
+runs_router = true
+connect = ["tls/127.0.0.1:7002"]
+""" + "".join(f'[services.{n}]\nmachine = "{m}"\nrate_hz = {r}\n' for n, m, r in (
+    ("sim", "vehicle", 400.0), ("motors", "vehicle", 400.0), ("attitude", "vehicle", 200.0),
+    ("position", "vehicle", 100.0), ("planner", "ground", 50.0), ("recorder", "ground", 10.0)))
+
+
+def router(sec: security.Security, machine: str, listen: list[str], connect: list[str]) -> zenoh.Session:
+    conf = zenoh.Config()
+    for key, value in {"mode": "router", "scouting/multicast/enabled": False, "transport/shared_memory/enabled": False,
+                       "transport/unicast/max_links": MAX_LINKS, "listen/endpoints": listen,
+                       "connect/endpoints": connect, "transport/link/tls": security.tls_config(sec, machine)}.items():
+        conf.insert_json5(key, json.dumps(value))
+    return zenoh.open(conf)
+
+
+def echoes(ground: zenoh.Session, within_s: float) -> bool:
+    """Data crosses both ways: a ping from the ground router's session reaches the vehicle's (the
+    vehicle's declarations reached the ground) and its echo comes back (the ground's reached it)."""
+    back = threading.Event()
+    sub = ground.declare_subscriber("bench/echo", lambda _s: back.set())
+    pub = ground.declare_publisher("bench/ping")
+    t0 = time.monotonic()
+    while not back.is_set() and time.monotonic() - t0 < within_s:
+        pub.put(b"p")
+        back.wait(0.05)
+    sub.undeclare()
+    pub.undeclare()
+    return back.is_set()
+
+
+def attempt(sec: security.Security, mode: str, timeout_s: float = 10.0, reopen_after_s: float = 0.0) -> dict:
+    links = MODES[mode](free_port(), free_port())
+    t0 = time.monotonic()
+    vehicle = router(sec, "vehicle", links, [])
+    echo = vehicle.declare_publisher("bench/echo")
+    vehicle.declare_subscriber("bench/ping", lambda _s: echo.put(b"e"))
+    ground = router(sec, "ground", [], links)
+    got: dict[str, float | None] = {"reliable": None, "best_effort": None, "reopened": 0}
+    # --reopen: the connecting router checks that data crosses both ways, and opens again if not
+    while reopen_after_s and got["reopened"] < 5 and not echoes(ground, reopen_after_s):
+        ground.close()
+        ground = router(sec, "ground", [], links)
+        got["reopened"] += 1
+
+    def seen(kind: str):
+        def callback(_sample) -> None:
+            if got[kind] is None:
+                got[kind] = time.monotonic() - t0
+        return callback
+    try:
+        subs = [ground.declare_subscriber(f"bench/{kind}", seen(kind)) for kind in got]  # noqa: F841 (kept alive)
+        pubs = {kind: vehicle.declare_publisher(f"bench/{kind}", priority=zenoh.Priority.REAL_TIME, reliability=rel)
+                for kind, rel in (("reliable", zenoh.Reliability.RELIABLE), ("best_effort", zenoh.Reliability.BEST_EFFORT))}
+        while None in got.values() and time.monotonic() - t0 < timeout_s + got["reopened"] * reopen_after_s:
+            for pub in pubs.values():
+                pub.put(b"x")
+            time.sleep(0.01)
+    finally:
+        ground.close()
+        vehicle.close()
+    return got
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("-n", type=int, default=30, help="attempts (default 30)")
+    ap.add_argument("--mode", default="tls+quic", choices=list(MODES))
+    ap.add_argument("--log", help="a Zenoh log filter, e.g. zenoh_transport=trace")
+    ap.add_argument("--timeout", type=float, default=10.0, help="seconds an attempt waits (default 10)")
+    ap.add_argument("--reopen", type=float, default=0.0, metavar="S",
+                    help="the connecting router re-opens its session when no echo crossed both ways within S s")
+    args = ap.parse_args()
+    if args.n < 1 or not args.timeout > 0:
+        ap.error("-n: at least 1; --timeout: > 0")
+    if args.log:
+        zenoh.init_log_from_env_or(args.log)
+    print("$ python bench/secure_link.py " + " ".join(sys.argv[1:]), flush=True)
+    with tempfile.TemporaryDirectory(prefix="secure-link-") as tmp:
+        (Path(tmp) / "stack.toml").write_text(STACK)
+        security.make_keys(Path(tmp) / "keys", load_stack(Path(tmp) / "stack.toml"))
+        sec = security.Security(Path(tmp) / "keys")
+        linked = reopens = 0
+        for i in range(args.n):
+            got = attempt(sec, args.mode, args.timeout, args.reopen)
+            reopens += got["reopened"]
+            ok = got["reliable"] is not None and got["best_effort"] is not None
+            linked += ok
+            print(f"attempt {i}: " + (f"linked: reliable after {got['reliable']:.2f} s, best effort after "
+                                      f"{got['best_effort']:.2f} s" + (f" ({got['reopened']} re-opened)" if got["reopened"] else "") if ok else
+                                      f"NOT LINKED within {args.timeout:g} s (reliable {got['reliable']}, best effort {got['best_effort']})"),
+                  flush=True)
+    print(f"{linked} of {args.n} linked ({args.mode}" + (f", {reopens} re-opened after no echo in {args.reopen:g} s)"
+                                                           if args.reopen else ")"))
+    return 0 if linked == args.n else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
