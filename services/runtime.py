@@ -295,7 +295,7 @@ class Inbox:
                 self._superseded = True
         if self.wakes:   # the service's loop runs on this input's arrival (real time)
             rt = self.runtime
-            rt._wake_t = time.time()
+            rt._wake_t = _time()
             rt._wake.set()
         elif self.runtime.event_driven:
             self.runtime._arrival.set()  # wakes an event-driven service in real time
