@@ -74,7 +74,7 @@ def screen(message: schemas.Message, payload: zenoh.ZBytes) -> tuple[bytes | Non
     if len(payload) > message.size_limit:
         return None, "too_large"
     data = payload.to_bytes()
-    if data[:1] not in MAP_FIRST_BYTES:
+    if not data or data[0] & 0xF0 != 0x80 and data[0] | 1 != 0xDF:   # MAP_FIRST_BYTES, by the byte's value
         return None, "malformed"
     return data, ""
 # A loop woken by its input (run(..., wake_on=inbox)) runs at the input's arrival, at most
