@@ -315,14 +315,15 @@ class Inbox:
                 self._window_rejects, self._window_bytes = 0, 0
             else:
                 flooded = self._window_rejects >= FLOOD_REJECTS_PER_S or self._window_bytes >= FLOOD_BYTES_PER_S
-        decode, popleft, append = self._decode, raw.popleft, items.append
-        arrived, valid, tagged, tag = self.arrived, self.valid, self._tagged, 0
+        # (raw.popleft() and items.append() called as methods: a bound method kept in a local is
+        # an object made per drain, and a drain most often finds one message)
+        decode, arrived, valid, tagged, tag = self._decode, self.arrived, self.valid, self._tagged, 0
         try:
             while raw:
                 if tagged:
-                    tag, payload = popleft()
+                    tag, payload = raw.popleft()
                 else:
-                    payload = popleft()
+                    payload = raw.popleft()
                 arrived += 1
                 if type(payload) is dict:   # decoded on arrival (a RUN_DONE message in lockstep)
                     msg = payload
@@ -352,7 +353,7 @@ class Inbox:
                         self.runtime.count_dropped(self.key, seq - expected)
                     if seq >= expected - 1 or seq < expected - 1000:  # a repeat keeps its seq; a restart starts over
                         next_seq[source] = seq + 1
-                append((tag, arrived, msg))
+                items.append((tag, arrived, msg))
         finally:
             self.arrived, self.valid = arrived, valid
 
