@@ -1,6 +1,7 @@
 """One hop, project publish -> project callback, against raw zenoh-python pub/sub in the same run.
 
     python bench/hop.py [--rounds 30] [--pings 200] [--topologies stack,routed,direct] [--diagnose]
+                        [--baseline DIR]
 
 Two processes per topology: A (ping) and B (echo), each a services.runtime.Runtime built
 from `--stack deploy/stacks/default.toml` and its own -e/-l endpoints, started the way the
@@ -42,6 +43,12 @@ input path against the leanest raw callback.
   inbox          raw send / Inbox._on_sample + latest()
   raw-split, project-split, raw-woken-split, project-woken-split
                  the same as raw, project, ... with A timing the parts of its side in place
+
+--baseline DIR adds `baseline` and `baseline-woken`: project and project-woken with the Inbox and
+Publisher classes of DIR/services/runtime.py (another checkout, e.g. `git archive main | tar -x
+-C DIR`), the rest (schemas, Zenoh, the runtime that owns them) this tree's. Their blocks take
+turns with the others in every round, so `project / baseline` is an A/B of the two inboxes paired
+round by round, in the same run, whatever the machine's load does meanwhile.
 
 Topologies:
 
@@ -87,6 +94,7 @@ VARIANTS = ("raw", "project", "raw-woken", "project-woken")
 DIAGNOSE = ("raw+msgpack", "raw+encode", "raw+decode", "publisher", "inbox",
             "raw-split", "project-split", "raw-woken-split", "project-woken-split")
 INLINE = {"raw": ("raw", "raw"), "project": ("publisher", "inbox"),   # (sender, receiver), in the callback
+          "baseline": ("baseline", "inbox"),
           "raw+msgpack": ("msgpack", "unpack"),
           "raw+encode": ("encode", "raw"), "raw+decode": ("raw", "decode"),
           "publisher": ("publisher", "raw"), "inbox": ("raw", "inbox"),
@@ -99,9 +107,13 @@ LEGEND = {   # what one hop of each main variant includes (the module's doc has 
 }
 RAWS = ("raw", "raw-woken", "raw-split", "raw-woken-split")
 BASE = {"project-woken": "raw-woken", "project-split": "raw-split",   # the raw each is compared with
+        "baseline-woken": "raw-woken",
         "project-woken-split": "raw-woken-split"}
 TOPOLOGIES = ("stack", "routed", "direct")
-PAIRS = (("project", "raw"), ("project-woken", "raw-woken"), ("project-woken", "raw"))
+PAIRS = (("project", "raw"), ("project-woken", "raw-woken"))   # judged against TARGET
+BASELINE = ("baseline", "baseline-woken")   # --baseline: the same as project, project-woken, another runtime.py's classes
+INFO_PAIRS = (("project-woken", "raw"), ("project", "baseline"), ("project-woken", "baseline-woken"),
+              ("baseline", "raw"), ("baseline-woken", "raw-woken"))   # shown, not judged
 TARGET = 1.2
 VALUES = {"gyro_rad_s": [0.01, -0.02, 0.1], "accel_m_s2": [0.1, 0.2, 9.81]}
 TAG = "HOP "           # A's protocol lines on its stdout start with this
@@ -130,10 +142,10 @@ class Side:
     `on_arrival(variant)` is called after the variant's receive work (inline variants on
     Zenoh's thread, woken variants on the reader thread)."""
 
-    def __init__(self, rt, topo: str, role: str, variants: tuple[str, ...]):
+    def __init__(self, rt, topo: str, role: str, variants: tuple[str, ...], baseline=None):
         import zenoh
         import schemas
-        from services.runtime import Inbox
+        from services.runtime import Inbox, Publisher
         self.rt = rt
         self.send: dict = {}
         self.recv: dict = {}        # woken variants: variant -> fn(timeout) -> True if a new message
@@ -169,9 +181,10 @@ class Side:
                         put(encode(time.time(), seq[0], name, VALUES))
                         seq[0] += 1
                     self.send[variant] = send
-            else:
-                pub = rt.publisher(schemas.IMU, out_key)
+            else:   # project: this tree's Publisher; baseline: --baseline's
+                pub = (baseline.Publisher if variant.startswith("baseline") else Publisher)(rt, schemas.IMU, out_key)
                 self.send[variant] = lambda put=pub.put: put(VALUES)
+            box_class = baseline.Inbox if variant.startswith("baseline") else Inbox
             if receiver == "raw":
                 def cb(sample, v=variant):
                     self.last = sample.payload.to_bytes()
@@ -185,7 +198,7 @@ class Side:
                     self.last = decode(sample.payload.to_bytes())
                     self.on_arrival(v)
             elif receiver == "inbox":
-                box = Inbox(rt, schemas.IMU, in_key, "sim", keep=4)
+                box = box_class(rt, schemas.IMU, in_key, "sim", keep=4)
 
                 def cb(sample, box=box, v=variant):
                     box._on_sample(sample)
@@ -209,7 +222,7 @@ class Side:
                         got = True
                     return got
                 self.recv[variant] = recv
-            else:   # project-woken: an inbox as Runtime.inbox() makes it, woken as run(wake_on=) does
+            else:   # project-woken (baseline-woken): an inbox as Runtime.inbox() makes it, woken as run(wake_on=) does
                 owner = rt
                 if variant != "project-woken":
                     # the runtime has one wake event; a second woken inbox gets a view of the
@@ -218,7 +231,7 @@ class Side:
                                             reject=rt.reject, count_rejects=rt.count_rejects,
                                             lockstep=rt.lockstep, event_driven=rt.event_driven,
                                             _arrival=rt._arrival, _wake=threading.Event(), _wake_t=0.0)
-                box = Inbox(owner, schemas.IMU, in_key, "sim", keep=4)
+                box = box_class(owner, schemas.IMU, in_key, "sim", keep=4)
                 rt.inboxes.append(box)
                 box.wakes = True   # what run(wake_on=box) sets
                 seen = [None]   # the last message read: each decoded message is a new dict
@@ -253,9 +266,20 @@ class Side:
         return timed
 
 
-def echo_main(topo: str, variants: tuple[str, ...], zargs: list[str]) -> None:
+def load_baseline(tree: str | None):
+    """--baseline: DIR/services/runtime.py as a module of its own (its Inbox and Publisher)."""
+    if not tree:
+        return None
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("hop_baseline_runtime", Path(tree) / "services" / "runtime.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def echo_main(topo: str, variants: tuple[str, ...], zargs: list[str], baseline: str | None = None) -> None:
     rt = open_runtime("bench-echo", zargs)
-    side = Side(rt, topo, "pong", variants)
+    side = Side(rt, topo, "pong", variants, load_baseline(baseline))
     send = side.send
     side.on_arrival = lambda v: send[v]()   # inline: answer from the callback
     stop = threading.Event()
@@ -402,9 +426,9 @@ class Pinger:
                 "dropped": sum(rt.dropped.values()), "rejected": sum(rt.rejected.values())}
 
 
-def ping_main(topo: str, variants: tuple[str, ...], zargs: list[str]) -> None:
+def ping_main(topo: str, variants: tuple[str, ...], zargs: list[str], baseline: str | None = None) -> None:
     rt = open_runtime("bench-ping", zargs)
-    side = Side(rt, topo, "ping", variants)
+    side = Side(rt, topo, "ping", variants, load_baseline(baseline))
     pinger = Pinger(side)
     answers = pinger.ready(20.0)
     info = rt.session.info
@@ -507,9 +531,11 @@ class Procs:
                 p.stdout.close()
 
 
-def start_topologies(procs: Procs, topologies: list[str], variants: tuple[str, ...]):
+def start_topologies(procs: Procs, topologies: list[str], variants: tuple[str, ...], baseline: str | None = None):
     from deploy.launcher import free_port, wait_port
     me = [sys.executable, str(Path(__file__).resolve()), "--variants", ",".join(variants)]
+    if baseline:
+        me += ["--baseline", baseline]
     pairs, flags = {}, {}
     for topo in topologies:
         if topo in ("stack", "routed"):
@@ -548,15 +574,18 @@ def main() -> None:
     ap.add_argument("--topologies", default=",".join(TOPOLOGIES), help="comma list of " + ",".join(TOPOLOGIES))
     ap.add_argument("--diagnose", action="store_true",
                     help="add variants that take the project's path apart: " + ", ".join(DIAGNOSE))
+    ap.add_argument("--baseline", metavar="DIR",
+                    help="add baseline, baseline-woken: project's variants with DIR/services/runtime.py's "
+                         "Inbox and Publisher (an A/B in the same run)")
     ap.add_argument("--variants", help=argparse.SUPPRESS)
     ap.add_argument("--role", choices=["ping", "echo"], help=argparse.SUPPRESS)
     ap.add_argument("--topo", help=argparse.SUPPRESS)
     ap.add_argument("zargs", nargs="*", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.role == "echo":
-        return echo_main(args.topo, tuple(args.variants.split(",")), args.zargs)
+        return echo_main(args.topo, tuple(args.variants.split(",")), args.zargs, args.baseline)
     if args.role == "ping":
-        return ping_main(args.topo, tuple(args.variants.split(",")), args.zargs)
+        return ping_main(args.topo, tuple(args.variants.split(",")), args.zargs, args.baseline)
 
     topologies = [t for t in args.topologies.split(",") if t]
     if not topologies or set(topologies) - set(TOPOLOGIES):
@@ -574,7 +603,11 @@ def main() -> None:
     print("  (inline variants answer from the Zenoh callback; woken ones from the reader thread)")
     load0 = os.getloadavg()[0]
     t_start = time.monotonic()
-    variants = VARIANTS + (DIAGNOSE if args.diagnose else ())
+    if args.baseline:
+        args.baseline = str(Path(args.baseline).resolve())
+        if not (Path(args.baseline) / "services" / "runtime.py").is_file():
+            ap.error(f"--baseline {args.baseline}: no services/runtime.py there")
+    variants = VARIANTS + (BASELINE if args.baseline else ()) + (DIAGNOSE if args.diagnose else ())
     results = {(t, v): [] for t in topologies for v in variants}
     round_medians = {(t, v): [] for t in topologies for v in variants}
     lost = {(t, v): 0 for t in topologies for v in variants}
@@ -587,7 +620,7 @@ def main() -> None:
         print(f"stack {Path(STACK).relative_to(ROOT)}; {args.rounds} rounds x {len(topologies)} topologies x "
               f"{len(variants)} variants, {args.pings} timed round trips per block (+{args.warm} warm-up)")
         try:
-            pairs, info, flags = start_topologies(procs, topologies, variants)
+            pairs, info, flags = start_topologies(procs, topologies, variants, args.baseline)
             for topo in topologies:
                 i = info[topo]
                 print(f"  {topo:<7} A {' '.join(flags[topo][0])} | B {' '.join(flags[topo][1])} -> A linked to "
@@ -690,14 +723,15 @@ def report(topologies, variants, results, round_medians, lost, splits, counters)
     print(f"verdict (target: project hop <= {TARGET}x raw hop; paired p50 ratio):")
     verdicts = []
     for topo in topologies:
-        for proj, raw in PAIRS:
+        for proj, raw in PAIRS + INFO_PAIRS:
             if (topo, proj) not in stat or (topo, raw) not in stat:
                 continue
             (p50, _), (b50, _) = stat[(topo, proj)], stat[(topo, raw)]
-            if proj == "project-woken" and raw == "raw":
+            if (proj, raw) in INFO_PAIRS:
                 pr = paired(round_medians[(topo, proj)], round_medians[(topo, raw)])
                 r = pr[len(pr) // 2] if pr else p50 / b50
-                note = "  [for information: includes the reader-thread hand-off raw lacks]"
+                note = ("  [for information: includes the reader-thread hand-off raw lacks]" if raw == "raw"
+                        and proj == "project-woken" else "  [for information: A/B, --baseline]")
             else:
                 r = ratios.get((topo, proj), (p50 / b50, 0))[0]
                 note = ""
@@ -705,7 +739,7 @@ def report(topologies, variants, results, round_medians, lost, splits, counters)
             label = "" if note else ok
             if not note:
                 verdicts.append((topo, proj, r, ok))
-            print(f"  {topo:<7} {proj:>13} / {raw:<9} {r:.2f}x  ({(p50 - b50) / 2:+.1f} us per hop, pooled p50)  "
+            print(f"  {topo:<7} {proj:>14} / {raw:<14} {r:.2f}x  ({(p50 - b50) / 2:+.1f} us per hop, pooled p50)  "
                   f"{label}{note}")
 
     if verdicts:

@@ -39,6 +39,7 @@ import sys
 import threading
 import time
 from collections import deque
+from time import time as _time
 from typing import Any, Callable
 
 import zenoh
@@ -73,7 +74,7 @@ def screen(message: schemas.Message, payload: zenoh.ZBytes) -> tuple[bytes | Non
     if len(payload) > message.size_limit:
         return None, "too_large"
     data = payload.to_bytes()
-    if data[:1] not in MAP_FIRST_BYTES:
+    if not data or data[0] & 0xF0 != 0x80 and data[0] | 1 != 0xDF:   # MAP_FIRST_BYTES, by the byte's value
         return None, "malformed"
     return data, ""
 # A loop woken by its input (run(..., wake_on=inbox)) runs at the input's arrival, at most
@@ -200,7 +201,13 @@ class Inbox:
 
     The Zenoh callback only queues the payload with its lockstep tag; the reader decodes
     what arrived when it asks (`latest`, `take`), so every message is still validated and
-    counted, and no decoding holds up Zenoh's receiving thread."""
+    counted, and no decoding holds up Zenoh's receiving thread.
+
+    One thread reads an inbox at a time (the service's loop, or in one process the simulator's
+    thread running it inline, in turn): the reader's state takes no lock, and the callback
+    shares only the raw deque with it (append and popleft are atomic). Each message's path is
+    kept to few Python steps (docs/performance.md, "One hop"): the callback and the reader run
+    cold, after a wait, where every call and lookup costs several times its warm price."""
 
     def __init__(self, runtime: "Runtime", message: schemas.Message, key: str, upstream: str, keep: int):
         self.runtime = runtime
@@ -211,10 +218,11 @@ class Inbox:
         # next tick after arrival, like a simulator message
         self.clocked = upstream == "sim" or upstream not in LOCKSTEP_PARTICIPANTS
         self.keep = keep
-        self._raw: deque[tuple[int, bytes]] = deque()   # appended on Zenoh's thread, drained by the reader
+        # appended on Zenoh's thread, drained by the reader: (tag, payload) in lockstep, the payload
+        # alone in real time (no tag to keep: a tuple less per message)
+        self._raw: deque = deque()
         self._items: deque[tuple[int, int, dict]] = deque(maxlen=keep)  # (tag, arrival number, message)
         self._taken = -1
-        self._lock = threading.Lock()
         self.limit = math.inf  # visibility: tag < limit (set per run in lockstep)
         self.arrived = 0
         self._next_seq: dict[str, int] = {}   # per sender: the sequence number expected next
@@ -222,17 +230,20 @@ class Inbox:
         self.marks_done = False  # lockstep: this key is the upstream's RUN_DONE message (Runtime.inbox)
         self._takes = False  # the reader takes every message (take), not only the newest
         self._superseded = False  # unread messages went to make room: no loss for a reader of the newest
-        self._decode, self._accept = message.decode, message.accept
+        # the compiled codec itself (Message.decode only forwards to it: one call less per message)
+        self._decode, self._accept = message._decode, message._accept
         self.max_bytes = message.size_limit
+        self._tagged = runtime.lockstep   # lockstep tags each arrival (fixed with the runtime's mode)
         self.valid = 0          # messages accepted so far
         self._valid_seen = 0    # ... when fresh() last looked
-        self._window_start, self._window_rejects, self._window_bytes = -math.inf, 0, 0   # this second's
+        # this second's rejects: the window opens at the first reject after the last one closed
+        self._window_start, self._window_rejects, self._window_bytes = -math.inf, 0, 0
         self._channel = None    # polled (real time, not the loop's wake): Zenoh queues, the reader pulls
 
     def _poll(self) -> None:
         """Pull what Zenoh queued for a polled inbox: the same first look as `_on_sample`, on
         the reader's thread. Zenoh's receiving thread then never takes the GIL for this key."""
-        channel, raw, rt = self._channel, self._raw, self.runtime
+        channel, raw, rt, tagged = self._channel, self._raw, self.runtime, self._tagged
         pulled = 0
         while (sample := channel.try_recv()) is not None:
             pulled += 1
@@ -240,7 +251,7 @@ class Inbox:
             if data is None:
                 rt.count_rejects(self.key, reason)
             else:
-                raw.append((0, data))
+                raw.append((0, data) if tagged else data)   # (polled: real time, untagged)
         if pulled >= RAW_QUEUE_MAX:   # the ring may have let the oldest go: as a full raw queue does
             if self._takes:
                 rt.count_dropped(self.key)
@@ -249,109 +260,137 @@ class Inbox:
         while len(raw) > RAW_QUEUE_MAX:
             raw.popleft()
 
-    def _read_queued(self) -> None:
-        """What arrived since the last read, decoded (called with the lock held)."""
-        if self._channel is not None:
-            self._poll()
-        if self._raw:
-            self._drain()
-
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        rt = self.runtime
         # Garbage is refused here, before it is copied, queued or wakes the reader: over the
         # definition's size bound (a huge array costs ~20 ms to unpack), or not a map at all.
         payload = sample.payload
         if len(payload) > self.max_bytes:
-            rt.count_rejects(self.key, "too_large")
+            self.runtime.count_rejects(self.key, "too_large")
             return
         data = payload.to_bytes()
-        if data[:1] not in MAP_FIRST_BYTES:
-            rt.count_rejects(self.key, "malformed")
+        # MAP_FIRST_BYTES, tested on the first byte's value (cheaper than a slice and a set lookup)
+        if not data or data[0] & 0xF0 != 0x80 and data[0] | 1 != 0xDF:
+            self.runtime.count_rejects(self.key, "malformed")
             return
         raw = self._raw
-        if self.marks_done:   # tagged before it counts as the upstream's sync: its run's own outputs precede it
-            tag = rt._sync_tick(self.upstream)
-            msg = self._accept(data)   # garbage: None, undiagnosed (the reader diagnoses it once)
-            if msg is None:
-                raw.append((tag, data))   # counted by the reader; no tick taken from it
-            else:   # queued before it says "done": a reader woken by that finds it
-                raw.append((tag, msg))
-                rt._run_done(self.upstream, msg)
+        if self._tagged:
+            rt = self.runtime
+            if self.marks_done:   # tagged before it counts as the upstream's sync: its run's own outputs precede it
+                tag = rt._sync_tick(self.upstream)
+                msg = self._accept(data)   # garbage: None, undiagnosed (the reader diagnoses it once)
+                if msg is None:
+                    raw.append((tag, data))   # counted by the reader; no tick taken from it
+                else:   # queued before it says "done": a reader woken by that finds it
+                    raw.append((tag, msg))
+                    rt._run_done(self.upstream, msg)
+            else:
+                raw.append((rt._sync_tick(self.upstream), data))
         else:
-            raw.append((rt._sync_tick(self.upstream) if rt.lockstep else 0, data))
+            raw.append(data)
         if len(raw) > RAW_QUEUE_MAX:   # not read for a while: the oldest goes
             raw.popleft()
             if self._takes:   # a reader of every message lost one; a reader of the newest did not
-                rt.count_dropped(self.key)
+                self.runtime.count_dropped(self.key)
             else:
                 self._superseded = True
         if self.wakes:   # the service's loop runs on this input's arrival (real time)
-            rt._wake_t = time.time()
+            rt = self.runtime
+            rt._wake_t = _time()
             rt._wake.set()
-        elif rt.event_driven:
-            rt._arrival.set()  # wakes an event-driven service in real time
+        elif self.runtime.event_driven:
+            self.runtime._arrival.set()  # wakes an event-driven service in real time
 
     def _drain(self) -> None:
-        raw, items = self._raw, self._items
+        """Decode what is queued, oldest first, into the items (the reader's thread)."""
+        raw, items, next_seq = self._raw, self._items, self._next_seq
         if self._superseded:
             self._superseded = False
-            self._next_seq.clear()
+            next_seq.clear()
         # A flooded key (FLOOD_REJECTS_PER_S rejects, or FLOOD_BYTES_PER_S of rejected payload, in
-        # this second of wall time): bad messages are counted in bulk ("flood"), undiagnosed.
-        now = time.monotonic()
-        if now - self._window_start >= 1.0:
-            self._window_start, self._window_rejects, self._window_bytes = now, 0, 0
-        decode = self._decode
-        flooded = self._window_rejects >= FLOOD_REJECTS_PER_S or self._window_bytes >= FLOOD_BYTES_PER_S
-        while raw:
-            tag, payload = raw.popleft()
-            self.arrived += 1
-            if type(payload) is dict:   # decoded on arrival (a RUN_DONE message in lockstep)
-                msg = payload
-            elif not flooded:
-                try:
-                    msg = decode(payload)
-                except schemas.SchemaError as exc:
-                    self._window_rejects += 1
-                    self._window_bytes += len(payload)
-                    self.runtime.reject(self.key, exc)
-                    flooded = (self._window_rejects >= FLOOD_REJECTS_PER_S
-                               or self._window_bytes >= FLOOD_BYTES_PER_S)
-                    continue
+        # this second of wall time): bad messages are counted in bulk ("flood"), undiagnosed. The
+        # clock is read only while a window holds rejects: a clean stream never reads it.
+        flooded = False
+        if self._window_rejects or self._window_bytes:
+            if time.monotonic() - self._window_start >= 1.0:
+                self._window_rejects, self._window_bytes = 0, 0
             else:
-                if len(payload) > FLOOD_SMALL_BYTES and self._window_bytes >= FLOOD_BYTES_PER_S:
-                    self.runtime.count_rejects(self.key, "flood")
-                    continue
-                msg = self._accept(payload)
-                if msg is None:
-                    self._window_bytes += len(payload)
-                    self.runtime.count_rejects(self.key, "flood")
-                    continue
-            self.valid += 1
-            header = msg["header"]
-            seq, source = header["seq"], header["source"]
-            expected = self._next_seq.get(source)
-            if expected is not None and seq > expected:
-                self.runtime.count_dropped(self.key, seq - expected)
-            if expected is None or seq >= expected - 1 or seq < expected - 1000:  # a repeat keeps its seq; a restart starts over
-                self._next_seq[source] = seq + 1
-            items.append((tag, self.arrived, msg))
+                flooded = self._window_rejects >= FLOOD_REJECTS_PER_S or self._window_bytes >= FLOOD_BYTES_PER_S
+        # (raw.popleft() and items.append() called as methods: a bound method kept in a local is
+        # an object made per drain, and a drain most often finds one message)
+        decode, arrived, valid, tagged, tag = self._decode, self.arrived, self.valid, self._tagged, 0
+        try:
+            while raw:
+                if tagged:
+                    tag, payload = raw.popleft()
+                else:
+                    payload = raw.popleft()
+                arrived += 1
+                if type(payload) is dict:   # decoded on arrival (a RUN_DONE message in lockstep)
+                    msg = payload
+                elif not flooded:
+                    try:
+                        msg = decode(payload)
+                    except schemas.SchemaError as exc:
+                        flooded = self._rejected(payload, exc)
+                        continue
+                else:
+                    if len(payload) > FLOOD_SMALL_BYTES and self._window_bytes >= FLOOD_BYTES_PER_S:
+                        self.runtime.count_rejects(self.key, "flood")
+                        continue
+                    msg = self._accept(payload)
+                    if msg is None:
+                        self._window_bytes += len(payload)
+                        self.runtime.count_rejects(self.key, "flood")
+                        continue
+                valid += 1
+                header = msg["header"]
+                seq, source = header["seq"], header["source"]
+                expected = next_seq.get(source)
+                if seq == expected or expected is None:   # in order, or the first from this sender
+                    next_seq[source] = seq + 1
+                else:
+                    if seq > expected:
+                        self.runtime.count_dropped(self.key, seq - expected)
+                    if seq >= expected - 1 or seq < expected - 1000:  # a repeat keeps its seq; a restart starts over
+                        next_seq[source] = seq + 1
+                items.append((tag, arrived, msg))
+        finally:
+            self.arrived, self.valid = arrived, valid
+
+    def _rejected(self, payload: bytes, exc: schemas.SchemaError) -> bool:
+        """A payload the decoder refused: counted with its reason and in this second's flood
+        window (opened now if none is open). Returns whether the key is now flooded."""
+        if not (self._window_rejects or self._window_bytes):
+            self._window_start = time.monotonic()
+        self._window_rejects += 1
+        self._window_bytes += len(payload)
+        self.runtime.reject(self.key, exc)
+        return self._window_rejects >= FLOOD_REJECTS_PER_S or self._window_bytes >= FLOOD_BYTES_PER_S
 
     def fresh(self) -> bool:
         """Whether a valid message came since the last call (decodes what is queued): a loop
         woken by this input runs only for a real message, never for garbage."""
-        with self._lock:
-            self._read_queued()
-            new = self.valid != self._valid_seen
-            self._valid_seen = self.valid
+        if self._channel is not None:
+            self._poll()
+        if self._raw:
+            self._drain()
+        new = self.valid != self._valid_seen
+        self._valid_seen = self.valid
         return new
 
     def latest(self) -> dict | None:
         """The newest visible message, or None."""
-        with self._lock:
-            self._read_queued()
+        if self._channel is not None:
+            self._poll()
+        if self._raw:
+            self._drain()
+        items = self._items
+        if items:
+            tag, _, msg = items[-1]
+            if tag < self.limit:   # the newest is visible: always, in real time
+                return msg
             limit = self.limit
-            for tag, _, msg in reversed(self._items):
+            for tag, _, msg in reversed(items):
                 if tag < limit:
                     return msg
         return None
@@ -359,31 +398,32 @@ class Inbox:
     def idle(self) -> None:
         """The reader stops reading for now (e.g. a failsafe's input between uses): what is
         queued is let go, and messages that do not fit while nobody reads are not counted lost."""
-        with self._lock:
-            if self._channel is not None:
-                while self._channel.try_recv() is not None:
-                    pass
-            self._raw.clear()
-            self._superseded = True
-            self._takes = False
+        if self._channel is not None:
+            while self._channel.try_recv() is not None:
+                pass
+        self._raw.clear()
+        self._superseded = True
+        self._takes = False
 
     def take(self) -> list[dict]:
         """Visible messages not taken before, oldest first."""
         self._takes = True
-        with self._lock:
-            self._read_queued()
-            limit, taken = self.limit, self._taken
-            # arrival numbers rise along the deque: the ones not taken are a suffix, read from the
-            # newest back (a keep=32 inbox read each run scanned all 32 for its one or two new)
-            out = []
-            for tag, n, m in reversed(self._items):
-                if n <= taken:
-                    break
-                if tag < limit:
-                    out.append(m)
-                    if n > self._taken:
-                        self._taken = n
-            out.reverse()
+        if self._channel is not None:
+            self._poll()
+        if self._raw:
+            self._drain()
+        limit, taken = self.limit, self._taken
+        # arrival numbers rise along the deque: the ones not taken are a suffix, read from the
+        # newest back (a keep=32 inbox read each run scanned all 32 for its one or two new)
+        out = []
+        for tag, n, m in reversed(self._items):
+            if n <= taken:
+                break
+            if tag < limit:
+                out.append(m)
+                if n > self._taken:
+                    self._taken = n
+        out.reverse()
         return out
 
 
@@ -424,7 +464,7 @@ class Publisher:
             key, express=True, congestion_control=congestion, priority=zenoh_priority(message.priority),
             reliability=publisher_reliability(message, runtime.lockstep))
         self._put = self._pub.put
-        self._encode = message.encode
+        self._encode = message._encode   # the compiled codec (Message.encode only forwards to it)
         self._source = runtime.instance
         self.tracked = runtime.lockstep   # a lockstep run's last put is noted (Runtime._run_lockstep)
         self.last_t = -1.0
@@ -432,7 +472,11 @@ class Publisher:
     def put(self, values: dict[str, Any], t_s: float | None = None, repeat: bool = False) -> None:
         """Publish; invalid values (NaN, out of range) are reported, never sent.
         `repeat`: send the same message again (same seq) until the next one."""
-        t = self.runtime.now() if t_s is None else t_s
+        if t_s is None:   # Runtime.now, inlined (a call less per message); mavlink's runtime leaves lockstep
+            rt = self.runtime
+            t = rt._t if rt.lockstep else _time()
+        else:
+            t = t_s
         try:
             payload = self._encode(t, self.seq, self._source, values)
         except schemas.SchemaError as exc:
@@ -639,10 +683,9 @@ class Runtime(ParamAccess):
         box.wakes = True
         if box._channel is None:
             return
-        with box._lock:
-            box._poll()
-            box._subscriber.undeclare()   # (its ring goes with it)
-            box._channel = None
+        box._poll()   # (on the reader's thread, before its loop: no read runs meanwhile)
+        box._subscriber.undeclare()   # (its ring goes with it)
+        box._channel = None
         box._subscriber = self.subscribe(box.key, box._on_sample)
 
     def follow(self, upstream: str) -> None:

@@ -69,6 +69,24 @@ def test_inbox_decodes_when_read_and_counts_rejects_and_gaps():
     assert box.latest()["header"]["t_s"] == 6.0 and rt.dropped == {"zp/0/sim/imu": 1}
 
 
+def test_the_callback_and_the_poll_refuse_exactly_the_payloads_that_cannot_start_a_map():
+    """The first-byte test reads the byte's value: it must agree with MAP_FIRST_BYTES on all 256
+    (and refuse an empty payload), in the callback and in a polled inbox's screen alike."""
+    rt = FakeRuntime()
+    box = Inbox(rt, schemas.IMU, "zp/0/sim/imu", "sim", keep=4)
+    for b in range(256):
+        deliver(box, bytes([b, 0x00]))
+    deliver(box, b"")
+    assert len(box._raw) == len(runtime.MAP_FIRST_BYTES) == 18
+    assert sorted(data[:1] for _, data in box._raw) == sorted(runtime.MAP_FIRST_BYTES)
+    assert rt.rejected == {"malformed": 256 - 18 + 1}
+    for b in range(256):
+        data, reason = runtime.screen(schemas.IMU, zenoh.ZBytes(bytes([b, 0x00])))
+        assert (data is not None, reason) == ((True, "") if bytes([b]) in runtime.MAP_FIRST_BYTES
+                                              else (False, "malformed")), b
+    assert runtime.screen(schemas.IMU, zenoh.ZBytes(b"")) == (None, "malformed")
+
+
 def test_inbox_visibility_limit_and_wake():
     rt = FakeRuntime()
     box = Inbox(rt, schemas.IMU, "zp/0/sim/imu", "sim", keep=4)
