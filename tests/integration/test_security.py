@@ -312,3 +312,69 @@ def _running(pid: int) -> bool:
         return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
     except OSError:
         return False
+
+
+def test_a_quic_link_carries_the_streams_under_the_same_certificates(tmp_path):
+    """Routers linked by TLS and QUIC (rel=0: its datagrams), as a secured split across a lossy
+    link may be: a best-effort stream crosses on QUIC, never on the TLS stream, a reliable
+    message on TLS; a router with another CA's certificate gets nothing over QUIC."""
+    from deploy.router import MAX_LINKS
+    path, _ = secure_stack(tmp_path)
+    stack = load_stack(path)
+    tls, quic = free_port(), free_port()
+    links = [f"tls/127.0.0.1:{tls}?prio=0-6", f"quic/127.0.0.1:{quic}?prio=0-6;rel=0"]
+
+    def router(keys_dir: Path, machine: str, listen: list, connect: list) -> zenoh.Session:
+        sec = security.Security(keys_dir)
+        conf = zenoh.Config()
+        for k, v in {"mode": "router", "scouting/multicast/enabled": False, "transport/shared_memory/enabled": False,
+                     "transport/unicast/max_links": MAX_LINKS, "listen/endpoints": listen, "connect/endpoints": connect,
+                     "transport/link/tls": security.tls_config(sec, machine)}.items():
+            conf.insert_json5(k, json.dumps(v))
+        return zenoh.open(conf)
+
+    def tls_bytes() -> int:
+        out = subprocess.run(["ss", "-tinH", f"dport = :{tls}"], capture_output=True, text=True).stdout.split()
+        return sum(int(w.split(":")[1]) for w in out if w.startswith("bytes_received:"))
+
+    def send(session: zenoh.Session, got: list, reliability) -> tuple[int, int]:
+        pub = session.declare_publisher("zp/0/planner/plan", express=True, reliability=reliability,
+                                        priority=zenoh.Priority.REAL_TIME, congestion_control=zenoh.CongestionControl.BLOCK)
+        before, n = tls_bytes(), len(got)
+        for _ in range(50):
+            pub.put(bytes(1000))
+            time.sleep(0.002)
+        deadline = time.monotonic() + 5.0
+        while len(got) < n + 50 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        return len(got) - n, tls_bytes() - before
+
+    security.make_keys(tmp_path / "other", stack)   # another CA
+    vehicle = router(tmp_path / "keys", "vehicle", links, [])
+    sessions = [vehicle]
+    try:
+        ground = router(tmp_path / "keys", "ground", [], links)
+        sessions.append(ground)
+        got: list = []
+        time.sleep(1.5)
+        ground.declare_subscriber("zp/0/planner/plan", lambda s: got.append(1))
+        time.sleep(0.5)
+        received, over_tls = send(vehicle, got, zenoh.Reliability.RELIABLE)   # first: the route is up after it
+        assert received == 50 and over_tls >= 50 * 1000
+        received, over_tls = send(vehicle, got, zenoh.Reliability.BEST_EFFORT)
+        assert received >= 40 and over_tls < 1000
+        ground.close()
+        stranger = router(tmp_path / "other", "ground", [], [links[1]])
+        sessions.append(stranger)
+        theirs: list = []
+        stranger.declare_subscriber("zp/0/planner/plan", lambda s: theirs.append(1))
+        time.sleep(2.0)
+        pub = vehicle.declare_publisher("zp/0/planner/plan", reliability=zenoh.Reliability.BEST_EFFORT)
+        for _ in range(20):
+            pub.put(b"x")
+            time.sleep(0.01)
+        time.sleep(0.5)
+        assert theirs == []
+    finally:
+        for s in sessions:
+            s.close()

@@ -65,6 +65,17 @@ def test_security_table_and_links(tmp_path):
     assert stack.machines["ground"].connect == ("tls/10.0.0.2:7448",)
 
 
+def test_a_secured_link_may_add_quic_for_the_streams(tmp_path):
+    """QUIC runs TLS 1.3 with the same certificates; its datagrams carry best-effort streams
+    (docs/security.md)."""
+    quic = SECURE.replace('listen = ["tls/10.0.0.2:7448"]',
+                          'listen = ["tls/10.0.0.2:7448?prio=0-6", "quic/10.0.0.2:7450?prio=0-6;rel=0"]', 1)
+    stack = load_stack(stack_file(tmp_path, quic))
+    assert stack.machines["vehicle"].listen[1] == "quic/10.0.0.2:7450?prio=0-6;rel=0"
+    with pytest.raises(StackError, match="must be tls/HOST:PORT or quic/HOST:PORT"):
+        load_stack(stack_file(tmp_path, quic.replace("quic/", "udp/")))
+
+
 @pytest.mark.parametrize("change, message", [
     (('dir = "keys"', ''), "dir"),
     (('dir = "keys"', 'dir = "keys"\npassword = "x"'), "unknown key"),
