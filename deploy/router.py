@@ -231,7 +231,8 @@ def main(argv=None) -> None:
             link = CheckedLink(lambda e: link_config(stack, args.machine, e), *link_keys(stack.vehicle_id, args.machine)).start()
             if not link.echoed.wait(GATE_S):
                 print(f"zenpilot-router: no echo over the link to the other host within {GATE_S:g} s: the "
-                      f"link is no longer checked at its start", file=sys.stderr, flush=True)
+                      f"machine's router opens without it (the link is watched from now on, not re-opened)",
+                      file=sys.stderr, flush=True)
             conf, listen = router_config(args.listen, args.stack, args.machine, link.settle())
         session = zenoh.open(conf)
     except (StackError, ValueError) as exc:
