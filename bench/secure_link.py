@@ -1,7 +1,7 @@
 """Two routers linked as a secured split would link them, again and again: does the link come up?
 
     python bench/secure_link.py [-n 30] [--mode tls+quic|tls|quic|tcp+udp|tls+quic1-6] [--log FILTER]
-                                [--timeout S] [--reopen S]
+                                [--timeout S] [--reopen S] [--router]
 
 Per attempt, on loopback: a "vehicle" router listening on the mode's endpoints (mutual TLS with the
 certificates of `zenpilot certs`, made here for a two-machine stack), a "ground" router connecting
@@ -15,6 +15,10 @@ secured split over an unreliable link").
 `--reopen S`: after opening, the ground router's session pings a key that the vehicle router's
 session echoes, and opens itself again when no echo came back within S s (a mitigation of the
 race, prototyped here only).
+
+`--router`: the machines' routers as deploy/router.py runs them (tls+quic only): the ground's
+link from a session of its own, checked by its echo and opened again until it echoes, the
+ground's router opened after it; a ground client session then waits for both keys.
 
 Modes: tls+quic = `tls/...?prio=0-6` and `quic/...?prio=0-6;rel=0` (QUIC's datagrams for the
 best-effort streams: the reverted link of 0a2d2d3); tls+quic1-6 = the same with QUIC at
@@ -121,6 +125,48 @@ def attempt(sec: security.Security, mode: str, timeout_s: float = 10.0, reopen_a
     return got
 
 
+def attempt_router(folder: Path, timeout_s: float = 10.0) -> dict:
+    """deploy/router.py's checked link (as tests/integration/test_security.py drives it)."""
+    from deploy.launcher import client_session
+    from deploy.router import GATE_S, CheckedLink, echo_links, link_config, link_keys, router_config
+    links = MODES["tls+quic"](free_port(), free_port())
+    path = folder / "stack.toml"
+    path.write_text(STACK.replace('listen = ["tls/127.0.0.1:7002"]', f"listen = {json.dumps(links)}")
+                    .replace('connect = ["tls/127.0.0.1:7002"]', f"connect = {json.dumps(links)}")
+                    .replace("7001", str(free_port())).replace("7003", str(free_port())))
+    stack = load_stack(path)
+    t0 = time.monotonic()
+    sessions = [zenoh.open(router_config([], str(path), "vehicle")[0])]
+    vehicle = sessions[0]
+    echo_links(vehicle, 0, ["ground"])
+    link = CheckedLink(lambda e: link_config(stack, "ground", e), *link_keys(0, "ground"), log=lambda _l: None).start()
+    got: dict = {"reliable": None, "best_effort": None}
+    try:
+        link.echoed.wait(GATE_S)
+        sessions.append(zenoh.open(router_config([], str(path), "ground", link.settle())[0]))
+        client = client_session(stack.machines["ground"].router, stack, "ground")
+        sessions.append(client)
+
+        def seen(kind: str):
+            def callback(_sample) -> None:
+                if got[kind] is None:
+                    got[kind] = time.monotonic() - t0
+            return callback
+        subs = [client.declare_subscriber(f"zp/0/bench/{kind}", seen(kind)) for kind in got]  # noqa: F841
+        pubs = [vehicle.declare_publisher(f"zp/0/bench/{kind}", priority=zenoh.Priority.REAL_TIME, reliability=rel)
+                for kind, rel in (("reliable", zenoh.Reliability.RELIABLE), ("best_effort", zenoh.Reliability.BEST_EFFORT))]
+        while None in got.values() and time.monotonic() - t0 < GATE_S + timeout_s:
+            for pub in pubs:
+                pub.put(b"x")
+            time.sleep(0.01)
+    finally:
+        link.stop()
+        for session in reversed(sessions):
+            session.close()
+    got["reopened"] = link.opens - 1
+    return got
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("-n", type=int, default=30, help="attempts (default 30)")
@@ -129,6 +175,7 @@ def main() -> int:
     ap.add_argument("--timeout", type=float, default=10.0, help="seconds an attempt waits (default 10)")
     ap.add_argument("--reopen", type=float, default=0.0, metavar="S",
                     help="the connecting router re-opens its session when no echo crossed both ways within S s")
+    ap.add_argument("--router", action="store_true", help="deploy/router.py's checked link (tls+quic)")
     args = ap.parse_args()
     if args.n < 1 or not args.timeout > 0:
         ap.error("-n: at least 1; --timeout: > 0")
@@ -141,7 +188,7 @@ def main() -> int:
         sec = security.Security(Path(tmp) / "keys")
         linked = reopens = 0
         for i in range(args.n):
-            got = attempt(sec, args.mode, args.timeout, args.reopen)
+            got = attempt_router(Path(tmp), args.timeout) if args.router else attempt(sec, args.mode, args.timeout, args.reopen)
             reopens += got["reopened"]
             ok = got["reliable"] is not None and got["best_effort"] is not None
             linked += ok
@@ -150,7 +197,8 @@ def main() -> int:
                                       f"NOT LINKED within {args.timeout:g} s (reliable {got['reliable']}, best effort {got['best_effort']})"),
                   flush=True)
     print(f"{linked} of {args.n} linked ({args.mode}" + (f", {reopens} re-opened after no echo in {args.reopen:g} s)"
-                                                           if args.reopen else ")"))
+                                                           if args.reopen else f", deploy/router.py's checked link: {reopens} re-opened)"
+                                                           if args.router else ")"))
     return 0 if linked == args.n else 1
 
 

@@ -7,6 +7,16 @@ With --machine it listens exactly where the stack file says (the machine's `rout
 endpoint and its `listen` endpoints), links to its `connect` routers and, with a [security]
 table, requires TLS client certificates and the machine's users, and enforces the access
 control of services/security.py.
+
+A router that connects to another host by QUIC (`quic/...;rel=0` beside `tls/...`: a secured split
+across a lossy link) checks that the link carries data both ways: Zenoh 1.10.2 may send the
+accepting router's first routing declarations on the unreliable QUIC link, and when one is lost
+the routers stay linked and never learn each other's subscriptions (docs/reliability.md, "A
+secured split over an unreliable link"). The link to the other host is then a session of its
+own in this process (CheckedLink), which pings a key the other router echoes (echo_links) and
+opens itself again when no echo came back within CHECK_S; the machine's router, where its
+services connect, opens once the link echoed (or after GATE_S) and links to that session on
+loopback. From then on the link is only watched, never re-opened, so no service is cut by it.
 """
 
 from __future__ import annotations
@@ -15,7 +25,9 @@ import argparse
 import json
 import os
 import sys
+import socket
 import threading
+import time
 
 import zenoh
 
@@ -26,11 +38,27 @@ from services.stack import StackError, load_stack
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 MAX_LINKS = 8   # links per router pair: at most one per Zenoh priority
 CLOSE_S = 3.0
+CHECK_S = 2.0   # no echo for this long: the link to the other host is opened again (linked: ~1 s)
+PING_S = 0.25
+GATE_S = 8.0   # the longest the machine's router waits for its link's first echo (the launcher: 10 s)
 
 
-def router_config(listen: list[str], stack_file: str | None = None, machine: str | None = None) -> tuple[zenoh.Config, list[str]]:
-    """The router's configuration and the endpoints it listens on."""
-    conf = zenoh.Config()
+def link_keys(vehicle_id: int, machine: str) -> tuple[str, str]:
+    """The keys a connecting machine's link pings and its accepting router echoes (a verbatim
+    chunk, @link: no service's wildcard subscription receives them)."""
+    return f"zp/{vehicle_id}/@link/{machine}/ping", f"zp/{vehicle_id}/@link/{machine}/echo"
+
+
+def _is_quic(endpoints) -> bool:
+    return any(e.split("/", 1)[0] == "quic" for e in endpoints)
+
+
+def checks_link(stack, machine: str) -> bool:
+    """Whether `machine`'s router links to other hosts through a checked link session."""
+    return _is_quic(stack.machines[machine].connect)
+
+
+def _base_config(conf: zenoh.Config) -> None:
     conf.insert_json5("mode", '"router"')
     conf.insert_json5("scouting/multicast/enabled", "false")
     # No shared memory, as for the services (services.runtime.zenoh_config): two routers on one
@@ -38,6 +66,14 @@ def router_config(listen: list[str], stack_file: str | None = None, machine: str
     # through /dev/shm, not their link, as two real hosts never can
     conf.insert_json5("transport/shared_memory/enabled", "false")
     conf.insert_json5("transport/link/tx/queue/size/real_time", "16")
+
+
+def router_config(listen: list[str], stack_file: str | None = None, machine: str | None = None,
+                  link_endpoint: str | None = None) -> tuple[zenoh.Config, list[str]]:
+    """The router's configuration and the endpoints it listens on; `link_endpoint`: where its
+    checked link's session listens (CheckedLink.endpoint)."""
+    conf = zenoh.Config()
+    _base_config(conf)
     connect: list[str] = []
     if machine:
         stack = load_stack(stack_file)
@@ -45,7 +81,8 @@ def router_config(listen: list[str], stack_file: str | None = None, machine: str
             raise StackError(f"{stack.path}: no [machines.{machine}] (machines: {', '.join(stack.machines)})")
         m = stack.machines[machine]
         listen = list(dict.fromkeys([*(listen or [m.router]), *m.listen]))  # --listen stands for `router`
-        connect = list(m.connect)
+        # a checked link connects from its own session (link_config); this router to that session
+        connect = ([link_endpoint] if link_endpoint else []) if checks_link(stack, machine) else list(m.connect)
         if stack.security is not None:
             security.apply_router(conf, stack, machine)
         if m.bulk_max_hz:
@@ -61,6 +98,123 @@ def router_config(listen: list[str], stack_file: str | None = None, machine: str
     return conf, listen
 
 
+def link_config(stack, machine: str, endpoint: str) -> zenoh.Config:
+    """The checked link's session: a router that connects to the other hosts and listens only on
+    `endpoint` (loopback), where the machine's router connects to it with the machine's login."""
+    m = stack.machines[machine]
+    conf = zenoh.Config()
+    _base_config(conf)
+    if stack.security is not None:
+        security.apply_router(conf, stack, machine)   # no `listen` to other hosts: no access control here
+    conf.insert_json5("transport/unicast/max_links", str(MAX_LINKS))
+    conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    conf.insert_json5("connect/endpoints", json.dumps(list(m.connect)))
+    return conf
+
+
+def _loopback_endpoint() -> str:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+
+
+class CheckedLink:
+    """A session linking to other hosts that pings `ping` every PING_S and, until settle(), when no
+    sample came back on `echo` for `check_s`, closes and opens again (a link down, or up but
+    carrying nothing one way). After settle() it only says when the echo stops and comes back:
+    replacing this session once the machine's router is linked to it left the two routers
+    linked to it with no route through it (Zenoh 1.10.2, measured: docs/reliability.md), so the
+    machine's router opens only once the link echoed, or GATE_S passed. `opens` counts the
+    sessions opened; `echoed` is set once an echo came back; `endpoint`: where the session now
+    open listens (a new port each: a session being closed aside is never the one linked to).
+    `make_config(endpoint)` gives a session's configuration."""
+
+    def __init__(self, make_config, ping: str, echo: str, check_s: float = CHECK_S, log=None):
+        self.make_config, self.ping, self.echo, self.check_s = make_config, ping, echo, check_s
+        self.log = log or (lambda line: print(f"zenpilot-router: {line}", file=sys.stderr, flush=True))
+        self.opens = 0
+        self.endpoint = ""
+        self.echoed = threading.Event()
+        self._changing = threading.Condition()
+        self._settled = self._reopening = False
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="link", daemon=True)
+
+    def start(self) -> "CheckedLink":
+        self._thread.start()
+        return self
+
+    def settle(self) -> str:
+        """No more re-opening; the endpoint of the session kept (one being re-opened: the new one's)."""
+        with self._changing:
+            self._settled = True
+            self._changing.wait_for(lambda: not self._reopening, timeout=CLOSE_S + 2.0)
+            return self.endpoint
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(CLOSE_S + 1.0)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            endpoint = _loopback_endpoint()
+            try:
+                session = zenoh.open(self.make_config(endpoint))
+            except zenoh.ZError as exc:
+                session = None
+                self.log(f"the link to the other host cannot open ({exc}); again in {self.check_s:g} s")
+            with self._changing:
+                self._reopening = False
+                if session is not None:
+                    self.opens += 1
+                    self.endpoint = endpoint
+                self._changing.notify_all()
+            if session is None:
+                self._stop.wait(self.check_s)
+                continue
+            last = [time.monotonic()]
+
+            def echoed(_sample) -> None:
+                last[0] = time.monotonic()
+                self.echoed.set()
+            session.declare_subscriber(self.echo, echoed)
+            pub = session.declare_publisher(self.ping, priority=zenoh.Priority.DATA_HIGH, express=True)
+            silent = False
+            while not self._stop.wait(PING_S):
+                pub.put(b"")
+                quiet = time.monotonic() - last[0] >= self.check_s
+                with self._changing:
+                    self._reopening = quiet and not self._settled
+                if self._reopening:
+                    self.log(f"no echo over the link to the other host for {self.check_s:g} s: opening it again")
+                    break
+                if quiet != silent:
+                    silent = quiet
+                    self.log(f"no echo over the link to the other host for {self.check_s:g} s" if quiet else
+                             "the link to the other host echoes again")
+            if self._stop.is_set():
+                _close(session)
+                return
+            # closed aside: a link with a connection pending took 9.5 s to close
+            threading.Thread(target=session.close, name="close", daemon=True).start()
+
+
+def echo_links(session: zenoh.Session, vehicle_id: int, machines) -> list:
+    """The accepting router's side of CheckedLink: each machine's ping answered on its echo key
+    (one exact key each: the access control lets a machine see no wider subscription)."""
+    def answer(echo: str):
+        return lambda _sample: session.put(echo, b"", express=True)
+    return [session.declare_subscriber(ping, answer(echo)) for ping, echo in (link_keys(vehicle_id, m) for m in machines)]
+
+
+def _close(session: zenoh.Session) -> bool:
+    """Close, given CLOSE_S (a router's close once took over 10 s under a loaded suite)."""
+    closing = threading.Thread(target=session.close, name="close", daemon=True)
+    closing.start()
+    closing.join(CLOSE_S)
+    return not closing.is_alive()
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(prog="zenpilot-router", description=__doc__.splitlines()[0])
     p.add_argument("-l", "--listen", action="append", default=[], metavar="ENDPOINT",
@@ -71,6 +225,15 @@ def main(argv=None) -> None:
     tie_to_parent()
     try:
         conf, listen = router_config(args.listen, args.stack, args.machine)
+        stack = load_stack(args.stack) if args.machine else None
+        link = None
+        if stack is not None and checks_link(stack, args.machine):
+            link = CheckedLink(lambda e: link_config(stack, args.machine, e), *link_keys(stack.vehicle_id, args.machine)).start()
+            if not link.echoed.wait(GATE_S):
+                print(f"zenpilot-router: no echo over the link to the other host within {GATE_S:g} s: the "
+                      f"machine's router opens without it (the link is watched from now on, not re-opened)",
+                      file=sys.stderr, flush=True)
+            conf, listen = router_config(args.listen, args.stack, args.machine, link.settle())
         session = zenoh.open(conf)
     except (StackError, ValueError) as exc:
         print(f"zenpilot-router: error: {exc}", file=sys.stderr)
@@ -81,14 +244,15 @@ def main(argv=None) -> None:
         raise SystemExit(2)
     stop = threading.Event()
     on_stop_signals(stop.set)
+    if stack is not None and _is_quic(stack.machines[args.machine].listen):
+        echo_links(session, stack.vehicle_id, [m for m in stack.machines if m != args.machine])
     print(f"zenpilot-router: listening on {', '.join(listen)}", flush=True)
     stop.wait()
-    # A router holds nothing to save: its close is given a few seconds (it once took over 10 s
-    # under a loaded suite, holding its caller's clean-up), then the process ends regardless.
-    closing = threading.Thread(target=session.close, name="close", daemon=True)
-    closing.start()
-    closing.join(CLOSE_S)
-    if closing.is_alive():
+    if link is not None:
+        link.stop()
+    # A router holds nothing to save: its close is given a few seconds, then the process ends
+    # regardless (it once took over 10 s under a loaded suite, holding its caller's clean-up).
+    if not _close(session):
         print(f"zenpilot-router: the session did not close within {CLOSE_S:g} s: exiting", file=sys.stderr, flush=True)
         os._exit(0)
 

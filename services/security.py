@@ -196,7 +196,11 @@ def router_acl(stack: "Stack", machine: str) -> dict:
                       | {f"{prefix}/{n}/health" for n in services} | {f"{prefix}/@lockstep/sync/{n}" for n in services}
                       | {f"{prefix}/@beat/{n}" for n in services})
         subjects.append({"id": f"machine-{other}", "usernames": [other]})
-        ids = ["declarations", "receive"]
+        # the check of a link from `other` (deploy/router.py, CheckedLink): its ping in, the echo out
+        link = f"{prefix}/@link/{other}"
+        rules.append({"id": f"link-{other}", "messages": ["put", "declare_subscriber"], "flows": ["ingress", "egress"],
+                      "permission": "allow", "key_exprs": [f"{link}/ping", f"{link}/echo"]})
+        ids = ["declarations", "receive", f"link-{other}"]
         if keys:
             rules.append({"id": f"publish-{other}", "messages": ["put"], "flows": ["ingress"],
                           "permission": "allow", "key_exprs": keys})

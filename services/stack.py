@@ -282,7 +282,7 @@ def _endpoints(value: Any, where: str, empty: bool = True) -> tuple[str, ...]:
 
 
 def _check_secure_links(path: Path, machines: dict[str, "Machine"]) -> None:
-    """With [security], the only door from another host is a router's TLS endpoint: anything
+    """With [security], the only door from another host is a router's TLS (or QUIC) endpoint: anything
     else reachable from the network would pass without a certificate or the access control."""
     for m in machines.values():
         where = f"{path}: [machines.{m.name}]"
@@ -290,9 +290,10 @@ def _check_secure_links(path: Path, machines: dict[str, "Machine"]) -> None:
             raise StackError(f"{where} router {m.router!r}: with [security] the services' router endpoint must "
                              f"be on loopback (tcp/127.0.0.1:PORT); other hosts link through `listen` (tls/...)")
         for key, endpoints in (("listen", m.listen), ("connect", m.connect)):
-            for e in endpoints:
-                if endpoint_host(e)[0] != "tls":
-                    raise StackError(f"{where} {key} {e!r}: with [security] a link between hosts must be tls/HOST:PORT")
+            for e in endpoints:   # quic: TLS 1.3 with the same certificates (its datagrams: best effort)
+                if endpoint_host(e)[0] not in ("tls", "quic"):
+                    raise StackError(f"{where} {key} {e!r}: with [security] a link between hosts must be "
+                                     f"tls/HOST:PORT or quic/HOST:PORT")
         for e in m.services_listen:
             if not is_loopback(e):
                 raise StackError(f"{where} services_listen {e!r}: with [security] services listen on loopback only "

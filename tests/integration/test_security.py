@@ -312,3 +312,153 @@ def _running(pid: int) -> bool:
         return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
     except OSError:
         return False
+
+
+def test_a_quic_link_carries_the_streams_under_the_same_certificates(tmp_path):
+    """Routers linked by TLS and QUIC (rel=0: its datagrams), as a secured split across a lossy
+    link may be: a best-effort stream crosses on QUIC, never on the TLS stream, a reliable
+    message on TLS; a router with another CA's certificate gets nothing over QUIC."""
+    from deploy.router import MAX_LINKS
+    path, _ = secure_stack(tmp_path)
+    stack = load_stack(path)
+    tls, quic = free_port(), free_port()
+    links = [f"tls/127.0.0.1:{tls}?prio=0-6", f"quic/127.0.0.1:{quic}?prio=0-6;rel=0"]
+
+    def router(keys_dir: Path, machine: str, listen: list, connect: list) -> zenoh.Session:
+        sec = security.Security(keys_dir)
+        conf = zenoh.Config()
+        for k, v in {"mode": "router", "scouting/multicast/enabled": False, "transport/shared_memory/enabled": False,
+                     "transport/unicast/max_links": MAX_LINKS, "listen/endpoints": listen, "connect/endpoints": connect,
+                     "transport/link/tls": security.tls_config(sec, machine)}.items():
+            conf.insert_json5(k, json.dumps(v))
+        return zenoh.open(conf)
+
+    def tls_bytes() -> int:
+        out = subprocess.run(["ss", "-tinH", f"dport = :{tls}"], capture_output=True, text=True).stdout.split()
+        return sum(int(w.split(":")[1]) for w in out if w.startswith("bytes_received:"))
+
+    def send(session: zenoh.Session, got: list, reliability) -> tuple[int, int]:
+        pub = session.declare_publisher("zp/0/planner/plan", express=True, reliability=reliability,
+                                        priority=zenoh.Priority.REAL_TIME, congestion_control=zenoh.CongestionControl.BLOCK)
+        before, n = tls_bytes(), len(got)
+        for _ in range(50):
+            pub.put(bytes(1000))
+            time.sleep(0.002)
+        deadline = time.monotonic() + 5.0
+        while len(got) < n + 50 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        return len(got) - n, tls_bytes() - before
+
+    security.make_keys(tmp_path / "other", stack)   # another CA
+    vehicle = router(tmp_path / "keys", "vehicle", links, [])
+    sessions = [vehicle]
+    try:
+        # as deploy/router.py's link check does: opened again until data crosses both ways (1 in
+        # ~16 such links carries nothing: docs/reliability.md, "A secured split over an unreliable link")
+        from deploy.router import echo_links, link_keys
+        echo_links(vehicle, 0, ["ground"])
+        for _ in range(4):
+            ground = router(tmp_path / "keys", "ground", [], links)
+            sessions.append(ground)
+            echoed = []
+            ground.declare_subscriber(link_keys(0, "ground")[1], lambda s: echoed.append(1))
+            ping = ground.declare_publisher(link_keys(0, "ground")[0])
+            deadline = time.monotonic() + 3.0
+            while not echoed and time.monotonic() < deadline:
+                ping.put(b"")
+                time.sleep(0.05)
+            if echoed:
+                break
+            sessions.pop().close()
+        assert echoed
+        got: list = []
+        time.sleep(0.5)
+        ground.declare_subscriber("zp/0/planner/plan", lambda s: got.append(1))
+        time.sleep(0.5)
+        received, over_tls = send(vehicle, got, zenoh.Reliability.RELIABLE)   # first: the route is up after it
+        assert received == 50 and over_tls >= 50 * 1000
+        received, over_tls = send(vehicle, got, zenoh.Reliability.BEST_EFFORT)
+        assert received >= 40 and over_tls < 1000
+        ground.close()
+        stranger = router(tmp_path / "other", "ground", [], [links[1]])
+        sessions.append(stranger)
+        theirs: list = []
+        stranger.declare_subscriber("zp/0/planner/plan", lambda s: theirs.append(1))
+        time.sleep(2.0)
+        pub = vehicle.declare_publisher("zp/0/planner/plan", reliability=zenoh.Reliability.BEST_EFFORT)
+        for _ in range(20):
+            pub.put(b"x")
+            time.sleep(0.01)
+        time.sleep(0.5)
+        assert theirs == []
+    finally:
+        for s in sessions:
+            s.close()
+
+
+def _quic_stack(folder: Path, keys: bool) -> tuple[Path, list[str]]:
+    """secure_stack's, with the link as TLS and QUIC's datagrams beside it, on fresh ports."""
+    path, ends = secure_stack(folder, keys=keys)
+    links = [f"{ends['link']}?prio=0-6", f"quic/127.0.0.1:{free_port()}?prio=0-6;rel=0"]
+    path.write_text(path.read_text().replace(f'["{ends["link"]}"]', json.dumps(links)))
+    return path, links
+
+
+def test_routers_linked_by_tls_and_quic_always_link_with_the_check(tmp_path):
+    """The machines' routers as deploy/router.py runs them, linked by TLS and QUIC (rel=0): without
+    the link check 6 % of such links carry nothing (docs/reliability.md, "A secured split over an
+    unreliable link"); with it, 20 of 20 carry a reliable and a best-effort key to a ground
+    session. The first attempt starts the ground's link before the vehicle's router: no echo, it
+    is opened again, and links once the vehicle is up. About 40 s."""
+    from deploy.router import GATE_S, CheckedLink, echo_links, link_config, link_keys, router_config
+    opened = []
+
+    def start(path: Path, machine: str, link_endpoint: str | None = None) -> zenoh.Session:
+        session = zenoh.open(router_config([], str(path), machine, link_endpoint)[0])
+        opened.append(session)
+        return session
+
+    reopened = 0
+    for attempt in range(20):
+        path, _ = _quic_stack(tmp_path, keys=attempt == 0)
+        stack = load_stack(path)
+        got: dict[str, float] = {}
+        link = None
+        try:
+            if attempt > 0:
+                vehicle = start(path, "vehicle")
+            # as main() does: the link first, the machine's router once it echoed
+            link = CheckedLink(lambda e: link_config(stack, "ground", e), *link_keys(0, "ground"), log=lambda _l: None).start()
+            if attempt == 0:
+                # nothing to link to: no echo within CHECK_S, the link is closed (its close, with a
+                # connection pending, is given CLOSE_S) and opened again
+                deadline = time.monotonic() + 12.0
+                while link.opens < 2 and time.monotonic() < deadline:
+                    time.sleep(0.1)
+                assert link.opens >= 2 and not link.echoed.is_set()
+                vehicle = start(path, "vehicle")
+            echo_links(vehicle, 0, ["ground"])
+            assert link.echoed.wait(GATE_S + (CHECK_S_SLACK if attempt == 0 else 0)), (attempt, link.opens)
+            start(path, "ground", link.settle())
+            client = client_session(stack.machines["ground"].router, stack, "ground")
+            opened.append(client)
+            for kind in ("reliable", "best_effort"):
+                client.declare_subscriber(f"zp/0/test/{kind}", lambda _s, kind=kind: got.setdefault(kind, time.monotonic()))
+            pubs = [vehicle.declare_publisher("zp/0/test/reliable"),
+                    vehicle.declare_publisher("zp/0/test/best_effort", reliability=zenoh.Reliability.BEST_EFFORT)]
+            deadline = time.monotonic() + 10.0
+            while len(got) < 2 and time.monotonic() < deadline:
+                for pub in pubs:
+                    pub.put(b"x")
+                time.sleep(0.01)
+            assert set(got) == {"reliable", "best_effort"}, (attempt, got, link.opens)
+            reopened += link.opens - 1
+        finally:
+            if link is not None:
+                link.stop()
+            while opened:
+                opened.pop().close()
+    print(f"20 of 20 linked; links opened again {reopened} times (at least 1: the first attempt's)")
+
+
+CHECK_S_SLACK = 6.0   # the first attempt's link may be closing (CLOSE_S) when the vehicle comes up

@@ -65,6 +65,17 @@ def test_security_table_and_links(tmp_path):
     assert stack.machines["ground"].connect == ("tls/10.0.0.2:7448",)
 
 
+def test_a_secured_link_may_add_quic_for_the_streams(tmp_path):
+    """QUIC runs TLS 1.3 with the same certificates; its datagrams carry best-effort streams
+    (docs/security.md)."""
+    quic = SECURE.replace('listen = ["tls/10.0.0.2:7448"]',
+                          'listen = ["tls/10.0.0.2:7448?prio=0-6", "quic/10.0.0.2:7450?prio=0-6;rel=0"]', 1)
+    stack = load_stack(stack_file(tmp_path, quic))
+    assert stack.machines["vehicle"].listen[1] == "quic/10.0.0.2:7450?prio=0-6;rel=0"
+    with pytest.raises(StackError, match="must be tls/HOST:PORT or quic/HOST:PORT"):
+        load_stack(stack_file(tmp_path, quic.replace("quic/", "udp/")))
+
+
 @pytest.mark.parametrize("change, message", [
     (('dir = "keys"', ''), "dir"),
     (('dir = "keys"', 'dir = "keys"\npassword = "x"'), "unknown key"),
@@ -103,6 +114,33 @@ def test_router_acl_lets_the_ground_publish_only_its_services_keys(tmp_path):
     policies = {p["id"]: p for p in acl["policies"]}
     assert policies["own-vehicle"]["rules"] == ["everything"]
     assert "everything" not in policies["from-ground"]["rules"]
+    # the link check (deploy/router.py): the ground's ping in and its echo out, exact keys only
+    assert rules["link-ground"]["key_exprs"] == ["zp/0/@link/ground/ping", "zp/0/@link/ground/echo"]
+    assert "link-ground" in policies["from-ground"]["rules"]
+
+
+def test_a_quic_link_is_checked_from_a_session_of_its_own(tmp_path):
+    """A router connecting by QUIC (docs/reliability.md, "A secured split over an unreliable
+    link"): its other-host endpoints go to the link's session, which listens only on loopback;
+    the machine's router connects to that session alone. A TLS-only link stays as it was."""
+    import json
+    from deploy.router import checks_link, link_config, router_config
+    links = '["tls/10.0.0.2:7448?prio=0-6", "quic/10.0.0.2:7450?prio=0-6;rel=0"]'
+    quic = SECURE.replace('connect = ["tls/10.0.0.2:7448"]', f"connect = {links}", 1).replace(
+        'listen = ["tls/10.0.0.2:7448"]', f"listen = {links}", 1)
+    path = stack_file(tmp_path, quic)
+    stack = load_stack(path)
+    security.make_keys(tmp_path / "keys", stack)
+    assert checks_link(stack, "ground") and not checks_link(stack, "vehicle")
+    conf = json.loads(str(router_config([], str(path), "ground", "tcp/127.0.0.1:9999")[0]))
+    assert conf["connect"]["endpoints"] == ["tcp/127.0.0.1:9999"]
+    assert conf["listen"]["endpoints"] == [stack.machines["ground"].router]
+    link = json.loads(str(link_config(stack, "ground", "tcp/127.0.0.1:9999")))
+    assert link["listen"]["endpoints"] == ["tcp/127.0.0.1:9999"]
+    assert link["connect"]["endpoints"] == json.loads(links)
+    assert link["transport"]["auth"]["usrpwd"]["user"] == "ground"
+    plain = load_stack(stack_file(tmp_path, SECURE))
+    assert not checks_link(plain, "ground")
 
 
 def test_make_keys_writes_secret_files_private_and_never_overwrites(tmp_path):
