@@ -170,7 +170,7 @@ class PositionLoop:
                                        [max(v, f) for v, f in zip(att["rate_var_rad2_s2"], p["rate_var_floor"])]):
                 count("fusion_attitude_gate")
         if self.imu is not None:
-            self.fuse_drag(t, pinned)
+            self.fuse_drag(pinned)
         delay = self.delay
         for pose in self.poses.take():
             stamp = pose["header"]["t_s"]
@@ -220,7 +220,7 @@ class PositionLoop:
             self.publish_ekf_health(t)
         return x[0:3], x[3:6], x[6:9], ekf.position_cov, float(x[12])
 
-    def fuse_drag(self, t: float, pinned) -> None:
+    def fuse_drag(self, pinned: bool) -> None:
         """The accelerometer's body x and y since the last run, averaged, to the EKF as the air's
         force: in the air only (on the ground its friction holds against the wind), thrusting
         (not in a flip's coast or a cut), not while the attitude is pinned (a flip)."""
