@@ -127,6 +127,8 @@ class CheckedLink:
     machine's router opens only once the link echoed, or GATE_S passed. `opens` counts the
     sessions opened; `echoed` is set once an echo came back; `endpoint`: where the session now
     open listens (a new port each: a session being closed aside is never the one linked to).
+    Each re-opening waits twice as long for the echo as the one before (up to 4 x check_s): a
+    starved machine whose link needs more than check_s would otherwise re-open forever.
     `make_config(endpoint)` gives a session's configuration."""
 
     def __init__(self, make_config, ping: str, echo: str, check_s: float = CHECK_S, log=None):
@@ -156,6 +158,7 @@ class CheckedLink:
         self._thread.join(CLOSE_S + 1.0)
 
     def _run(self) -> None:
+        wait_s = self.check_s
         while not self._stop.is_set():
             endpoint = _loopback_endpoint()
             try:
@@ -182,11 +185,12 @@ class CheckedLink:
             silent = False
             while not self._stop.wait(PING_S):
                 pub.put(b"")
-                quiet = time.monotonic() - last[0] >= self.check_s
+                quiet = time.monotonic() - last[0] >= (self.check_s if self.echoed.is_set() else wait_s)
                 with self._changing:
                     self._reopening = quiet and not self._settled
                 if self._reopening:
-                    self.log(f"no echo over the link to the other host for {self.check_s:g} s: opening it again")
+                    self.log(f"no echo over the link to the other host for {wait_s:g} s: opening it again")
+                    wait_s = min(2.0 * wait_s, 4.0 * self.check_s)
                     break
                 if quiet != silent:
                     silent = quiet
