@@ -100,6 +100,7 @@ class PositionLoop:
         else:
             self.truth = io.inbox(schemas.TRUTH, "sim")
         self.ekf_started = False
+        self.in_flight_at_start = None   # decided on the first run: the rotors already carry the vehicle
         self.refused = 0             # camera fixes refused in a row
         self.fused_t = None          # when a camera fix was last fused
         self.stale_att_t = None      # the attitude message last counted stale
@@ -141,11 +142,11 @@ class PositionLoop:
             return (np.asarray(s["position_m"]), np.asarray(s["velocity_m_s"]),
                     np.array(quat_to_euler(s["quaternion_wxyz"])), np.zeros((3, 3)), 1.0)
         p, ekf, count = self.p, self.ekf, self.count
-        if not self.ekf_started:
-            ekf.initialize(t, np.asarray(p["home_position_m"], dtype=float))
-            self.ekf_started = True
-        for out in self.motors.take():  # what the mixer really asked of the motors (after saturation)
+        outputs = self.motors.take()
+        for out in outputs:  # what the mixer really asked of the motors (after saturation)
             self.rotor_forces.add(out["header"]["t_s"], out["thrust_n"])
+        if not self.ekf_started and not self.start_ekf(t, outputs):
+            return None
         if t > ekf.t:
             u = self.allocation @ self.rotor_forces.mean_to(t)
             self.collective_n = float(u[0])
@@ -219,6 +220,35 @@ class PositionLoop:
             self.next_ekf_health = (math.floor(t / EKF_HEALTH_PERIOD_S) + 1) * EKF_HEALTH_PERIOD_S
             self.publish_ekf_health(t)
         return x[0:3], x[3:6], x[6:9], ekf.position_cov, float(x[12])
+
+    def start_ekf(self, t: float, outputs: list) -> bool:
+        """Start the EKF: at home, or, when this level starts with the rotors already carrying the
+        vehicle (restarted in flight while the attitude level's failsafe flies it), at the first
+        fresh camera fix, as a restart: from home it steered a vehicle 1 m up as if on the ground
+        (a supervised restart's flight crashed). False while it waits for that fix."""
+        ekf, p = self.ekf, self.p
+        if self.in_flight_at_start is None:
+            weight = self.vehicle.mass_kg * self.vehicle.gravity_m_s2
+            self.in_flight_at_start = any(o["armed"] and sum(o["thrust_n"]) > DRAG_MIN_THRUST * weight
+                                          for o in outputs)
+            if self.in_flight_at_start:
+                self.io.problem(f"started with the rotors carrying the vehicle at t={t:.3f}: the EKF starts "
+                                "at the first camera fix (the attitude level flies meanwhile)")
+        if not self.in_flight_at_start:
+            ekf.initialize(t, np.asarray(p["home_position_m"], dtype=float))
+            self.ekf_started = True
+            return True
+        fresh = [x for x in self.poses.take() if t - x["header"]["t_s"] <= p["pose_timeout_s"]]
+        if not fresh:
+            return False
+        pose = fresh[-1]
+        position = np.asarray(pose["position_m"])
+        cov = np.asarray(pose["position_cov_m2"]).reshape(3, 3) + np.eye(3) * p["camera_var_floor"]
+        ekf.initialize(t, position)
+        ekf.reset_position(position, cov, age_s=t - pose["header"]["t_s"])
+        self.ekf_started = True
+        self.count("ekf_started_in_flight")
+        return True
 
     def fuse_drag(self, pinned: bool) -> None:
         """The accelerometer's body x and y since the last run, averaged, to the EKF as the air's

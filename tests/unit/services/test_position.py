@@ -111,6 +111,38 @@ def test_only_gated_fixes_restart_the_ekf():
     assert io.rejected.get("fusion_position_rejected") == before + 11 and io.rejected.get("fusion_position_reset") == 1
 
 
+def _pwm(armed, thrust_each_n):
+    return {"pwm_us": [1500.0] * 4, "thrust_n": [thrust_each_n] * 4, "armed": armed, "saturated": False, "imu_t_s": -1.0}
+
+
+def test_restarted_in_flight_the_ekf_starts_at_the_first_camera_fix_not_at_home():
+    """A position level started while the rotors carry the vehicle (a supervised restart, the
+    attitude level's failsafe flying it) publishes nothing until a fresh camera fix, then starts
+    the EKF there; one started with the motors idle starts at home at once, as before."""
+    hover = X250.mass_kg * X250.gravity_m_s2 / 4
+    for armed, thrust, in_flight in ((True, hover, True), (False, 0.0, False)):
+        io = FakeIO("position", PARAMS, {}, rate_hz=100.0)
+        loop = PositionLoop(io)
+        motors, poses = io.received(schemas.MOTOR_PWM, "motors"), io.received(schemas.VISION_POSE, "vision")
+        io.received(schemas.PLANNER_SETPOINT, "planner").push(10.0, setpoint([0.0, 0.0, 1.0]))
+        motors.push(10.0, _pwm(armed, thrust))
+        loop.step(10.01)
+        assert bool(io.sent(schemas.POSITION_STATE)) is not in_flight
+        if not in_flight:
+            assert io.sent(schemas.POSITION_STATE)[-1][1]["position_m"] == pytest.approx([0.0, 0.0, 0.0], abs=1e-6)
+            continue
+        poses.push(9.0, _pose([0.3, -0.2, 0.8]))   # older than pose_timeout_s: not a start
+        motors.push(10.01, _pwm(armed, thrust))
+        loop.step(10.02)
+        assert not io.sent(schemas.POSITION_STATE)
+        poses.push(10.0, _pose([0.3, -0.2, 0.8]))
+        motors.push(10.02, _pwm(armed, thrust))
+        loop.step(10.03)
+        _, state = io.sent(schemas.POSITION_STATE)[-1]
+        assert state["position_m"] == pytest.approx([0.3, -0.2, 0.8], abs=0.02)
+        assert io.rejected.get("ekf_started_in_flight") == 1
+
+
 def test_estimate_fuses_camera_fixes_and_counts_stale_ones():
     io = FakeIO("position", PARAMS, {}, rate_hz=100.0)
     loop = PositionLoop(io)
