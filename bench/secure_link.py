@@ -1,7 +1,7 @@
 """Two routers linked as a secured split would link them, again and again: does the link come up?
 
     python bench/secure_link.py [-n 30] [--mode tls+quic|tls|quic|tcp+udp|tls+quic1-6] [--log FILTER]
-                                [--timeout S] [--reopen S] [--router]
+                                [--timeout S] [--router]
 
 Per attempt, on loopback: a "vehicle" router listening on the mode's endpoints (mutual TLS with the
 certificates of `zenpilot certs`, made here for a two-machine stack), a "ground" router connecting
@@ -11,10 +11,6 @@ every 10 ms until each arrives or `--timeout` (10 s) passes. Printed per attempt
 (about 1 s for every mode when linked), or NOT LINKED; then the count. `--log` passes a Zenoh log
 filter (e.g. "zenoh_transport=trace") to see why an attempt failed: docs/reliability.md ("A
 secured split over an unreliable link").
-
-`--reopen S`: after opening, the ground router's session pings a key that the vehicle router's
-session echoes, and opens itself again when no echo came back within S s (a mitigation of the
-race, prototyped here only).
 
 `--router`: the machines' routers as deploy/router.py runs them (tls+quic only): the ground's
 link from a session of its own, checked by its echo and opened again until it echoes, the
@@ -30,7 +26,6 @@ import argparse
 import json
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -77,34 +72,12 @@ def router(sec: security.Security, machine: str, listen: list[str], connect: lis
     return zenoh.open(conf)
 
 
-def echoes(ground: zenoh.Session, within_s: float) -> bool:
-    """Data crosses both ways: a ping from the ground router's session reaches the vehicle's (the
-    vehicle's declarations reached the ground) and its echo comes back (the ground's reached it)."""
-    back = threading.Event()
-    sub = ground.declare_subscriber("bench/echo", lambda _s: back.set())
-    pub = ground.declare_publisher("bench/ping")
-    t0 = time.monotonic()
-    while not back.is_set() and time.monotonic() - t0 < within_s:
-        pub.put(b"p")
-        back.wait(0.05)
-    sub.undeclare()
-    pub.undeclare()
-    return back.is_set()
-
-
-def attempt(sec: security.Security, mode: str, timeout_s: float = 10.0, reopen_after_s: float = 0.0) -> dict:
+def attempt(sec: security.Security, mode: str, timeout_s: float = 10.0) -> dict:
     links = MODES[mode](free_port(), free_port())
     t0 = time.monotonic()
     vehicle = router(sec, "vehicle", links, [])
-    echo = vehicle.declare_publisher("bench/echo")
-    vehicle.declare_subscriber("bench/ping", lambda _s: echo.put(b"e"))
     ground = router(sec, "ground", [], links)
-    got: dict[str, float | None] = {"reliable": None, "best_effort": None, "reopened": 0}
-    # --reopen: the connecting router checks that data crosses both ways, and opens again if not
-    while reopen_after_s and got["reopened"] < 5 and not echoes(ground, reopen_after_s):
-        ground.close()
-        ground = router(sec, "ground", [], links)
-        got["reopened"] += 1
+    got: dict[str, float | None] = {"reliable": None, "best_effort": None}
 
     def seen(kind: str):
         def callback(_sample) -> None:
@@ -115,14 +88,14 @@ def attempt(sec: security.Security, mode: str, timeout_s: float = 10.0, reopen_a
         subs = [ground.declare_subscriber(f"bench/{kind}", seen(kind)) for kind in got]  # noqa: F841 (kept alive)
         pubs = {kind: vehicle.declare_publisher(f"bench/{kind}", priority=zenoh.Priority.REAL_TIME, reliability=rel)
                 for kind, rel in (("reliable", zenoh.Reliability.RELIABLE), ("best_effort", zenoh.Reliability.BEST_EFFORT))}
-        while None in got.values() and time.monotonic() - t0 < timeout_s + got["reopened"] * reopen_after_s:
+        while None in got.values() and time.monotonic() - t0 < timeout_s:
             for pub in pubs.values():
                 pub.put(b"x")
             time.sleep(0.01)
     finally:
         ground.close()
         vehicle.close()
-    return got
+    return got | {"reopened": 0}
 
 
 def attempt_router(folder: Path, timeout_s: float = 10.0) -> dict:
@@ -173,8 +146,6 @@ def main() -> int:
     ap.add_argument("--mode", default="tls+quic", choices=list(MODES))
     ap.add_argument("--log", help="a Zenoh log filter, e.g. zenoh_transport=trace")
     ap.add_argument("--timeout", type=float, default=10.0, help="seconds an attempt waits (default 10)")
-    ap.add_argument("--reopen", type=float, default=0.0, metavar="S",
-                    help="the connecting router re-opens its session when no echo crossed both ways within S s")
     ap.add_argument("--router", action="store_true", help="deploy/router.py's checked link (tls+quic)")
     args = ap.parse_args()
     if args.n < 1 or not args.timeout > 0:
@@ -188,7 +159,7 @@ def main() -> int:
         sec = security.Security(Path(tmp) / "keys")
         linked = reopens = 0
         for i in range(args.n):
-            got = attempt_router(Path(tmp), args.timeout) if args.router else attempt(sec, args.mode, args.timeout, args.reopen)
+            got = attempt_router(Path(tmp), args.timeout) if args.router else attempt(sec, args.mode, args.timeout)
             reopens += got["reopened"]
             ok = got["reliable"] is not None and got["best_effort"] is not None
             linked += ok
@@ -196,8 +167,7 @@ def main() -> int:
                                       f"{got['best_effort']:.2f} s" + (f" ({got['reopened']} re-opened)" if got["reopened"] else "") if ok else
                                       f"NOT LINKED within {args.timeout:g} s (reliable {got['reliable']}, best effort {got['best_effort']})"),
                   flush=True)
-    print(f"{linked} of {args.n} linked ({args.mode}" + (f", {reopens} re-opened after no echo in {args.reopen:g} s)"
-                                                           if args.reopen else f", deploy/router.py's checked link: {reopens} re-opened)"
+    print(f"{linked} of {args.n} linked ({args.mode}" + (f", deploy/router.py's checked link: {reopens} re-opened)"
                                                            if args.router else ")"))
     return 0 if linked == args.n else 1
 

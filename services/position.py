@@ -47,9 +47,8 @@ LAND_BELOW_M = 0.3
 LANDED_HEIGHT_M = 0.1
 LANDED_SPEED_M_S = 0.2
 LANDED_FOR_S = 1.0
-# the accelerometer as the air's force (fuse_drag): above the ground's reach and thrusting
-DRAG_MIN_HEIGHT_M = 0.05
-DRAG_MIN_THRUST = 0.5     # of the weight
+DRAG_MIN_HEIGHT_M = 0.05   # the accelerometer as the air's force (fuse_drag): above the ground's reach
+CARRYING_THRUST = 0.5      # of the weight: the rotors carry the vehicle (fuse_drag, start_ekf)
 VISION_MIN_HEIGHT_M = 0.3   # below this the camera's silence is not a loss (too close to the markers)
 EKF_HEALTH_PERIOD_S = 1.0   # pos/ekf_health, beside the service's own health
 # the planner's phases where the integral learns: a hold and the settling before it (a take-off's
@@ -101,6 +100,7 @@ class PositionLoop:
             self.truth = io.inbox(schemas.TRUTH, "sim")
         self.ekf_started = False
         self.in_flight_at_start = None   # decided on the first run: the rotors already carry the vehicle
+        self.carrying_n = CARRYING_THRUST * vehicle.mass_kg * vehicle.gravity_m_s2
         self.refused = 0             # camera fixes refused in a row
         self.fused_t = None          # when a camera fix was last fused
         self.stale_att_t = None      # the attitude message last counted stale
@@ -228,9 +228,7 @@ class PositionLoop:
         (a supervised restart's flight crashed). False while it waits for that fix."""
         ekf, p = self.ekf, self.p
         if self.in_flight_at_start is None:
-            weight = self.vehicle.mass_kg * self.vehicle.gravity_m_s2
-            self.in_flight_at_start = any(o["armed"] and sum(o["thrust_n"]) > DRAG_MIN_THRUST * weight
-                                          for o in outputs)
+            self.in_flight_at_start = any(o["armed"] and sum(o["thrust_n"]) > self.carrying_n for o in outputs)
             if self.in_flight_at_start:
                 self.io.problem(f"started with the rotors carrying the vehicle at t={t:.3f}: the EKF starts "
                                 "at the first camera fix (the attitude level flies meanwhile)")
@@ -257,7 +255,7 @@ class PositionLoop:
         samples = self.imu.take()
         ekf = self.ekf
         if not samples or pinned or self.collective_n is None \
-                or self.collective_n < DRAG_MIN_THRUST * self.vehicle.mass_kg * self.vehicle.gravity_m_s2 \
+                or self.collective_n < self.carrying_n \
                 or ekf.x[2] < self.p["home_position_m"][2] + DRAG_MIN_HEIGHT_M:
             return
         ax = ay = 0.0
