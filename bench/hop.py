@@ -45,8 +45,9 @@ input path against the leanest raw callback.
                  the same as raw, project, ... with A timing the parts of its side in place
 
 --baseline DIR adds `baseline` and `baseline-woken`: project and project-woken with the Inbox and
-Publisher classes of DIR/services/runtime.py (another checkout, e.g. `git archive main | tar -x
--C DIR`), the rest (schemas, Zenoh, the runtime that owns them) this tree's. Their blocks take
+Publisher classes of DIR/services/runtime.py and the IMU compiled by DIR/schemas/core.py's codec
+(another checkout, e.g. `git archive main | tar -x -C DIR`), the rest (the message definitions,
+Zenoh, the runtime that owns them) this tree's. Their blocks take
 turns with the others in every round, so `project / baseline` is an A/B of the two inboxes paired
 round by round, in the same run, whatever the machine's load does meanwhile.
 
@@ -182,9 +183,10 @@ class Side:
                         seq[0] += 1
                     self.send[variant] = send
             else:   # project: this tree's Publisher; baseline: --baseline's
-                pub = (baseline.Publisher if variant.startswith("baseline") else Publisher)(rt, schemas.IMU, out_key)
+                pub = (baseline.Publisher(rt, baseline.IMU, out_key) if variant.startswith("baseline")
+                       else Publisher(rt, schemas.IMU, out_key))
                 self.send[variant] = lambda put=pub.put: put(VALUES)
-            box_class = baseline.Inbox if variant.startswith("baseline") else Inbox
+            box_class, imu = (baseline.Inbox, baseline.IMU) if variant.startswith("baseline") else (Inbox, schemas.IMU)
             if receiver == "raw":
                 def cb(sample, v=variant):
                     self.last = sample.payload.to_bytes()
@@ -198,7 +200,7 @@ class Side:
                     self.last = decode(sample.payload.to_bytes())
                     self.on_arrival(v)
             elif receiver == "inbox":
-                box = box_class(rt, schemas.IMU, in_key, "sim", keep=4)
+                box = box_class(rt, imu, in_key, "sim", keep=4)
 
                 def cb(sample, box=box, v=variant):
                     box._on_sample(sample)
@@ -231,7 +233,7 @@ class Side:
                                             reject=rt.reject, count_rejects=rt.count_rejects,
                                             lockstep=rt.lockstep, event_driven=rt.event_driven,
                                             _arrival=rt._arrival, _wake=threading.Event(), _wake_t=0.0)
-                box = box_class(owner, schemas.IMU, in_key, "sim", keep=4)
+                box = box_class(owner, imu, in_key, "sim", keep=4)
                 rt.inboxes.append(box)
                 box.wakes = True   # what run(wake_on=box) sets
                 seen = [None]   # the last message read: each decoded message is a new dict
@@ -267,14 +269,13 @@ class Side:
 
 
 def load_baseline(tree: str | None):
-    """--baseline: DIR/services/runtime.py as a module of its own (its Inbox and Publisher)."""
+    """--baseline: DIR/services/runtime.py's Inbox and Publisher, and the IMU by DIR's codec."""
     if not tree:
         return None
-    import importlib.util
-    spec = importlib.util.spec_from_file_location("hop_baseline_runtime", Path(tree) / "services" / "runtime.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    import schemas
+    from bench.support.baseline_tree import baseline_message, load_module
+    runtime = load_module(tree, "services/runtime.py", "hop_baseline_runtime")
+    return SimpleNamespace(Inbox=runtime.Inbox, Publisher=runtime.Publisher, IMU=baseline_message(tree, schemas.IMU))
 
 
 def echo_main(topo: str, variants: tuple[str, ...], zargs: list[str], baseline: str | None = None) -> None:
@@ -576,7 +577,7 @@ def main() -> None:
                     help="add variants that take the project's path apart: " + ", ".join(DIAGNOSE))
     ap.add_argument("--baseline", metavar="DIR",
                     help="add baseline, baseline-woken: project's variants with DIR/services/runtime.py's "
-                         "Inbox and Publisher (an A/B in the same run)")
+                         "Inbox and Publisher and DIR/schemas/core.py's codec (an A/B in the same run)")
     ap.add_argument("--variants", help=argparse.SUPPRESS)
     ap.add_argument("--role", choices=["ping", "echo"], help=argparse.SUPPRESS)
     ap.add_argument("--topo", help=argparse.SUPPRESS)

@@ -11,8 +11,8 @@ part) then `Inbox.latest()` (the reader's: decode, checks, sequence, the newest)
          Python step costs several times its warm price (docs/performance.md, "One hop")
 
 beside the same for the decode alone (the compiled codec) and, raw zenoh-python's part, the
-payload's `to_bytes()`. `--baseline DIR` adds DIR/services/runtime.py's Inbox (another checkout,
-e.g. `git archive main | tar -x -C DIR`), alternated with this tree's in every round. The
+payload's `to_bytes()`. `--baseline DIR` adds DIR/services/runtime.py's Inbox with DIR/schemas/
+core.py's codec (another checkout, e.g. `git archive main | tar -x -C DIR`), alternated with this tree's in every round. The
 runtime is a stand-in with the attributes an Inbox reads (real time: untagged, not woken).
 Wall-clock figures depend on the machine and its load.
 """
@@ -20,7 +20,6 @@ Wall-clock figures depend on the machine and its load.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import statistics
 import sys
 import threading
@@ -34,6 +33,7 @@ sys.path.insert(0, str(ROOT))
 import zenoh  # noqa: E402
 
 import schemas  # noqa: E402
+from bench.support.baseline_tree import baseline_message, load_module  # noqa: E402
 from services.runtime import Inbox  # noqa: E402
 
 VALUES = {"gyro_rad_s": [0.01, -0.02, 0.1], "accel_m_s2": [0.1, 0.2, 9.81]}
@@ -61,10 +61,7 @@ class StandIn:
 
 
 def baseline_inbox(tree: str):
-    spec = importlib.util.spec_from_file_location("inbox_cost_baseline", Path(tree) / "services" / "runtime.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.Inbox
+    return load_module(tree, "services/runtime.py", "inbox_cost_baseline").Inbox
 
 
 def samples(n: int) -> list:
@@ -72,8 +69,8 @@ def samples(n: int) -> list:
             for i in range(n)]
 
 
-def warm(box_class, msgs: list) -> float:
-    box = box_class(StandIn(), schemas.IMU, "zp/0/sim/imu", "sim", keep=4)
+def warm(box_class, message, msgs: list) -> float:
+    box = box_class(StandIn(), message, "zp/0/sim/imu", "sim", keep=4)
     on, latest = box._on_sample, box.latest
     t0 = time.perf_counter()
     for s in msgs:
@@ -82,9 +79,9 @@ def warm(box_class, msgs: list) -> float:
     return (time.perf_counter() - t0) / len(msgs)
 
 
-def cold(box_class, msgs: list) -> dict[str, float]:
-    box = box_class(StandIn(), schemas.IMU, "zp/0/sim/imu", "sim", keep=4)
-    on, latest, decode = box._on_sample, box.latest, schemas.IMU._decode
+def cold(box_class, message, msgs: list) -> dict[str, float]:
+    box = box_class(StandIn(), message, "zp/0/sim/imu", "sim", keep=4)
+    on, latest, decode = box._on_sample, box.latest, message._decode
     src, dst = bytearray(16 << 20), bytearray(16 << 20)
     clock = time.perf_counter
     t_on, t_latest, t_decode, t_raw = [], [], [], []
@@ -115,18 +112,18 @@ def main() -> None:
     ap.add_argument("--n", type=int, default=200_000, help="messages per warm loop (default 200000)")
     ap.add_argument("--cold", type=int, default=3000, help="messages timed cache-cold (default 3000)")
     ap.add_argument("--rounds", type=int, default=2, help="alternations (default 2)")
-    ap.add_argument("--baseline", metavar="DIR", help="also time DIR/services/runtime.py's Inbox")
+    ap.add_argument("--baseline", metavar="DIR", help="also time DIR/services/runtime.py's Inbox and DIR/schemas' codec")
     args = ap.parse_args()
-    trees = {"this tree": Inbox}
+    trees = {"this tree": (Inbox, schemas.IMU)}
     if args.baseline:
-        trees["baseline"] = baseline_inbox(args.baseline)
+        trees["baseline"] = (baseline_inbox(args.baseline), baseline_message(args.baseline, schemas.IMU))
     print("command:", " ".join([Path(sys.executable).name, *sys.argv]))
     warm_msgs, cold_msgs = samples(args.n), samples(args.cold)
     for r in range(args.rounds):
         order = list(trees.items())
-        for name, box_class in order if r % 2 == 0 else order[::-1]:   # each goes first in turn
-            w = warm(box_class, warm_msgs)
-            c = cold(box_class, cold_msgs)
+        for name, (box_class, message) in order if r % 2 == 0 else order[::-1]:   # each goes first in turn
+            w = warm(box_class, message, warm_msgs)
+            c = cold(box_class, message, cold_msgs)
             parts = "  ".join(f"{k} {v * 1e6:5.2f}" for k, v in c.items())
             print(f"round {r + 1} {name:<9}  warm _on_sample+latest {w * 1e6:5.2f} us | cold (us): "
                   f"_on_sample+latest {(c['_on_sample'] + c['latest']) * 1e6:5.2f}  {parts}", flush=True)

@@ -22,9 +22,11 @@ validator walking the Field definitions), which finds the reason and the
 detail text. So the compiled path may only ever accept what the reference
 path accepts; every reason and message text comes from the reference path.
 
-msgspec packs and unpacks on the compiled path, msgpack
-everywhere else: a map the compiled checks pass holds only plain types, which
-msgspec packs to msgpack's bytes (or refuses: msgpack packs it then), and a
+Decoding a payload in the project's own layout (as `encode` writes it) is one call to msgspec
+with a typed definition of the message (`_typed_decoder`), which makes the same checks in C;
+anything else is unpacked, then checked by the compiled Python checks. msgspec packs and
+unpacks on the compiled path, msgpack everywhere else: a map the compiled checks pass holds
+only plain types, which msgspec packs to msgpack's bytes (or refuses: msgpack packs it then), and a
 payload msgspec unpacks into a map the checks pass, msgpack unpacks into the
 same map. Anything else (msgspec refuses it, or a check fails) is decoded
 again by msgpack, so the reasons and what is accepted do not
@@ -36,7 +38,7 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Annotated, Any, Callable, Literal, TypedDict, Union
 
 import msgpack
 
@@ -433,6 +435,70 @@ def _field_checks(f: Field, v: str, consts: dict, indent: str) -> list[str]:
     return [f"{indent}if not ({_scalar_test(f, v, consts)}):", f"{indent}    raise _Reject"]
 
 
+# The project's own layout of a message: a map of the header and the fields, "version" then a
+# 3-key "header" first (as `encode` writes it). A payload that starts so can be checked whole by
+# msgspec against a typed definition (_typed_decoder): the entry counts in these bytes and the
+# definition's required keys leave no room for a missing, unknown or repeated key.
+def _layout_prefix(m: Message) -> bytes:
+    packer = msgpack.Packer(use_bin_type=True)
+    return (packer.pack_map_header(len(m.fields) + 2) + packer.pack("version") + packer.pack(m.version)
+            + packer.pack("header") + packer.pack_map_header(len(HEADER_FIELDS)))
+
+
+_FLOAT_MAX = 1.7976931348623157e308   # the largest finite float: a bound that refuses NaN and +-inf
+
+
+def _typed_value(f: Field, name: str) -> Any:
+    """The msgspec type that accepts exactly what `_scalar_test` accepts for one item of `f`,
+    or None where the compiled checks hand values to the reference path (odd bounds, choices)."""
+    kind = f.kind.rstrip("[]")
+    if kind in ("float", "int"):
+        if not all(b is None or _finite_number(b) for b in (f.min, f.max)):
+            return None
+        ints = {"ge": None if f.min is None else math.ceil(f.min), "le": None if f.max is None else math.floor(f.max)}
+        integer = Annotated[int, msgspec.Meta(**{k: v for k, v in ints.items() if v is not None})]
+        if kind == "int":
+            return integer
+        real = Annotated[float, msgspec.Meta(ge=-_FLOAT_MAX if f.min is None else float(f.min),
+                                             le=_FLOAT_MAX if f.max is None else float(f.max))]
+        return Union[integer, real]   # a float field takes ints, and keeps them ints (as msgpack decodes them)
+    if kind == "bool":
+        return bool
+    if kind == "bytes":
+        return bytes if f.length is None else Annotated[bytes, msgspec.Meta(min_length=f.length, max_length=f.length)]
+    if f.choices is None:
+        return str
+    if not f.choices or not all(type(c) is str for c in f.choices):
+        return None
+    return Literal[tuple(f.choices)]
+
+
+def _typed_field(f: Field) -> Any:
+    if f.kind == "counts":
+        lo = 0 if f.min is None else f.min
+        return dict[str, Annotated[int, msgspec.Meta(ge=math.ceil(lo))]] if _finite_number(lo) else None
+    item = _typed_value(f, f.name)
+    if item is None or not f.kind.endswith("[]"):
+        return item
+    return list[item] if f.length is None else Annotated[list[item], msgspec.Meta(min_length=f.length,
+                                                                                  max_length=f.length)]
+
+
+def _typed_decoder(m: Message) -> Callable[[bytes], dict] | None:
+    """msgspec's decoder of `m` checking every field in C (the same checks as `_field_checks`), or
+    None where one of them cannot be said so. It takes only payloads of the project's layout
+    (_layout_prefix): a TypedDict ignores unknown keys, which that layout's entry counts exclude."""
+    if type(m.version) is not int:
+        return None
+    header = {f.name: _typed_field(f) for f in HEADER_FIELDS}
+    fields = {f.name: _typed_field(f) for f in m.fields}
+    if any(t is None for t in (*header.values(), *fields.values())) or {"version", "header"} & set(fields):
+        return None
+    definition = TypedDict(f"{m.name}_typed", {"version": Literal[m.version],
+                                               "header": TypedDict(f"{m.name}_header", header), **fields})
+    return msgspec.msgpack.Decoder(definition).decode
+
+
 # what `encode` leaves as it is (anything else goes through _plain first)
 _AS_IS = {"float": ("float", "int"), "int": ("int",), "bool": ("bool",), "str": ("str",), "counts": ("dict",),
           "bytes": ("bytes",)}
@@ -486,8 +552,9 @@ def _compile(m: Message) -> dict:
            "        pass",
            "    return None",
            ""]
+    typed = _typed_decoder(m)
     for name in ("_decode", "_accept"):   # msgspec first; anything it refuses or a check fails on: msgpack's decide
-        src += [f"def {name}(payload):",
+        src += [f"def {name}_untyped(payload):",
                 f"    if len(payload) <= {size}:",
                 "        try:",
                 "            doc = _fast_unpack(payload)",
@@ -495,6 +562,22 @@ def _compile(m: Message) -> dict:
                 "            return doc",
                 "        except Exception:",
                 "            pass",
+                f"    return {name}_msgpack(payload)",
+                ""]
+        if typed is None:
+            src += [f"{name} = {name}_untyped", ""]
+            continue
+        # the project's layout: checked whole in C; another layout: unpacked, then checked in Python
+        src += [f"def {name}(payload):",
+                f"    if len(payload) <= {size}:",
+                "        try:",
+                "            if payload.startswith(_LAYOUT):",
+                "                doc = _typed_unpack(payload)",
+                *["        " + line for line in check],
+                "                return doc",
+                "        except Exception:",
+                f"            return {name}_msgpack(payload)",
+                f"        return {name}_untyped(payload)",
                 f"    return {name}_msgpack(payload)",
                 ""]
     src += [
@@ -549,6 +632,7 @@ def _compile(m: Message) -> dict:
         "_SchemaError": SchemaError, "_unpackb": msgpack.unpackb, "_validate_reference": _validate_reference,
         "_encode_reference": _encode_reference, "_plain": _plain, "_packers": _packers, "_get_ident": _get_ident,
         "_new_packer": _new_packer, "_fast_pack": _fast_pack, "_fast_unpack": _fast_unpack,
+        "_typed_unpack": typed, "_LAYOUT": _layout_prefix(m),
         "_INF": math.inf, "_NEG_INF": -math.inf, **consts,
     }
     exec(compile(source, f"<schemas codec {m.name}>", "exec"), namespace)

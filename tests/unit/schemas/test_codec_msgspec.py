@@ -132,3 +132,31 @@ def test_decoding_accepts_and_rejects_as_msgpack_did(m):
         assert outcome(m.decode, payload) == expected, what
         if m.fast_exact:
             assert m.accept(payload) == (expected[1] if expected[0] == "ok" else None), what
+
+
+@pytest.mark.parametrize("m", schemas.ALL, ids=lambda m: m.name)
+def test_every_message_is_checked_whole_by_msgspec_on_the_projects_layout(m):
+    """Every definition's checks can be said as msgspec types (a new field kind or bound that cannot
+    falls back to the slower Python checks: make it expressible, or drop it from this test)."""
+    assert core._typed_decoder(m) is not None
+    assert m.encode(1.0, 3, "sim", valid_values(m)).startswith(core._layout_prefix(m))
+
+
+@pytest.mark.parametrize("m", CODEC_CASES, ids=lambda m: m.name)
+def test_the_projects_layout_with_a_key_too_many_or_a_key_twice_is_rejected_as_msgpack_did(m):
+    """msgspec's typed maps ignore unknown keys; the layout's entry counts are what refuses them."""
+    doc = valid_doc(m)
+    name = m.fields[0].name
+    cases = {   # (a key overridden in a dict keeps its place: "version", "header" stay first)
+        "unknown header key": pack({**doc, "header": {**HEADER, "extra": 1}}),
+        "unknown key": pack({**doc, "extra": 1}),
+        "header key twice, one missing": pack({**doc, "header": HEADER})
+        .replace(pack("source"), pack("seq"), 1),
+    }
+    if len(m.fields) > 1:
+        cases["field twice, one missing"] = pack(doc).replace(pack(m.fields[1].name), pack(name), 1)
+    for what, payload in cases.items():
+        expected = outcome(reference_decode, m, payload)
+        assert expected[0] == "error", what
+        assert outcome(m.decode, payload) == expected, what
+        assert m.accept(payload) is None, what
