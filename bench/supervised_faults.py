@@ -6,7 +6,11 @@ simulator's first tick the fault: `kill` (SIGKILL), `stop2` (SIGSTOP, SIGCONT 2 
 later the driver that took over: the restarted one, now the standby, must take over in turn);
 `stutter15` / `stutter40` (stopped 15 / 40 ms every 200 ms, ten times: under and over the
 standby's 25 ms bound); `supstop600`: not a service but the supervisor (`zenpilot fly`'s process)
-stopped 0.6 s, every service healthy (the service named is only the row's label).
+stopped 0.6 s, every service healthy (the service named is only the row's label); `freezeall1000`:
+every service of the flight but the simulator (the world goes on) frozen at once for 1 s by the
+cgroup freezer, then thawed: their loops blocked, not stopped (/proc state D, not T), no beat from
+anyone, which a supervisor could take for its own deafness (the service named is only the row's
+label; needs a writable /sys/fs/cgroup/freezer, cgroup v1, as root).
 Printed per flight: when the supervisor saw it (after the fault), what it did (its events), the
 failsafes the services counted, and the flight's outcome
 on the simulator's truth (completed, crashed, touchdown speed).
@@ -50,6 +54,9 @@ STUTTERS = {"stutter15": 0.015, "stutter40": 0.040}
 # the supervisor itself starved: its `zenpilot fly` process stopped this long (no poll, no beat
 # received), every service healthy: nothing must be judged stuck, nothing killed
 SUPSTOP = {"supstop600": 0.6}
+# every loop of the machine blocked at once (a hung disk, a frozen cgroup), this long, then thawed
+FREEZE_ALL = {"freezeall1000": 1.0}
+FREEZER = Path("/sys/fs/cgroup/freezer")
 
 
 def cmdline(pid: int) -> list[bytes]:
@@ -72,6 +79,38 @@ def service_pid(out: Path, service: str, instance: str | None = None) -> int:
     if len(found) != 1:
         raise SystemExit(f"bench: expected one {service} process of {out}, found {found}")
     return found[0]
+
+
+def vehicle_services(out: Path) -> list[int]:
+    """Every service process of the flight but the simulator's: those started with the recorder's
+    router endpoint."""
+    recorder = service_pid(out, "recorder")
+    endpoint = cmdline(recorder)[cmdline(recorder).index(b"-e") + 1]
+    return [int(p) for p in os.listdir("/proc") if p.isdigit() and endpoint in cmdline(int(p))
+            and b"services." in b" ".join(cmdline(int(p))) and b"services.sim" not in cmdline(int(p))]
+
+
+def freeze_all(pids: list[int], seconds: float) -> float:
+    """Freeze `pids` together in a cgroup of their own for `seconds`, thaw, put them back; the time
+    they were frozen."""
+    group = FREEZER / f"zenpilot-bench-{os.getpid()}"
+    group.mkdir()
+    try:
+        for pid in pids:
+            (group / "cgroup.procs").write_text(str(pid))
+        (group / "freezer.state").write_text("FROZEN")
+        t0 = time.monotonic()
+        time.sleep(seconds)
+        (group / "freezer.state").write_text("THAWED")
+        return time.monotonic() - t0
+    finally:
+        (group / "freezer.state").write_text("THAWED")
+        for pid in (group / "cgroup.procs").read_text().split():
+            try:
+                (FREEZER / "cgroup.procs").write_text(pid)
+            except OSError:   # gone meanwhile (killed by the supervisor)
+                pass
+        group.rmdir()
 
 
 def cpu_s(pid: int) -> float:
@@ -126,7 +165,11 @@ def fly_with(out: Path, service: str, fault: str, at_s: float, seed: int, standb
             time.sleep(at_s)
         pid = service_pid(out, service)
         injected = time.time()
-        if fault in SUPSTOP:   # the launcher, not the service: timed as the stutters are
+        if fault in FREEZE_ALL:
+            pids = vehicle_services(out)
+            frozen = freeze_all(pids, FREEZE_ALL[fault])
+            print(f"bench: {fault}: {len(pids)} services frozen {1e3 * frozen:.0f} ms", flush=True)
+        elif fault in SUPSTOP:   # the launcher, not the service: timed as the stutters are
             try:
                 os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(95))
             except OSError:
@@ -170,12 +213,14 @@ def fly_with(out: Path, service: str, fault: str, at_s: float, seed: int, standb
             proc.kill()
             proc.wait()
     record = json.loads((out / "supervisor.json").read_text())
-    events = [e for e in record["events"] if e["service"] in (service, service + ".b")]   # a standby's too
+    events = [e for e in record["events"] if e["service"] in (service, service + ".b")   # a standby's too
+              or fault in FREEZE_ALL]
     # the fault's own detection (not an earlier event, e.g. a start-up's under load)
     seen = [e for e in events if e["service"] == service and record["started_unix"] + e["t_s"] >= injected - 0.05]
     metrics = json.loads((out / "metrics.json").read_text()) if (out / "metrics.json").exists() else {}
     # what it judged of the others (a healthy loop taken for hung: a starved supervisor), and its own stalls
-    faulted = () if fault in SUPSTOP else (service, service + ".b")   # supstop: every service is healthy
+    faulted = (() if fault in SUPSTOP   # supstop: every service is healthy; freezeall: every one faulted
+               else tuple(record["services"]) if fault in FREEZE_ALL else (service, service + ".b"))
     others = [e for e in record["events"] if e["service"] not in (*faulted, "supervisor")
               and e["event"] in ("stuck", "silent", "hung")]
     return {"rc": proc.returncode, "events": events, "after": after_fault(out, injected), "cpu": cpu, "others": others,
@@ -211,7 +256,8 @@ def after_fault(out: Path, injected: float, window_s: float = 5.0) -> dict:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--services", nargs="+", default=list(SERVICES), choices=SERVICES)
-    ap.add_argument("--faults", nargs="+", default=list(FAULTS), choices=(*FAULTS, KILL2, *STUTTERS, *SUPSTOP))
+    ap.add_argument("--faults", nargs="+", default=list(FAULTS),
+                    choices=(*FAULTS, KILL2, *STUTTERS, *SUPSTOP, *FREEZE_ALL))
     ap.add_argument("--at", type=float, default=5.0, help="wall seconds after the first tick")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="runs/bench-supervised-faults")
@@ -225,6 +271,8 @@ def main() -> int:
     args = ap.parse_args()
     if args.load < 0:
         ap.error("--load: expected N >= 0")
+    if set(FREEZE_ALL) & set(args.faults) and not os.access(FREEZER, os.W_OK):
+        ap.error(f"--faults {' '.join(FREEZE_ALL)}: needs a writable {FREEZER} (cgroup v1's freezer, as root)")
     if KILL2 in args.faults and not (args.standby and args.services == ["motors"]):
         ap.error(f"--faults {KILL2}: with --standby --services motors")
     if args.hang_restart_s is not None and not (args.standby and 0.1 <= args.hang_restart_s <= 60.0):

@@ -122,6 +122,7 @@ class Launcher:
     machine: str | None = None  # the stack's machine whose router this starts (None: a bare router)
     spare: subprocess.Popen | None = None   # the supervisor's warm spare (start_spare), real time
     die_with_parent: bool = False   # its processes end when this one does (services.runtime.tie_to_parent)
+    dying: list[subprocess.Popen] = field(default_factory=list)   # killed, not reaped yet (kill)
 
     def __post_init__(self):
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
@@ -253,11 +254,15 @@ class Launcher:
         self.spare = None
 
     def kill(self, name: str) -> None:
-        """SIGKILL a service (the supervisor's answer to a hang) and reap it."""
+        """SIGKILL a service (the supervisor's answer to a hang), not waiting for it to end: one
+        blocked in the kernel (a hung disk, a frozen cgroup) dies only when it wakes, without
+        running again, and the supervisor must not wait with it (it did: 0.3-0.4 s, and forever
+        for a disk that never answers). Reaped at a later kill or at the stop."""
         proc = self.procs[name]
         if proc.poll() is None:
             proc.kill()
-            proc.wait()
+            self.dying.append(proc)
+        self.dying = [p for p in self.dying if p.poll() is None]
 
     def wait_alive(self, names: list[str], timeout_s: float = 30.0) -> set[str]:
         """Wait for every service's liveliness token; returns the ones still missing."""
@@ -311,9 +316,21 @@ class Launcher:
                 if group == ["recorder"]:
                     time.sleep(DELIVERY_S)
                 self.stop(group, grace_s)
+            self._reap_dying(STOP_GRACE_S)
         finally:
             for sig, handler in previous.items():
                 signal.signal(sig, handler)
+
+    def _reap_dying(self, timeout_s: float) -> None:
+        """Wait up to `timeout_s` for the processes killed in flight; say which never ended."""
+        deadline = time.monotonic() + timeout_s
+        for proc in self.dying:
+            try:
+                proc.wait(max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                print(f"zenpilot: process {proc.pid}, killed as hung, has not ended (blocked in the kernel)",
+                      file=sys.stderr, flush=True)
+        self.dying = [p for p in self.dying if p.poll() is None]
 
     def failed(self) -> dict[str, int]:
         """Services that exited with an error status."""

@@ -41,7 +41,11 @@ silence: a poll later than STALL_S past its due time (the supervisor starved), a
 which no beat at all arrived while two or more of this machine's loops had been beating (its
 reception starved: independent processes do not all stop at once). A service is stuck only for
 beats it missed while the supervisor was demonstrably watching. Both are counted in
-supervisor.json (`own`) and its health; one longer than POLL_S is an event.
+supervisor.json (`own`) and its health; one longer than POLL_S is an event. What no stall of the
+supervisor explains is a silent loop whose thread has neither run nor waited to run for
+LOOP_IDLE_S (its times in /proc/<pid>/schedstat unchanged: blocked, e.g. every loop of the machine
+waiting on the same hung disk): that silence counts whole, so loops that all hang at once are
+still killed, while a starved one (waiting to run) is not taken for hung.
 
 Restarts happen in real time only. In lockstep a lost participant is dropped from the clock
 (services/lockstep.py) and a new process cannot rejoin a clock already running, so there the
@@ -70,6 +74,7 @@ HEALTH_SILENCE_S = 3.0
 START_S = 30.0   # a service silent this long before its first beat has hung in its start-up
 BEAT_SILENCE_S = 0.3   # three beats missed (services/runtime.BEAT_PERIOD_S): seen within 0.4 s
 REMOTE_BEAT_SILENCE_S = 0.5   # another host's service: its beats cross a link (jitter, a lost segment)
+LOOP_IDLE_S = 0.2   # a loop's thread neither running nor waiting to this long is blocked (it beats every 0.1 s)
 STALL_S = 0.05   # a poll this late past its due time: the supervisor was starved, not the services
 DEAF_S = 0.15    # no beat from anyone this long, two or more loops beating: its reception was starved
 BEATING_WITHIN_S = 1.0   # a source counts as beating when the quiet began if it beat this recently
@@ -125,6 +130,18 @@ def backoff_s(restarts: int) -> float:
     return FIRST_BACKOFF_S if restarts == 0 else min(BACKOFF_MAX_S, BACKOFF_S * 2 ** (restarts - 1))
 
 
+def loop_runnable_ns(pid: int) -> int | None:
+    """How long the process's main thread (a service's loop) has run on a CPU or waited for one,
+    in ns (/proc/<pid>/schedstat: on-CPU + run-queue time): constant only while it is blocked, a
+    starved thread's grows too. None where unreadable."""
+    try:
+        with open(f"/proc/{pid}/schedstat") as fh:
+            ran, waited, _ = fh.read().split()
+        return int(ran) + int(waited)
+    except (OSError, ValueError):
+        return None
+
+
 def process_state(pid: int) -> str | None:
     """The one-letter state of /proc/<pid>/stat (R, S, D, T, t, Z, ...); None where unreadable."""
     try:
@@ -154,6 +171,10 @@ class Watch:
     last_health: float | None = None
     last_beat: float | None = None   # None: no beat since its (re)start
     since: float | None = None     # when the present stop or silence began
+    ran_ns: int | None = None      # its loop's time running or waiting to (loop_runnable_ns), as last read
+    ran_at: float | None = None    # when it was last seen to have grown
+    ran_beat: float | None = None  # the beat after which it was last read
+    idle: bool = False             # stuck with its loop's thread not running: no stall discounted
 
 
 @dataclass
@@ -171,9 +192,12 @@ class Supervisor:
 
     def __init__(self, launcher, names: list[str], real_time: bool,
                  say: Callable[[str], None] = print, clock: Callable[[], float] = time.monotonic,
-                 publish: Callable[[dict], None] | None = None, remote: list[str] = ()):
+                 publish: Callable[[dict], None] | None = None, remote: list[str] = (),
+                 loop_runnable: Callable[[int], int | None] = loop_runnable_ns):
         """publish(health): called with health_message() once a second from poll() (None: not).
-        remote: other machines' services, watched by their beats (real time) and reported only."""
+        remote: other machines' services, watched by their beats (real time) and reported only.
+        loop_runnable(pid): how long a service's loop thread has run or waited to, in ns (None: unknown)."""
+        self.loop_runnable = loop_runnable
         self.launcher = launcher
         self.publish = publish
         self._published = None
@@ -264,9 +288,10 @@ class Supervisor:
                     self._event(name, "stopped", "the process is stopped (SIGSTOP or a debugger)")
                 elif state == "stuck":
                     w.stucks += 1
-                    own = self.discounted(w.last_beat, now)
+                    own = 0.0 if w.idle else self.discounted(w.last_beat, now)
                     self._event(name, "stuck", f"its loop sent no beat for {now - w.last_beat - own:.2f} s"
-                                + (f" (and {own:.2f} s of the supervisor's own stalls, not counted)" if own else ""))
+                                + (f" (and {own:.2f} s of the supervisor's own stalls, not counted)" if own else "")
+                                + (f" and its thread has been blocked for {now - w.ran_at:.2f} s" if w.idle else ""))
                 elif state == "silent":
                     w.silences += 1
                     self._event(name, "silent", f"no health message for {now - self._health_since(w):.1f} s")
@@ -277,7 +302,8 @@ class Supervisor:
                 w.state, w.since = state, (now if state != "running" else None)
             bound = w.hang_s if state != "silent" else START_S   # silent: not beating yet, maybe starting
             # stuck: judged by beats, so only while the supervisor was watching (a stop is /proc's)
-            lasted = None if w.since is None else now - w.since - (self.discounted(w.since, now) if state == "stuck" else 0.0)
+            own = self.discounted(w.since, now) if state == "stuck" and not w.idle else 0.0
+            lasted = None if w.since is None else now - w.since - own
             if lasted is not None and lasted >= bound and self._restarts(name, w, -1):
                 self.launcher.kill(name)   # a stopped process dies of SIGKILL too
                 w.hangs += 1
@@ -304,9 +330,24 @@ class Supervisor:
         if not self.real_time:
             return "running"
         if w.last_beat is not None:
-            silence = now - w.last_beat - self.discounted(w.last_beat, now)
-            return "stuck" if silence > BEAT_SILENCE_S else "running"
+            heard = now - w.last_beat
+            w.idle = self._loop_idle(w, pid, now, silent=heard > BEAT_SILENCE_S)
+            if w.idle:
+                return "stuck"
+            return "stuck" if heard - self.discounted(w.last_beat, now) > BEAT_SILENCE_S else "running"
         return "silent" if now - self._health_since(w) > HEALTH_SILENCE_S else "running"
+
+    def _loop_idle(self, w: Watch, pid: int, now: float, silent: bool) -> bool:
+        """True if the `silent` loop's thread has neither run nor waited to for LOOP_IDLE_S (/proc is read at
+        the first poll after each beat, and at every poll while silent)."""
+        if not silent and w.ran_beat == w.last_beat:
+            return False
+        w.ran_beat = w.last_beat
+        ran = self.loop_runnable(pid)
+        if ran is None or ran != w.ran_ns:
+            w.ran_ns, w.ran_at = ran, now
+            return False
+        return silent and now - w.ran_at > LOOP_IDLE_S
 
     # -- its own stalls -----------------------------------------------------------------
     def _own_stalls(self, now: float) -> None:

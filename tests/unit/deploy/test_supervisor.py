@@ -12,7 +12,7 @@ import pytest
 
 import deploy.supervisor
 from deploy.supervisor import (BEAT_SILENCE_S, HEALTH_SILENCE_S, POLL_S, PRIORITY_ENV, REMOTE_BEAT_SILENCE_S, START_S,
-                               Supervisor, backoff_s, process_state, supervisor_priority)
+                               Supervisor, backoff_s, loop_runnable_ns, process_state, supervisor_priority)
 from services.stack import StackError, load_stack
 
 
@@ -324,6 +324,63 @@ def test_a_real_hang_is_still_seen_within_half_a_second_and_killed(tmp_path):
     assert sup.watches["motors"].state == "stuck" and sup.own["deaf"] == 0
 
 
+class LoopThreads:
+    """The loops' threads' running-or-waiting time as /proc would show it: growing at each read
+    for those `running`."""
+
+    def __init__(self, sup, running):
+        self.sup, self.running, self.ran = sup, set(running), {}
+        sup.loop_runnable = self
+
+    def __call__(self, pid):
+        name = next(n for n, p in self.sup.launcher.procs.items() if p.pid == pid)
+        self.ran[name] = self.ran.get(name, 0) + (50_000 if name in self.running else 0)
+        return self.ran[name]
+
+
+def test_loops_that_all_hang_at_once_are_killed_though_no_beat_arrives_from_anyone(tmp_path):
+    # every loop blocked at once (e.g. on one hung disk): no beat from anyone looks like a deaf
+    # supervisor, but /proc shows the loops' threads have neither run nor waited to since
+    sup, launcher, clock, said = flying(tmp_path)
+    threads = LoopThreads(sup, running=LOOPS)
+    run_for(sup, clock, 0.5, beating=list(LOOPS))
+    hung = clock.t
+    threads.running = set()
+    run_for(sup, clock, 0.4)
+    assert all(w.state == "stuck" and w.idle for w in sup.watches.values()), said
+    assert "and its thread has been blocked for 0.40 s" in said[-1], said   # seen within 0.5 s
+    run_for(sup, clock, 1.1)   # the motor driver's bound 0.2 s, the others' 1.0 s
+    assert sorted(launcher.killed) == sorted(LOOPS) and clock.t - hung <= 1.5 + 1e-9, said
+
+
+def test_a_deaf_supervisor_still_kills_no_loop_whose_thread_runs(tmp_path):
+    # no beat delivered for 0.6 s, every loop's thread running: its own deafness, as before
+    sup, launcher, clock, said = flying(tmp_path)
+    threads = LoopThreads(sup, running=LOOPS)
+    run_for(sup, clock, 0.6)
+    assert launcher.killed == [] and all(w.state == "running" for w in sup.watches.values()), said
+    # ... but one of them whose thread is blocked is stuck, the others spared
+    threads.running = {"attitude", "position"}
+    run_for(sup, clock, 0.6)
+    assert launcher.killed == ["motors"] and sup.watches["attitude"].state == "running", said
+
+
+def test_a_loops_running_and_waiting_time_is_read_from_proc():
+    blocked = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        time.sleep(0.5)   # imports done: the sleeper blocks from here
+        first = {p: loop_runnable_ns(p.pid) for p in (blocked, busy)}
+        time.sleep(0.3)
+        assert loop_runnable_ns(blocked.pid) == first[blocked]
+        assert loop_runnable_ns(busy.pid) > first[busy]
+    finally:
+        for p in (blocked, busy):
+            p.kill()
+            p.wait()
+    assert loop_runnable_ns(blocked.pid) is None   # gone
+
+
 def test_the_watch_thread_polls_on_its_own_and_says_what_ended_it(tmp_path):
     launcher, said = FakeLauncher(tmp_path, {"attitude": ("never", 3)}), []
     sup = Supervisor(launcher, ["attitude"], True, say=said.append)
@@ -381,3 +438,38 @@ def test_its_real_time_scheduling_holds_or_is_reported_and_its_children_start_no
         assert got["others"] == [os.SCHED_FIFO] and got["child"] == os.SCHED_OTHER, got
     else:
         assert got["said"].startswith("priority 1 refused") and got["said"].endswith("normal scheduling"), got
+
+
+FREEZER = Path("/sys/fs/cgroup/freezer")
+
+
+@pytest.mark.skipif(not os.access(FREEZER, os.W_OK), reason="needs cgroup v1's freezer, writable (root)")
+def test_the_launcher_kills_a_process_blocked_in_the_kernel_without_waiting_for_it(tmp_path):
+    """A process frozen by the cgroup freezer (as one blocked on a hung disk) dies of SIGKILL only
+    when it wakes: the supervisor's kill must return at once, and the process be reaped later."""
+    from deploy.launcher import Launcher
+    launcher = Launcher(load_stack(None), tmp_path / "run", "tcp/127.0.0.1:7447")
+    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    launcher.procs["attitude"] = proc
+    group = FREEZER / f"zenpilot-test-{os.getpid()}"
+    group.mkdir()
+    try:
+        (group / "cgroup.procs").write_text(str(proc.pid))
+        (group / "freezer.state").write_text("FROZEN")
+        for _ in range(200):
+            if (group / "freezer.state").read_text().strip() == "FROZEN":
+                break
+            time.sleep(0.01)
+        t0 = time.monotonic()
+        launcher.kill("attitude")
+        assert time.monotonic() - t0 < 0.2 and proc.poll() is None and launcher.dying == [proc]
+        time.sleep(0.2)
+        assert proc.poll() is None   # frozen: the kill waits for it to wake
+        (group / "freezer.state").write_text("THAWED")
+        launcher._reap_dying(5.0)
+        assert proc.returncode == -signal.SIGKILL and launcher.dying == []
+    finally:
+        (group / "freezer.state").write_text("THAWED")
+        proc.kill()
+        proc.wait()
+        group.rmdir()
