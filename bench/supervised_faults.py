@@ -7,10 +7,12 @@ later the driver that took over: the restarted one, now the standby, must take o
 `stutter15` / `stutter40` (stopped 15 / 40 ms every 200 ms, ten times: under and over the
 standby's 25 ms bound); `supstop600`: not a service but the supervisor (`zenpilot fly`'s process)
 stopped 0.6 s, every service healthy (the service named is only the row's label); `freezeall1000`:
-every service of the flight but the simulator (the world goes on) frozen at once for 1 s by the
-cgroup freezer, then thawed: their loops blocked, not stopped (/proc state D, not T), no beat from
-anyone, which a supervisor could take for its own deafness (the service named is only the row's
-label; needs a writable /sys/fs/cgroup/freezer, cgroup v1, as root).
+every service of the flight (the simulator too) frozen at once for 1 s by the cgroup freezer, then
+thawed: their loops blocked, not stopped (/proc state D, not T), no beat from anyone, which a
+supervisor could take for its own deafness, as on a vehicle whose every loop hangs;
+`freezeloops1000`: the same but the simulator (the world goes on, and its beats with it). The
+service named is only the row's label; both need a writable /sys/fs/cgroup/freezer (cgroup v1,
+as root).
 Printed per flight: when the supervisor saw it (after the fault), what it did (its events), the
 failsafes the services counted, and the flight's outcome
 on the simulator's truth (completed, crashed, touchdown speed).
@@ -54,8 +56,9 @@ STUTTERS = {"stutter15": 0.015, "stutter40": 0.040}
 # the supervisor itself starved: its `zenpilot fly` process stopped this long (no poll, no beat
 # received), every service healthy: nothing must be judged stuck, nothing killed
 SUPSTOP = {"supstop600": 0.6}
-# every loop of the machine blocked at once (a hung disk, a frozen cgroup), this long, then thawed
-FREEZE_ALL = {"freezeall1000": 1.0}
+# every loop of the machine blocked at once (a hung disk, a frozen cgroup) this long, then thawed;
+# the simulator with them or not
+FREEZE_ALL = {"freezeall1000": (1.0, True), "freezeloops1000": (1.0, False)}
 FREEZER = Path("/sys/fs/cgroup/freezer")
 
 
@@ -81,13 +84,13 @@ def service_pid(out: Path, service: str, instance: str | None = None) -> int:
     return found[0]
 
 
-def vehicle_services(out: Path) -> list[int]:
-    """Every service process of the flight but the simulator's: those started with the recorder's
-    router endpoint."""
+def flight_services(out: Path, sim: bool) -> list[int]:
+    """Every service process of the flight (those started with the recorder's router endpoint),
+    the simulator's with them or not."""
     recorder = service_pid(out, "recorder")
     endpoint = cmdline(recorder)[cmdline(recorder).index(b"-e") + 1]
     return [int(p) for p in os.listdir("/proc") if p.isdigit() and endpoint in cmdline(int(p))
-            and b"services." in b" ".join(cmdline(int(p))) and b"services.sim" not in cmdline(int(p))]
+            and b"services." in b" ".join(cmdline(int(p))) and (sim or b"services.sim" not in cmdline(int(p)))]
 
 
 def freeze_all(pids: list[int], seconds: float) -> float:
@@ -166,8 +169,9 @@ def fly_with(out: Path, service: str, fault: str, at_s: float, seed: int, standb
         pid = service_pid(out, service)
         injected = time.time()
         if fault in FREEZE_ALL:
-            pids = vehicle_services(out)
-            frozen = freeze_all(pids, FREEZE_ALL[fault])
+            seconds, with_sim = FREEZE_ALL[fault]
+            pids = flight_services(out, with_sim)
+            frozen = freeze_all(pids, seconds)
             print(f"bench: {fault}: {len(pids)} services frozen {1e3 * frozen:.0f} ms", flush=True)
         elif fault in SUPSTOP:   # the launcher, not the service: timed as the stutters are
             try:
