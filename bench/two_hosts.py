@@ -1,15 +1,16 @@
 """Fly a mission over two hosts, across an emulated link, and the same mission on one host, and compare.
 
     python bench/two_hosts.py [--mission hover|flip-short|FILE] [--seed N] [--lockstep]
-                              [--placement vehicle|ground] [--link none|lan|bad|D/J/L]
+                              [--placement vehicle|ground] [--link none|lan|bad|lan100|lan100-qos|D/J/L]
                               [--emulator auto|netem|forwarder] [--out DIR] [--no-one-host]
                               [--flood BYTES@HZ[:PRIORITY]] [--stop SERVICE@T_S[:FOR_S]]
 
 Two hosts are two network namespaces that this bench creates (root, `ip netns`): "vehicle"
 (10.77.0.1/24) and "ground" (10.77.0.2/24), loopback up in each, nothing else: no route out, so
 nothing of the run can leave them. The link between them (`--link`, each direction alike):
-`none` a veth pair; `lan` 20 +- 5 ms, 1 % loss; `bad` 50 +- 20 ms, 5 % loss; or
-DELAY_MS/JITTER_MS/LOSS_PCT. An impaired link is `tc netem` on both ends of the veth pair where
+`none` a veth pair; `lan` 20 +- 5 ms, 1 % loss; `bad` 50 +- 20 ms, 5 % loss; `lan100` lan of
+100 Mbit/s, one queue; `lan100-qos` the same with the packets marked DSCP 46 (the stack's control
+links) sent first; or DELAY_MS/JITTER_MS/LOSS_PCT. An impaired link is `tc netem` on both ends of the veth pair where
 the kernel has it, else (this VM) a third namespace "link" joined to each host by a veth pair,
 bench/support/linkemu.py forwarding the frames between them with the delay drawn per frame and
 the loss seeded (`--link-seed`); either way a direction keeps its packets in order.
@@ -105,24 +106,35 @@ LOCAL_ROUTER = "tcp/127.0.0.1:7447"   # the ground placement's router on each ho
 
 @dataclasses.dataclass(frozen=True)
 class LinkProfile:
-    """One way of the link: delay drawn uniformly in delay +- jitter per packet, loss at random."""
+    """One way of the link: delay drawn uniformly in delay +- jitter per packet, loss at random;
+    with rate_mbit, a capacity (the forwarder's wire), and with priority_dscp its packets marked
+    that DSCP or above sent first (bench/support/linkemu.py)."""
     name: str
     delay_ms: float = 0.0
     jitter_ms: float = 0.0
     loss_pct: float = 0.0
+    rate_mbit: float = 0.0
+    priority_dscp: int | None = None
 
     @property
     def impaired(self) -> bool:
-        return bool(self.delay_ms or self.jitter_ms or self.loss_pct)
+        return bool(self.delay_ms or self.jitter_ms or self.loss_pct or self.rate_mbit)
 
     def __str__(self) -> str:
         if not self.impaired:
             return f"{self.name} (a plain veth pair)"
-        return f"{self.name} ({self.delay_ms:g} +- {self.jitter_ms:g} ms, {self.loss_pct:g} % loss each way)"
+        wire = ""
+        if self.rate_mbit:
+            wire = f", {self.rate_mbit:g} Mbit/s" + (f", DSCP >= {self.priority_dscp} first"
+                                                     if self.priority_dscp is not None else ", one queue")
+        return f"{self.name} ({self.delay_ms:g} +- {self.jitter_ms:g} ms, {self.loss_pct:g} % loss each way{wire})"
 
 
 PROFILES = {"none": LinkProfile("none"), "lan": LinkProfile("lan", 20.0, 5.0, 1.0),
-            "bad": LinkProfile("bad", 50.0, 20.0, 5.0)}
+            "bad": LinkProfile("bad", 50.0, 20.0, 5.0),
+            # lan of 100 Mbit/s: one queue, or queues by DSCP (the stack marks its control links EF, 46)
+            "lan100": LinkProfile("lan100", 20.0, 5.0, 1.0, 100.0),
+            "lan100-qos": LinkProfile("lan100-qos", 20.0, 5.0, 1.0, 100.0, 46)}
 
 
 def parse_profile(text: str) -> LinkProfile:
@@ -194,7 +206,10 @@ class TwoHosts:
             self.created.append(self.ns[host])
         for host in ("vehicle", "ground"):
             run(["ip", "-n", self.ns[host], "link", "set", "lo", "up"])
-        if self.profile.impaired and self.emulator in ("auto", "netem") and self._netem():
+        if self.profile.rate_mbit and self.emulator == "netem":
+            raise BenchError(f"--link {self.profile.name}: its capacity and queues are the forwarder's "
+                             f"(--emulator forwarder)")
+        if self.profile.impaired and not self.profile.rate_mbit and self.emulator in ("auto", "netem") and self._netem():
             self.method = "netem"
         elif self.profile.impaired:
             self._forwarder()
@@ -251,7 +266,9 @@ class TwoHosts:
             self.argv("link", [sys.executable, "-m", "bench.support.linkemu", self.link_dev["vehicle"],
                                self.link_dev["ground"], "--delay-ms", str(p.delay_ms), "--jitter-ms", str(p.jitter_ms),
                                "--loss-pct", str(p.loss_pct), "--seed", str(self.link_seed),
-                               "--stats", str(self.out / "link" / "linkemu.json")]),
+                               "--stats", str(self.out / "link" / "linkemu.json"),
+                               *(["--rate-mbit", str(p.rate_mbit)] if p.rate_mbit else []),
+                               *(["--priority-dscp", str(p.priority_dscp)] if p.priority_dscp is not None else [])]),
             cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + 10.0
         while "linkemu:" not in (self.out / "link" / "linkemu.log").read_text():
@@ -822,7 +839,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--link", type=parse_profile, default=PROFILES["none"],
                    help="the link: none (a plain veth pair), lan (20 +- 5 ms, 1 %% loss each way), "
-                        "bad (50 +- 20 ms, 5 %%), or DELAY_MS/JITTER_MS/LOSS_PCT")
+                        "bad (50 +- 20 ms, 5 %%), lan100 (lan of 100 Mbit/s), lan100-qos (the same, DSCP 46 "
+                        "first), or DELAY_MS/JITTER_MS/LOSS_PCT")
     p.add_argument("--emulator", choices=("auto", "netem", "forwarder"), default="auto",
                    help="what impairs the link: tc netem where the kernel has it (auto), else the forwarder "
                         "(bench/support/linkemu.py in a third namespace)")

@@ -2,6 +2,7 @@
 
     python -m bench.support.linkemu IF_A IF_B --delay-ms 20 --jitter-ms 5 --loss-pct 1
                                     [--seed N] [--reorder] [--stats FILE]
+                                    [--rate-mbit R [--priority-dscp D] [--queue-kb K]]
 
 Run inside a third network namespace that holds IF_A and IF_B, the inner ends of two veth pairs
 (host A <-> IF_A, IF_B <-> host B). Every Ethernet frame that arrives on one is sent out of the
@@ -22,6 +23,14 @@ a spurious retransmission and a smaller window). netem's own default reorders (i
 by send time): `--reorder` does that. Keeping the order at a high frame rate shifts the delay up
 towards delay + jitter (a frame waits for the slowest of those just before it): the delay actually
 given is measured and written to the stats.
+
+Capacity (`--rate-mbit R`): the link then carries R Mbit/s each way; a frame waits in a
+transmit queue (K KiB, tail drop) until the wire is free, takes len/R on it, then its delay. By
+default the emulator's capacity is its own CPU's (~17 MB/s here). `--priority-dscp D` gives a
+link that honours DSCP marks, as a WiFi access point's WMM queues or a router's priority qdisc
+do: frames marked D or above (IP TOS >> 2; the stack marks its control links EF, 46) have a
+transmit queue of their own, served first whenever the wire frees (strict priority; a frame
+on the wire is not preempted).
 
 On SIGTERM/SIGINT it writes its stats (per direction: frames in, dropped, sent, delay given p50/p99/max,
 largest frame; process CPU seconds) as JSON to --stats and exits 0.
@@ -47,15 +56,39 @@ SOL_PACKET = 263
 PACKET_VNET_HDR = 15
 PACKET_OUTGOING = 4   # sll_pkttype of a frame this host sent: not ours to forward
 MAX_FRAME = 65536 + 64
+VNET_HDR_LEN = 10     # struct virtio_net_hdr before each frame (PACKET_VNET_HDR)
+HIGH, LOW = 0, 1      # transmit queues (--priority-dscp)
+
+
+def dscp(frame: bytes) -> int:
+    """The DSCP of an IPv4 or IPv6 frame (read with its virtio-net header); 0 for anything else."""
+    eth = VNET_HDR_LEN
+    if len(frame) < eth + 16:
+        return 0
+    kind = frame[eth + 12:eth + 14]
+    if kind == b"\x08\x00":
+        return frame[eth + 15] >> 2
+    if kind == b"\x86\xdd":
+        return (((frame[eth + 14] & 0x0F) << 4) | (frame[eth + 15] >> 4)) >> 2
+    return 0
 
 
 class Direction:
     """One way of the link: frames read on `src`, sent on `dst` at their departure time."""
 
     def __init__(self, name: str, src: socket.socket, dst: socket.socket, delay_s: float, jitter_s: float,
-                 loss: float, seed: int, reorder: bool):
+                 loss: float, seed: int, reorder: bool, rate_bit_s: float = 0.0, priority_dscp: int | None = None,
+                 queue_bytes: int = 256 << 10):
         self.name, self.src, self.dst = name, src, dst
         self.delay_s, self.jitter_s, self.loss, self.reorder = delay_s, jitter_s, loss, reorder
+        # the wire (rate_bit_s > 0): transmit queues, HIGH for frames marked priority_dscp or above
+        self.rate_bit_s, self.priority_dscp, self.queue_bytes = rate_bit_s, priority_dscp, queue_bytes
+        self.tx: tuple[deque, deque] = (deque(), deque())   # (arrival, frame)
+        self.tx_bytes = [0, 0]
+        self.tx_dropped = [0, 0]
+        self.tx_frames = [0, 0]
+        self.tx_delays: tuple[list, list] = ([], [])   # per queue: arrival to the end of its delay, s
+        self.wire_free_at = 0.0
         self.rng = random.Random(seed)
         self.queue: deque = deque()   # (departure, arrival, frame), departures non-decreasing
         self.heap: list = []          # the same with --reorder: by departure time
@@ -79,15 +112,50 @@ class Direction:
             if self.loss and self.rng.random() < self.loss:
                 self.dropped += 1
                 continue
-            d = self.delay_s + (self.rng.uniform(-self.jitter_s, self.jitter_s) if self.jitter_s else 0.0)
-            departure = now + max(d, 0.0)
-            if self.reorder:
-                self.n += 1
-                heapq.heappush(self.heap, (departure, self.n, now, frame))
-            else:
-                departure = max(departure, self.last_departure)
-                self.last_departure = departure
-                self.queue.append((departure, now, frame))
+            if not self.rate_bit_s:
+                self._propagate(now, now, frame)
+                continue
+            c = HIGH if self.priority_dscp is not None and dscp(frame) >= self.priority_dscp else LOW
+            if self.tx_bytes[c] + len(frame) > self.queue_bytes:   # the queue is full: tail drop
+                self.tx_dropped[c] += 1
+                continue
+            self.tx[c].append((now, frame))
+            self.tx_bytes[c] += len(frame)
+            self.tx_frames[c] += 1
+
+    def _propagate(self, t: float, arrival: float, frame: bytes) -> float:
+        """The frame leaves the wire (or arrives, without one) at t: queue it for t + its delay
+        (returned)."""
+        d = self.delay_s + (self.rng.uniform(-self.jitter_s, self.jitter_s) if self.jitter_s else 0.0)
+        departure = t + max(d, 0.0)
+        if self.reorder:
+            self.n += 1
+            heapq.heappush(self.heap, (departure, self.n, arrival, frame))
+        else:
+            departure = max(departure, self.last_departure)
+            self.last_departure = departure
+            self.queue.append((departure, arrival, frame))
+        return departure
+
+    def serialise(self, now: float) -> None:
+        """Put frames on the wire while it is free by `now`, the HIGH queue first."""
+        tx = self.tx
+        while (tx[HIGH] or tx[LOW]) and self.wire_free_at <= now:
+            c = HIGH if tx[HIGH] else LOW
+            arrival, frame = tx[c].popleft()
+            self.tx_bytes[c] -= len(frame)
+            done = max(self.wire_free_at, arrival) + 8 * len(frame) / self.rate_bit_s
+            self.wire_free_at = done
+            departure = self._propagate(done, arrival, frame)
+            if len(self.tx_delays[c]) < 1_000_000:
+                self.tx_delays[c].append(departure - arrival)
+
+    def next_event(self) -> float | None:
+        """When this direction next has something to do: a departure, or the wire freeing."""
+        due = self.next_departure()
+        if self.tx[HIGH] or self.tx[LOW]:
+            due = self.wire_free_at if due is None else min(due, self.wire_free_at)
+        return due
 
     def next_departure(self) -> float | None:
         if self.reorder:
@@ -111,10 +179,20 @@ class Direction:
     def stats(self) -> dict:
         d = sorted(self.delays)
 
-        def q(f: float) -> float | None:
+        def q(f: float, d=d) -> float | None:
             return round(1e3 * d[min(len(d) - 1, int(f * len(d)))], 3) if d else None
 
-        return {"received": self.received, "dropped": self.dropped, "sent": self.sent,
+        def spread(delays: list) -> dict:
+            s = sorted(delays)
+            return {"p50": q(0.5, s), "p99": q(0.99, s), "max": q(1.0, s)}
+
+        wire = {}
+        if self.rate_bit_s:
+            wire = {"wire": {"rate_mbit": self.rate_bit_s / 1e6, "priority_dscp": self.priority_dscp,
+                             "frames": {"high": self.tx_frames[HIGH], "low": self.tx_frames[LOW]},
+                             "delay_ms": {"high": spread(self.tx_delays[HIGH]), "low": spread(self.tx_delays[LOW])},
+                             "queue_full_dropped": {"high": self.tx_dropped[HIGH], "low": self.tx_dropped[LOW]}}}
+        return {**wire, "received": self.received, "dropped": self.dropped, "sent": self.sent,
                 "send_errors": self.send_errors, "queued_at_exit": len(self.queue) + len(self.heap),
                 "largest_frame": self.largest, "delay_ms": {"p1": q(0.01), "p50": q(0.5), "p99": q(0.99),
                                                              "max": q(1.0),
@@ -145,9 +223,16 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--reorder", action="store_true", help="let a shorter draw overtake (netem's default)")
     p.add_argument("--stats", help="write the stats here (JSON) on exit")
+    p.add_argument("--rate-mbit", type=float, default=0.0, help="the link's capacity each way (0: the emulator's)")
+    p.add_argument("--priority-dscp", type=int, help="with --rate-mbit: frames marked this DSCP or above first")
+    p.add_argument("--queue-kb", type=int, default=256, help="with --rate-mbit: each transmit queue's size, KiB")
     args = p.parse_args(argv)
     if args.delay_ms < 0 or args.jitter_ms < 0 or not 0 <= args.loss_pct <= 100:
         p.error("delay and jitter must be >= 0, loss within 0..100")
+    if args.rate_mbit < 0 or args.queue_kb < 1 or (args.priority_dscp is not None and not 0 <= args.priority_dscp <= 63):
+        p.error("--rate-mbit must be >= 0, --queue-kb >= 1, --priority-dscp within 0..63")
+    if args.priority_dscp is not None and not args.rate_mbit:
+        p.error("--priority-dscp needs --rate-mbit (priority orders the wire's queue)")
     try:
         sa, sb = open_socket(args.a), open_socket(args.b)
     except OSError as exc:
@@ -155,7 +240,8 @@ def main(argv=None) -> int:
               file=sys.stderr)
         return 2
     common = dict(delay_s=args.delay_ms / 1e3, jitter_s=args.jitter_ms / 1e3, loss=args.loss_pct / 100,
-                  reorder=args.reorder)
+                  reorder=args.reorder, rate_bit_s=args.rate_mbit * 1e6, priority_dscp=args.priority_dscp,
+                  queue_bytes=args.queue_kb << 10)
     dirs = {sa.fileno(): Direction(f"{args.a}->{args.b}", sa, sb, seed=2 * args.seed, **common),
             sb.fileno(): Direction(f"{args.b}->{args.a}", sb, sa, seed=2 * args.seed + 1, **common)}
 
@@ -166,24 +252,30 @@ def main(argv=None) -> int:
     signal.signal(signal.SIGINT, stop)
     t0 = time.monotonic()
     print(f"linkemu: {args.a} <-> {args.b}: {args.delay_ms:g} +- {args.jitter_ms:g} ms, loss {args.loss_pct:g} %, "
-          f"seed {args.seed}, {'reordering' if args.reorder else 'in order'}; pid {os.getpid()}", flush=True)
+          f"seed {args.seed}, {'reordering' if args.reorder else 'in order'}"
+          + (f", {args.rate_mbit:g} Mbit/s, queues {args.queue_kb} KiB"
+             + (f", DSCP >= {args.priority_dscp} first" if args.priority_dscp is not None else "")
+             if args.rate_mbit else "") + f"; pid {os.getpid()}", flush=True)
     readers = [sa, sb]
     try:
         while True:
             now = time.monotonic()
-            due = [t for d in dirs.values() if (t := d.next_departure()) is not None]
+            due = [t for d in dirs.values() if (t := d.next_event()) is not None]
             timeout = max(0.0, min(due) - now) if due else 0.5
             ready, _, _ = select.select(readers, [], [], timeout)
             now = time.monotonic()
             for s in ready:
                 dirs[s.fileno()].take(now)
             for d in dirs.values():
+                if d.rate_bit_s:
+                    d.serialise(now)
                 d.send_due(now)
     except Stop:
         pass
     ru = resource.getrusage(resource.RUSAGE_SELF)
     stats = {"profile": {"delay_ms": args.delay_ms, "jitter_ms": args.jitter_ms, "loss_pct": args.loss_pct,
-                         "seed": args.seed, "reorder": args.reorder},
+                         "seed": args.seed, "reorder": args.reorder, "rate_mbit": args.rate_mbit,
+                         "priority_dscp": args.priority_dscp, "queue_kb": args.queue_kb},
              "wall_s": round(time.monotonic() - t0, 3), "cpu_s": round(ru.ru_utime + ru.ru_stime, 3),
              "directions": {d.name: d.stats() for d in dirs.values()}}
     frames = sum(d.received for d in dirs.values())

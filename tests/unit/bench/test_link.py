@@ -5,7 +5,7 @@ import argparse
 
 import pytest
 
-from bench.support.linkemu import PACKET_OUTGOING, Direction
+from bench.support.linkemu import PACKET_OUTGOING, VNET_HDR_LEN, Direction, dscp
 from bench.two_hosts import PROFILES, parse_profile, seq_loss
 
 HOST = 0   # sll_pkttype of a frame for this host
@@ -93,3 +93,61 @@ def test_seq_loss_counts_the_gaps():
     assert seq_loss([]) == (0, 0)
     assert seq_loss([5, 6, 7]) == (0, 3)
     assert seq_loss([5, 7, 7, 10]) == (3, 6)   # 6, 8, 9 missing; a repeat is not a message more
+
+
+def ipv4_frame(tos: int, size: int, tag: int) -> bytes:
+    """A frame as the emulator reads it: virtio-net header, Ethernet (IPv4), IP header with `tos`."""
+    eth = b"\x00" * 12 + b"\x08\x00"
+    ip = bytes([0x45, tos]) + b"\x00" * 18
+    body = tag.to_bytes(4, "big")
+    return b"\x00" * VNET_HDR_LEN + eth + ip + body + b"\x00" * max(0, size - VNET_HDR_LEN - 38)
+
+
+def test_dscp_is_read_from_ipv4_and_ipv6_frames():
+    assert dscp(ipv4_frame(0xB8, 100, 0)) == 46 and dscp(ipv4_frame(0x20, 100, 0)) == 8
+    v6 = b"\x00" * VNET_HDR_LEN + b"\x00" * 12 + b"\x86\xdd" + bytes([0x6B, 0x80]) + b"\x00" * 40
+    assert dscp(v6) == 46   # traffic class 0xB8 across the first two bytes
+    assert dscp(b"\x00\x01") == 0   # too short: unmarked
+
+
+def wire(priority_dscp=None, rate_bit_s=8e6, queue_bytes=1 << 20):
+    src, dst = FakeSocket(), FakeSocket()
+    return Direction("a->b", src, dst, 0.010, 0.0, 0.0, 0, False, rate_bit_s=rate_bit_s,
+                     priority_dscp=priority_dscp, queue_bytes=queue_bytes), src, dst
+
+
+def flood_and_control(priority_dscp):
+    """100 bulk frames of 10 kB (1 s of an 8 Mbit/s wire) at t=0, then a control frame at 0.5 s:
+    when the control frame leaves."""
+    d, src, dst = wire(priority_dscp)
+    for i in range(100):
+        src.waiting.append((ipv4_frame(0x20, 10_000, i), ("veth", 3, HOST, 1, b"")))
+    d.take(0.0)
+    t = 0.0
+    while t < 3.0:
+        if abs(t - 0.5) < 1e-9:
+            src.waiting.append((ipv4_frame(0xB8, 200, 999), ("veth", 3, HOST, 1, b"")))
+            d.take(t)
+        d.serialise(t)
+        d.send_due(t)
+        for f in dst.sent:
+            if dscp(f) == 46:
+                return t, d
+        t = round(t + 0.0005, 4)
+    raise AssertionError("the control frame never left")
+
+
+def test_the_wire_carries_its_rate_and_a_marked_frame_goes_first():
+    left, d = flood_and_control(priority_dscp=None)   # one queue: behind the flood's remaining half second
+    assert 0.99 <= left <= 1.03, left
+    left, d = flood_and_control(priority_dscp=46)     # its own queue: the frame on the wire (10 ms), then it
+    assert 0.5 + 0.010 <= left <= 0.5 + 0.010 + 0.010 + 0.001, left
+    assert d.stats()["wire"]["frames"] == {"high": 1, "low": 100}
+
+
+def test_a_full_transmit_queue_drops_the_newest():
+    d, src, _ = wire(rate_bit_s=8e6, queue_bytes=50_000)
+    for i in range(10):
+        src.waiting.append((ipv4_frame(0, 10_000, i), ("veth", 3, HOST, 1, b"")))
+    d.take(0.0)
+    assert d.tx_frames[1] == 5 and d.tx_dropped[1] == 5

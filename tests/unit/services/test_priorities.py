@@ -95,8 +95,8 @@ def test_router_links_one_tcp_stream_per_priority_range_and_caps_bulk():
     conf, listen = router_config([], str(STACKS / "two-hosts-ground.toml"), "vehicle-router")
     assert json.loads(str(conf))["transport"]["unicast"]["max_links"] == MAX_LINKS
     assert _rules(conf) == [{"key_expr": "zp/0/sim/@image", "freq": 20.0}]
-    assert listen == ["tcp/127.0.0.1:7447", "tcp/10.77.0.1:7448?prio=0-6", "udp/10.77.0.1:7450?prio=0-6;rel=0",
-                      "tcp/10.77.0.1:7449?prio=7-7"]
+    assert listen == ["tcp/127.0.0.1:7447", "tcp/10.77.0.1:7448?prio=0-6#dscp=0xb8",
+                      "udp/10.77.0.1:7450?prio=0-6;rel=0#dscp=0xb8", "tcp/10.77.0.1:7449?prio=7-7#dscp=0x20"]
     plain, _ = router_config(["tcp/127.0.0.1:7447"])
     assert json.loads(str(plain))["transport"]["unicast"]["max_links"] == 1
     assert _rules(plain) == []
@@ -162,3 +162,63 @@ def test_two_routers_carry_best_effort_streams_on_their_udp_link_and_reliable_me
     finally:
         ground.close()
         vehicle.close()
+
+
+def _sniff_tos(ports: dict[int, str], stop, seen: dict) -> None:
+    """The IP TOS bytes of the loopback packets to or from `ports` (raw frames: root)."""
+    import socket
+    import struct
+    s = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.ntohs(3))
+    s.bind(("lo", 0))
+    s.settimeout(0.1)
+    while not stop.is_set():
+        try:
+            f = s.recv(65536)
+        except socket.timeout:
+            continue
+        if len(f) < 38 or f[12:14] != b"\x08\x00":
+            continue
+        ihl = (f[14] & 15) * 4
+        for port in struct.unpack("!HH", f[14 + ihl:18 + ihl]):
+            if port in ports:
+                seen.setdefault(ports[port], set()).add(f[15])
+    s.close()
+
+
+def test_the_two_host_stacks_mark_their_links_control_ef_and_bulk_cs1():
+    """The marks of two-hosts-ground.toml's link endpoints (`#dscp=`, IP TOS = DSCP << 2) reach the
+    packets of both routers: EF (46) on the control links, CS1 (8) on the bulk one, so that a
+    network that honours DSCP sends control first (bench/two_hosts.py --link lan100-qos)."""
+    import threading
+    try:
+        import socket
+        socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.ntohs(3)).close()
+    except PermissionError:
+        pytest.skip("reading raw frames needs root")
+    ends = load_stack(str(STACKS / "two-hosts-ground.toml")).machines["vehicle-router"].listen
+    ports, links = {}, []
+    for end in ends:
+        port = free_port()
+        ports[port] = end.split("/")[0] + ("-bulk" if "prio=7-7" in end else "-control")
+        links.append(end.replace("10.77.0.1:" + end.split("?")[0].rsplit(":", 1)[1], f"127.0.0.1:{port}"))
+    assert all("#dscp=" in e for e in links), links
+    seen, stop = {}, threading.Event()
+    sniffer = threading.Thread(target=_sniff_tos, args=(ports, stop, seen))
+    sniffer.start()
+    common = {"mode": "router", "scouting/multicast/enabled": False, "transport/shared_memory/enabled": False,
+              "transport/unicast/max_links": MAX_LINKS}
+    vehicle = _open({**common, "listen/endpoints": links})
+    try:
+        time.sleep(0.3)
+        ground = _open({**common, "listen/endpoints": [], "connect/endpoints": links})
+        try:
+            deadline = time.monotonic() + 10.0
+            while len(seen) < 3 and time.monotonic() < deadline:   # the links' handshakes and keep-alives
+                time.sleep(0.1)
+        finally:
+            ground.close()
+    finally:
+        vehicle.close()
+        stop.set()
+        sniffer.join()
+    assert seen == {"tcp-control": {46 << 2}, "udp-control": {46 << 2}, "tcp-bulk": {8 << 2}}, seen
