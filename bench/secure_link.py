@@ -42,6 +42,8 @@ MODES = {
     "tls+quic": lambda a, b: [f"tls/127.0.0.1:{a}?prio=0-6", f"quic/127.0.0.1:{b}?prio=0-6;rel=0"],
     "tls+quic1-6": lambda a, b: [f"tls/127.0.0.1:{a}?prio=0-6", f"quic/127.0.0.1:{b}?prio=1-6;rel=0"],
     "tcp+udp": lambda a, b: [f"tcp/127.0.0.1:{a}?prio=0-6", f"udp/127.0.0.1:{b}?prio=0-6;rel=0"],
+    "tls+tls7": lambda a, b: [f"tls/127.0.0.1:{a}?prio=0-6", f"tls/127.0.0.1:{b}?prio=7-7"],
+    "tcp+tcp7": lambda a, b: [f"tcp/127.0.0.1:{a}?prio=0-6", f"tcp/127.0.0.1:{b}?prio=7-7"],
     "tls": lambda a, b: [f"tls/127.0.0.1:{a}"],
     "quic": lambda a, b: [f"quic/127.0.0.1:{b}"],
 }
