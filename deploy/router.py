@@ -58,7 +58,8 @@ def _checked(stack, endpoints) -> bool:
     """Whether a link over these endpoints is checked: QUIC's, and a secured stack's link of several
     endpoints (Zenoh 1.10.2 may send the first declarations on any of them, and two on two links
     arrive out of order: TLS prio 0-6 + TLS prio 7-7 linked nothing in 1 of 2 flights across lan,
-    1 of 70 on loopback; docs/reliability.md). The open stack's links are left as they were."""
+    3 of 110 attempts across lan under load, 1 of 70 on loopback; checked, 110 of 110 across lan:
+    docs/reliability.md). The open stack's links are left as they were."""
     return _is_quic(endpoints) or (stack.security is not None and len(endpoints) > 1)
 
 
