@@ -1,7 +1,8 @@
 """Fly a mission over two hosts, across an emulated link, and the same mission on one host, and compare.
 
     python bench/two_hosts.py [--mission hover|flip-short|FILE] [--seed N] [--lockstep]
-                              [--placement vehicle|ground] [--link none|lan|bad|lan100|lan100-qos|D/J/L]
+                              [--placement vehicle|ground|telemetry] [--secure [tls|tls+quic]]
+                              [--link none|lan|bad|lan100|lan100-qos|D/J/L]
                               [--emulator auto|netem|forwarder] [--out DIR] [--no-one-host]
                               [--flood BYTES@HZ[:PRIORITY]] [--stop SERVICE@T_S[:FOR_S]]
 
@@ -31,6 +32,19 @@ Placements (`--placement`, each a stack file; services, rates and parameters the
   telemetry  tests/integration/stacks/two-hosts-telemetry.toml: as ground, with the planner on the
            vehicle (the ground: recorder and MAVLink bridge only); started the same way.
 `--lockstep` is given to every `up`.
+
+`--secure [LINK]` (ground and telemetry placements): the split secured as docs/security.md says,
+made as an operator makes it: the placement's stack file with a [security] table and its link's
+endpoints over TLS (secure_text: the same file, no second copy), keys by `zenpilot certs
+<out>/keys/keys --stack <out>/keys/stack.toml` (the "trusted computer"; ca.key stays there),
+and each host its own copy of the stack file and only its machines' keys (<out>/vehicle/stack.toml
+and keys/: vehicle-router.*, vehicle.*, ca.pem; <out>/ground/: ground.*, ca.pem). Every session
+presents its machine's login and certificate, the vehicle's router enforces the access control,
+the link probes are tools of their host's machine. LINK: `tls` (the default): TLS where the plain
+split has TCP (control prio 0-6, bulk 7-7), its UDP link left out; `tls+quic`: QUIC's datagrams
+(rel=0) where it has UDP. Across `lan` QUIC's datagrams queue behind its congestion control (the
+streams to the ground 1.3 s late, the flip aborted): docs/reliability.md, "A secured split over
+an unreliable link".
 
 The simulator ends the run when the mission ends; the vehicle's `zenpilot down` then stops its
 services and router, the ground's stops its own, whose recorder writes flight.mcap on the ground
@@ -149,6 +163,63 @@ def parse_profile(text: str) -> LinkProfile:
     if d < 0 or j < 0 or not 0 <= loss <= 100 or j > d:
         raise argparse.ArgumentTypeError(f"{text!r}: delay >= jitter >= 0 and loss within 0..100")
     return LinkProfile(text, d, j, loss)
+# --secure LINK: the link's endpoints as a secured stack has them (docs/security.md). tls+quic: TLS
+# where the plain split has TCP, QUIC's datagrams (rel=0) where it has UDP (its best-effort
+# streams); tls: TLS only, the UDP link left out (every stream on TLS, behind retransmissions)
+SECURE_LINKS = {"tls+quic": {"tcp/": "tls/", "udp/": "quic/"}, "tls": {"tcp/": "tls/", "udp/": None}}
+HOST_MACHINES = {"vehicle": ("vehicle-router", "vehicle"), "ground": ("ground",)}   # each host's machines
+
+
+def secure_text(text: str, path: Path, link: str = "tls+quic") -> str:
+    """A two-hosts stack file (STACKS) as its secured split: a [security] table (the keys in "keys"
+    beside the file) and every link endpoint (`listen`, `connect`) as SECURE_LINKS[link] says; the
+    services, machines and the rest as they are, so one stack literal serves both."""
+    out, n = [], 0
+    for line in text.splitlines():
+        if re.match(r"\s*(listen|connect)\s*=", line):
+            for plain, secured in SECURE_LINKS[link].items():
+                if secured is None:   # left out: the endpoint and its comma
+                    line, k = re.subn(rf'\s*"{plain}\d[^"]*",?', "", line)
+                    line = re.sub(r",\s*]", "]", line)
+                else:   # tcp/10.77..., never a loopback name
+                    line, k = re.subn(rf"\b{plain}(?=\d)", secured, line)
+                n += k
+        out.append(line)
+    if not n:
+        raise BenchError(f"{path}: no link endpoint (listen/connect) to secure")
+    body = "\n".join(out) + "\n"
+    head = (f"# {path.name} secured by bench/two_hosts.py --secure {link}: [security], the link's endpoints\n"
+            "[security]\ndir = \"keys\"   # made by `zenpilot certs`; this host's share of them\n\n")
+    return head + body
+
+
+def secure_stacks(placement: str, out: Path, link: str = "tls+quic") -> dict[str, Path]:
+    """The secured split of a placement, made as an operator would: the stack file (secure_text),
+    its keys by the documented command (`zenpilot certs DIR --stack FILE`, on the "trusted
+    computer": <out>/keys, ca.key stays there), then each host its own copy of the stack file and
+    only its machines' keys and the CA's certificate (<out>/<host>/stack.toml, keys/). Returns
+    {host: its stack file}."""
+    src = STACKS[placement]
+    made = out / "keys"
+    shutil.rmtree(made, ignore_errors=True)   # `zenpilot certs` never overwrites: fresh keys per run
+    made.mkdir(parents=True)
+    text = secure_text(src.read_text(), src, link)
+    (made / "stack.toml").write_text(text)
+    run([sys.executable, "-m", "deploy.cli", "certs", str(made / "keys"), "--stack", str(made / "stack.toml")],
+        cwd=ROOT, timeout=60)
+    stacks = {}
+    for host, machines in HOST_MACHINES.items():
+        keys = out / host / "keys"
+        shutil.rmtree(keys, ignore_errors=True)
+        keys.mkdir(parents=True)
+        for f in [made / "keys" / "ca.pem", *(p for m in machines for p in (made / "keys").glob(f"{m}.*"))]:
+            shutil.copy2(f, keys / f.name)
+        stacks[host] = out / host / "stack.toml"
+        stacks[host].write_text(text)
+    load_stack(stacks["vehicle"])   # checked as every host will (loopback routers, tls/quic links)
+    return stacks
+
+
 RESTART_GRACE_S = 10.0   # a supervisor's back-off (at most 8 s, deploy/supervisor.py) and a start
 WALL_CLOCK_FIELDS = ("solve_ms", "overrun_solves")   # the wall clock's, even in lockstep (planner/plan)
 SCOUTING_GROUP = "224.0.0.224"  # Zenoh's multicast scouting group (port 7446)
@@ -406,7 +477,8 @@ class Probes:
     def __init__(self, hosts: TwoHosts, out: Path):
         self.hosts, self.out, self.procs = hosts, out, {}
 
-    def start(self, host: str, endpoint: str, keys: list[str]) -> None:
+    def start(self, host: str, endpoint: str, keys: list[str], stack: str | None = None) -> None:
+        """`stack`: a secured stack file, whose login the probe presents (the host's machine's)."""
         if not keys:
             return
         path = self.out / host / "linkprobe.json"
@@ -414,7 +486,8 @@ class Probes:
         log = open(self.out / host / "linkprobe.log", "w")
         self.procs[host] = subprocess.Popen(
             self.hosts.argv(host, [sys.executable, "-m", "bench.support.linkprobe", "-e", endpoint,
-                                   "--out", str(path), *keys]), cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+                                   *(["--stack", stack] if stack else []), "--out", str(path), *keys]),
+            cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + 20.0
         while "linkprobe: listening" not in (self.out / host / "linkprobe.log").read_text():
             if self.procs[host].poll() is not None or time.monotonic() > deadline:
@@ -550,7 +623,6 @@ def wait_beating(supervisor_json: Path, name: str, timeout_s: float) -> float:
 
 def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
     timing, stack_path = {}, STACKS[args.placement]
-    stack = str(stack_path)
     split = load_stack(stack_path)
     lockstep = ["--lockstep"] if args.lockstep else []
     for host in ("vehicle", "ground"):
@@ -559,16 +631,19 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
         shutil.rmtree(out / host / "state", ignore_errors=True)
         for name in (LOG_NAME, "metrics.json", "linkprobe.json", "supervisor.json"):
             (out / host / name).unlink(missing_ok=True)
+    # --secure: each host its own secured stack file and its share of the keys; else the one file
+    stacks = ({h: str(p) for h, p in secure_stacks(args.placement, out, args.secure).items()} if args.secure
+              else dict.fromkeys(("vehicle", "ground"), str(stack_path)))
     # the vehicle placement: one router on the vehicle's link address, everyone its client; the
     # ground placement: each host's services on its own router (the stack's), the routers linked
     router = ROUTER if args.placement == "vehicle" else LOCAL_ROUTER
-    _, timing["up vehicle-router s"] = zenpilot(hosts, "vehicle", out, "up", "-d", "--stack", stack,
+    _, timing["up vehicle-router s"] = zenpilot(hosts, "vehicle", out, "up", "-d", "--stack", stacks["vehicle"],
                                                 "--machine", "vehicle-router", "--router", router,
                                                 # its own run folder: one supervisor record (supervisor.json) per machine
                                                 "--out", str(out / "vehicle" / "router"))
     # the mission: the ground's planner flies it (ground placement), the recorder draws its airframe
     ground_args = ["--mission", str(mission.path), "--seed", str(args.seed), *lockstep]
-    _, timing["up ground s"] = zenpilot(hosts, "ground", out, "up", "-d", "--stack", stack, "--machine", "ground",
+    _, timing["up ground s"] = zenpilot(hosts, "ground", out, "up", "-d", "--stack", stacks["ground"], "--machine", "ground",
                                         "--router", router, "--out", str(out / "ground"), *ground_args, timeout=300)
     if not args.lockstep and "planner" in split.services and split.services["planner"].machine == "ground":
         # real time: the vehicle's simulator starts flying at once; the ground's planner must be
@@ -577,12 +652,13 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
         timing["ground planner ready s"] = wait_beating(out / "ground" / "supervisor.json", "planner", 180.0)
     probes = Probes(hosts, out)
     if not args.lockstep:   # arrival - header time is a latency only when headers are wall-clock times
-        probes.start("ground", router, incoming_keys(split, {"ground"}))
-        probes.start("vehicle", router, incoming_keys(split, {"vehicle", "vehicle-router"}))
+        probes.start("ground", router, incoming_keys(split, {"ground"}), stacks["ground"] if args.secure else None)
+        probes.start("vehicle", router, incoming_keys(split, {"vehicle", "vehicle-router"}),
+                     stacks["vehicle"] if args.secure else None)
     cap = 0.0 if args.rogue else split.machines[split.service("sim").machine].bulk_max_hz   # the camera's machine
     flood = start_flood(hosts, out, args.flood, router, cap) if args.flood else {}
     t_fly = time.monotonic()
-    _, timing["up vehicle s"] = zenpilot(hosts, "vehicle", out, "up", "-d", "--stack", stack, "--machine", "vehicle",
+    _, timing["up vehicle s"] = zenpilot(hosts, "vehicle", out, "up", "-d", "--stack", stacks["vehicle"], "--machine", "vehicle",
                                          "--router", router, "--out", str(out / "vehicle"), "--seed", str(args.seed),
                                          "--mission", str(mission.path), "--set", "sim.stop_after_mission=true",
                                          *lockstep, timeout=300)
@@ -636,7 +712,7 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
             sampled = hosts.sockets()  # mid-flight: every service linked
             # liveliness and health of every service as the ground sees them across the link
             try:
-                status, _ = zenpilot(hosts, "ground", out, "status", "--stack", stack, timeout=60)
+                status, _ = zenpilot(hosts, "ground", out, "status", "--stack", stacks["ground"], timeout=60)
             except (BenchError, subprocess.TimeoutExpired) as exc:
                 status = f"(zenpilot status failed: {exc})"
         time.sleep(0.1)
@@ -675,6 +751,7 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
     metrics["two_hosts"] = {"link": link, "sockets": sampled, "timing": timing, "status": status, "fault": fault,
                             "supervisor": supervised, "flood": flooded,
                             "placement": args.placement, "stack": stack_path.name, "lockstep": args.lockstep,
+                            "secure": args.secure,
                             "profile": dataclasses.asdict(p), "emulator": hosts.method, "forwarder": forwarder,
                             "keys": link_keys(log, arrivals, split, window),
                             "log_on_vehicle_side": (out / "vehicle" / LOG_NAME).exists(),
@@ -850,6 +927,11 @@ def parser() -> argparse.ArgumentParser:
                         "ground: a router per host, planner, recorder and MAVLink on the ground (two-hosts-ground.toml); "
                         "telemetry: the same with the planner on the vehicle (two-hosts-telemetry.toml)")
     p.add_argument("--lockstep", action="store_true", help="lockstep instead of real time")
+    p.add_argument("--secure", nargs="?", const="tls", choices=tuple(SECURE_LINKS), metavar="LINK",
+                   help="the secured split (ground and telemetry placements): the stack file with [security], keys "
+                        "by `zenpilot certs`, user/password and the vehicle router's access control, the routers' "
+                        "link over mutual TLS only (tls, the default) or TLS + QUIC's datagrams where the plain "
+                        "split has UDP (tls+quic)")
     p.add_argument("--out", help="output directory (default runs/two-hosts-<mission>-<placement>-<link>-<mode>-seed<N>)")
     p.add_argument("--no-one-host", action="store_true", help="skip the one-host comparison flight")
     p.add_argument("--flood", type=flood_spec, metavar="BYTES@HZ[:PRIORITY]",
@@ -872,8 +954,17 @@ def main(argv=None) -> int:
         return 2
     mode = "lockstep" if args.lockstep else "realtime"
     profile = args.link
+    if args.secure and args.placement == "vehicle":
+        print("two_hosts: error: --secure: the vehicle placement's ground recorder is a peer of the vehicle's "
+              "router and its services listen on the link (an open split); use --placement ground or telemetry",
+              file=sys.stderr)
+        return 2
+    if args.secure and args.flood:
+        print("two_hosts: error: --secure with --flood: the secured split's access control never lets camera images "
+              "cross the link (services/security.py)", file=sys.stderr)
+        return 2
     out = Path(args.out or ROOT / "runs" / f"two-hosts-{mission.name}-{args.placement}-"
-               f"{profile.name.replace('/', '_')}-{mode}-seed{args.seed}").resolve()
+               f"{profile.name.replace('/', '_')}-{mode}{f'-secure-{args.secure}' if args.secure else ''}-seed{args.seed}").resolve()
     out.mkdir(parents=True, exist_ok=True)
     stack_path = STACKS[args.placement]
     default, split = load_stack(), load_stack(stack_path)
@@ -891,7 +982,7 @@ def main(argv=None) -> int:
     try:
         hosts.open()
         print(f"two_hosts: {mission.name} ({mission.vehicle}, {mode}, seed {args.seed}); placement {args.placement} "
-              f"({stack_path.name}); vehicle netns {hosts.ns['vehicle']} {VEHICLE_IP} <-{hosts.method}-> ground netns "
+              f"({stack_path.name}{f', secured: {args.secure}, passwords, access control' if args.secure else ''}); vehicle netns {hosts.ns['vehicle']} {VEHICLE_IP} <-{hosts.method}-> ground netns "
               f"{hosts.ns['ground']} {GROUND_IP}; link {profile}; -> {out}; load average {os.getloadavg()[0]:.1f} "
               f"(other work on these {os.cpu_count()} CPUs skews a real-time flight)", flush=True)
         two = fly_two_hosts(hosts, mission, args, out)

@@ -8,11 +8,12 @@ endpoint and its `listen` endpoints), links to its `connect` routers and, with a
 table, requires TLS client certificates and the machine's users, and enforces the access
 control of services/security.py.
 
-A router that connects to another host by QUIC (`quic/...;rel=0` beside `tls/...`: a secured split
-across a lossy link) checks that the link carries data both ways: Zenoh 1.10.2 may send the
-accepting router's first routing declarations on the unreliable QUIC link, and when one is lost
-the routers stay linked and never learn each other's subscriptions (docs/reliability.md, "A
-secured split over an unreliable link"). The link to the other host is then a session of its
+A router that connects to another host by QUIC (`quic/...;rel=0` beside `tls/...`), or with a
+[security] table by several endpoints (`tls/...?prio=0-6` and `tls/...?prio=7-7`), checks that
+the link carries data both ways: Zenoh 1.10.2 may send the accepting router's first routing
+declarations on either link, and when one is lost (QUIC's datagrams) or taken out of order (two
+links) the routers stay linked and never learn each other's subscriptions (docs/reliability.md,
+"A secured split over an unreliable link"). The link to the other host is then a session of its
 own in this process (CheckedLink), which pings a key the other router echoes (echo_links) and
 opens itself again when no echo came back within CHECK_S; the machine's router, where its
 services connect, opens once the link echoed (or after GATE_S) and links to that session on
@@ -53,9 +54,23 @@ def _is_quic(endpoints) -> bool:
     return any(e.split("/", 1)[0] == "quic" for e in endpoints)
 
 
+def _checked(stack, endpoints) -> bool:
+    """Whether a link over these endpoints is checked: QUIC's, and a secured stack's link of several
+    endpoints (Zenoh 1.10.2 may send the first declarations on any of them, and two on two links
+    arrive out of order: TLS prio 0-6 + TLS prio 7-7 linked nothing in 1 of 2 flights across lan,
+    3 of 110 attempts across lan under load, 1 of 70 on loopback; checked, 110 of 110 across lan:
+    docs/reliability.md). The open stack's links are left as they were."""
+    return _is_quic(endpoints) or (stack.security is not None and len(endpoints) > 1)
+
+
 def checks_link(stack, machine: str) -> bool:
     """Whether `machine`'s router links to other hosts through a checked link session."""
-    return _is_quic(stack.machines[machine].connect)
+    return _checked(stack, stack.machines[machine].connect)
+
+
+def echoes_links(stack, machine: str) -> bool:
+    """Whether `machine`'s router answers the checked links of the routers that connect to it."""
+    return _checked(stack, stack.machines[machine].listen)
 
 
 def _base_config(conf: zenoh.Config) -> None:
@@ -248,7 +263,7 @@ def main(argv=None) -> None:
         raise SystemExit(2)
     stop = threading.Event()
     on_stop_signals(stop.set)
-    if stack is not None and _is_quic(stack.machines[args.machine].listen):
+    if stack is not None and echoes_links(stack, args.machine):
         echo_links(session, stack.vehicle_id, [m for m in stack.machines if m != args.machine])
     print(f"zenpilot-router: listening on {', '.join(listen)}", flush=True)
     stop.wait()

@@ -1,6 +1,6 @@
 """Arrival times of a host's incoming keys, for the link's latency per key (bench/two_hosts.py).
 
-    python -m bench.support.linkprobe -e ENDPOINT --out FILE KEY_EXPR [KEY_EXPR ...]
+    python -m bench.support.linkprobe -e ENDPOINT [--stack FILE] --out FILE KEY_EXPR [KEY_EXPR ...]
 
 A Zenoh client of the host's router (as the host's services are) subscribes to the key
 expressions (the keys the other host's services publish) and notes, for every message, the wall
@@ -28,6 +28,8 @@ import zenoh
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("-e", "--connect", required=True, help="the host's router endpoint")
+    p.add_argument("--stack", help="a stack file with [security]: the probe presents its host's machine's login "
+                                   "(deploy.launcher.client_session)")
     p.add_argument("--out", required=True)
     p.add_argument("keys", nargs="+")
     args = p.parse_args(argv)
@@ -36,7 +38,12 @@ def main(argv=None) -> int:
     conf.insert_json5("connect/endpoints", json.dumps([args.connect]))
     conf.insert_json5("scouting/multicast/enabled", "false")
     try:
-        session = zenoh.open(conf)
+        if args.stack:   # as a tool of the host's machine: its login and certificate
+            from deploy.launcher import client_session
+            from services.stack import load_stack
+            session = client_session(args.connect, load_stack(args.stack))
+        else:
+            session = zenoh.open(conf)
     except zenoh.ZError as exc:
         print(f"linkprobe: error: cannot reach {args.connect}: {exc}", file=sys.stderr)
         return 2

@@ -151,3 +151,35 @@ def test_a_full_transmit_queue_drops_the_newest():
         src.waiting.append((ipv4_frame(0, 10_000, i), ("veth", 3, HOST, 1, b"")))
     d.take(0.0)
     assert d.tx_frames[1] == 5 and d.tx_dropped[1] == 5
+
+
+def test_the_secured_split_is_the_placement_stack_with_its_link_over_tls(tmp_path):
+    """bench/two_hosts.py --secure: the same stack file, [security] added and the link's endpoints
+    over TLS (tls: the UDP link left out; tls+quic: QUIC's datagrams for it); a secured stack the
+    loader accepts (loopback routers, only tls/quic between hosts), services untouched."""
+    import re
+
+    from bench.two_hosts import STACKS, secure_text
+    from services.stack import load_stack
+
+    for placement in ("ground", "telemetry"):
+        src = STACKS[placement]
+        plain = load_stack(src)
+        for link, expect in (("tls", {"tls"}), ("tls+quic", {"tls", "quic"})):
+            path = tmp_path / f"{placement}-{link}.toml"
+            path.write_text(secure_text(src.read_text(), src, link))
+            stack = load_stack(path)
+            assert stack.security is not None and stack.security.dir == tmp_path / "keys"
+            ends = stack.machines["vehicle-router"].listen
+            assert ends == stack.machines["ground"].connect
+            assert {e.split("/")[0] for e in ends} == expect
+            assert len(ends) == len(plain.machines["vehicle-router"].listen) - (link == "tls")
+            assert [re.sub(r"^\w+/", "", e) for e in ends] == [
+                re.sub(r"^\w+/", "", e) for e in plain.machines["ground"].connect if link != "tls" or "udp/" not in e]
+            assert stack.services == plain.services
+
+
+def test_a_stack_without_a_link_is_not_secured_silently(tmp_path):
+    from bench.two_hosts import BenchError, secure_text
+    with pytest.raises(BenchError, match="no link endpoint"):
+        secure_text("[stack]\nvehicle_id = 0\n", tmp_path / "x.toml")

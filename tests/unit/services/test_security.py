@@ -143,6 +143,26 @@ def test_a_quic_link_is_checked_from_a_session_of_its_own(tmp_path):
     assert not checks_link(plain, "ground")
 
 
+def test_a_secured_link_of_several_endpoints_is_checked_an_open_one_is_not(tmp_path):
+    """TLS at priorities 0-6 and TLS at 7-7 (the secured split's control and bulk links): the first
+    declarations may go on either and arrive out of order; nothing crossed in 1 of 2 flights across
+    lan (docs/reliability.md), so the connecting router checks it as a QUIC link, and the accepting
+    router echoes. The same endpoints without [security] (an open split) are left as they were."""
+    from deploy.router import checks_link, echoes_links
+    links = '["tls/10.0.0.2:7448?prio=0-6", "tls/10.0.0.2:7449?prio=7-7"]'
+    two = SECURE.replace('connect = ["tls/10.0.0.2:7448"]', f"connect = {links}", 1).replace(
+        'listen = ["tls/10.0.0.2:7448"]', f"listen = {links}", 1)
+    stack = load_stack(stack_file(tmp_path, two))
+    assert checks_link(stack, "ground") and echoes_links(stack, "vehicle")
+    assert not checks_link(stack, "vehicle") and not echoes_links(stack, "ground")
+    one = load_stack(stack_file(tmp_path, SECURE))
+    assert not checks_link(one, "ground") and not echoes_links(one, "vehicle")
+    open_split = two.replace("[security]\ndir = \"keys\"\n", "").replace("tls/", "tcp/")
+    assert "[security]" not in open_split
+    plain = load_stack(stack_file(tmp_path, open_split))
+    assert not checks_link(plain, "ground") and not echoes_links(plain, "vehicle")
+
+
 def test_make_keys_writes_secret_files_private_and_never_overwrites(tmp_path):
     stack = load_stack(stack_file(tmp_path, SECURE))
     made = security.make_keys(tmp_path / "keys", stack)
