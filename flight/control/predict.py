@@ -619,15 +619,15 @@ class Replan:
     linearise: str = "case"
 
     def __post_init__(self):
-        ticks = TICK_RATE_HZ / self.rate_hz if self.rate_hz > 0 else math.nan
+        ticks = TICK_RATE_HZ / self.rate_hz if math.isfinite(self.rate_hz) and self.rate_hz > 0 else 0.0
         if not (abs(ticks - round(ticks)) < 1e-6 and round(ticks) >= 1):
             raise PredictError(f"replan rate_hz must divide {TICK_RATE_HZ:g} Hz (got {self.rate_hz!r})")
         if self.iterations < 1 or (self.horizon is not None and self.horizon < 2) or not self.hold_s >= 0:
             raise PredictError(f"replan iterations >= 1, horizon >= 2, hold_s >= 0 (got {self!r})")
         if not self.alphas or not all(0 < a <= 1 for a in self.alphas):
             raise PredictError(f"replan alphas in (0, 1] (got {self.alphas!r})")
-        if self.linearise not in ("case", "nominal", "roll"):
-            raise PredictError(f"replan linearise 'case', 'nominal' or 'roll' (got {self.linearise!r})")
+        if self.linearise not in ("case", "nominal"):
+            raise PredictError(f"replan linearise 'case' or 'nominal' (got {self.linearise!r})")
 
     @property
     def ticks(self) -> int:
@@ -656,13 +656,12 @@ class Predictor:
             if "land" not in nominal.phases:
                 raise PredictError("the nominal flight never recovered: nothing to re-plan to")
             until_s = nominal.phases.index("land") * nominal.tick_s + replan.hold_s
-            nominal_lin = replan.linearise != "case"
+            nominal_lin = replan.linearise == "nominal"
             self._rollouts = make_replan_rollouts(nominal, uncertainty, self.max_delay, replan.ticks,
                                                   replan.iterations, replan.alphas, replan.horizon, until_s,
-                                                  reference={"case": None, "nominal": "time"}.get(replan.linearise,
-                                                                                                 replan.linearise))
-            self._initial = initial_plan(nominal) + ((make_reference(nominal, replan.horizon),) if nominal_lin
-                                                     else ())
+                                                  reference=nominal_lin)
+            self._initial = initial_plan(nominal) + (make_reference(nominal, replan.horizon) if nominal_lin
+                                                     else None,)
         self._compiled_for = set()
 
     def series(self, n: int, seed: int = 0) -> tuple[np.ndarray, float, float]:

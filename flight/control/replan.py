@@ -27,12 +27,11 @@ import math
 import numpy as np
 
 from flight import motor_model
-from flight.control.flip import PROJECT_FLIP, flip_reference
+from flight.control.flip import PROJECT_FLIP
 from flight.quat import quat_multiply, wrap_angle
 
 TWO_PI = 2.0 * math.pi
 FLIP, RECOVERY, SETTLE = 0, 1, 2     # the phases a rollout goes through (it starts at the flip's)
-ROLL_FROM_RAD = 0.2                  # linearise="roll": the turn located by its roll from here on
 
 
 def euler_roll(q, jnp):
@@ -102,23 +101,12 @@ def make_reference(nominal, horizon: int | None = None):
         _, (K, quu_inv) = jax.lax.scan(step, vxx_final, (A, B, lxx, luu, lux), reverse=True)
         return A, B, K, quu_inv
     out = jax.jit(jax.vmap(one))(states, controls, targets)
-    # the nominal's accumulated roll at each solve and the first solve of its recovery: where a
-    # case's own turn is (linearise="roll")
-    from flight.control.flip import RollAccumulator
-    every = max(1, round(1.0 / (c.solve_rate_hz * nominal.tick_s)))
-    acc = RollAccumulator()
-    acc.reset(nominal.states[0, 6:10])
-    rolls = np.array([acc.update(q) for q in nominal.states[:, 6:10]])
-    j_count = states.shape[0]
-    roll_j = np.maximum.accumulate(np.concatenate([rolls[::every], np.full(j_count, rolls[-1])])[:j_count])
-    recovery_j = int(math.ceil(nominal.phases.index("recovery") / every)) if "recovery" in nominal.phases else j_count
-    roll_j[recovery_j:] = np.inf   # the turn's solves only
-    return tuple(np.asarray(a, np.float32) for a in out) + (roll_j.astype(np.float32), np.int32(recovery_j))
+    return tuple(np.asarray(a, np.float32) for a in out)
 
 
 def make_replan_rollouts(nominal, uncertainty, max_delay_ticks: int, replan_ticks: int = 10,
                          iterations: int = 1, alphas=(1.0, 0.5, 0.25), horizon: int | None = None,
-                         replan_until_s: float | None = None, reference: str | None = None):
+                         replan_until_s: float | None = None, reference: bool = False):
     """A jitted rollouts(cases, x0, controls0, gains0) -> per tick (N, T, 6), make_rollouts'
     columns (z, x, y, accumulated roll, tilt, body-rate norm); cases as predict.draw_cases
     gives them; controls0 (H, 4), gains0 (H, 4, n_x): the controller's first plan from the
@@ -151,8 +139,6 @@ def make_replan_rollouts(nominal, uncertainty, max_delay_ticks: int, replan_tick
     ticks = nominal.ticks
     blocks = -(-ticks // replan_ticks)
     solve_ticks = max(1, round(1.0 / (c.solve_rate_hz * dt_s)))
-    if reference not in (None, "time", "roll"):
-        raise ValueError(f"reference None, 'time' or 'roll' (got {reference!r})")
     if reference and replan_ticks % solve_ticks:
         raise ValueError(f"reference re-plans every multiple of the controller's {solve_ticks} ticks")
     alphas = jnp.asarray(alphas, jnp.float32)
@@ -205,7 +191,7 @@ def make_replan_rollouts(nominal, uncertainty, max_delay_ticks: int, replan_tick
         """An iLQR iteration on the nominal's linearisation at the same time (ref: its A, B, K and
         Quu^-1): the gradient of the case's own cost along its own rolled-out plan, the
         Riccati recursion's vector part, the line search on the model itself."""
-        A, B, K, quu_inv = ref[:4]
+        A, B, K, quu_inv = ref
         lx, lu, _, _, _ = jax.vmap(stage_d)(states[:-1], controls, targets[:-1], u_targets)
         vx_final, _ = terminal_d(states[-1], targets[-1])
 
@@ -293,7 +279,6 @@ def make_replan_rollouts(nominal, uncertainty, max_delay_ticks: int, replan_tick
         out = dict(ctl, roll=roll, last=r, phase=new_phase)
         # the hold's start: where and how fast it is, its heading (settle_hold_point's first call)
         out["settle_t"] = jnp.where(to_settle, t, ctl["settle_t"])
-        out["recovery_t"] = jnp.where(to_recovery, t, ctl["recovery_t"])
         out["settle_yaw"] = jnp.where(to_settle, euler_yaw(q, jnp), ctl["settle_yaw"])
         # while the stop lasts, a vehicle that would stop further on moves the stop on
         decel = fc.settle_decel_m_s2
@@ -309,18 +294,6 @@ def make_replan_rollouts(nominal, uncertainty, max_delay_ticks: int, replan_tick
         out["brake_v"] = jnp.where(renew, x[3:5], v0)
         return out
 
-    def warped(ref, ctl, b, t0):
-        """The nominal's solve where the case is in its flip: by time until its roll passes
-        ROLL_FROM_RAD, then where the nominal's roll was the case's, then by the time since its
-        recovery began from the nominal's recovery's first solve."""
-        A, B, K, quu_inv, roll_j, recovery_j = ref
-        j_time = b * (replan_ticks // solve_ticks)
-        j_roll = jnp.searchsorted(roll_j, ctl["roll"])
-        j_flip = jnp.where(ctl["roll"] < ROLL_FROM_RAD, j_time, jnp.minimum(j_roll, recovery_j - 1))
-        j_rec = recovery_j + jnp.round((t0 - ctl["recovery_t"]) / (solve_ticks * dt_s)).astype(jnp.int32)
-        j = jnp.clip(jnp.where(ctl["phase"] == FLIP, j_flip, j_rec), 0, A.shape[0] - 1)
-        return A[j], B[j], K[j], quu_inv[j]
-
     def one(case, x0, controls0, gains0, ref):
         body0 = x0[:13]
         q0 = quat_multiply(body0[6:10], case["start_dq"], jnp)
@@ -331,7 +304,7 @@ def make_replan_rollouts(nominal, uncertainty, max_delay_ticks: int, replan_tick
         buffer0 = jnp.tile((kf * u_hover ** 2) * jnp.ones((1, 4), jnp.float32), (max_delay_ticks + 1, 1))
         r0 = euler_roll(q0, jnp)
         ctl0 = {"phase": jnp.int32(FLIP), "roll": jnp.float32(0.0), "last": r0, "flip_point": body0[0:3],
-                "settle_t": jnp.float32(0.0), "recovery_t": jnp.float32(0.0), "settle_yaw": jnp.float32(0.0), "brake_t": jnp.float32(0.0),
+                "settle_t": jnp.float32(0.0), "settle_yaw": jnp.float32(0.0), "brake_t": jnp.float32(0.0),
                 "brake_xy": jnp.zeros(2, jnp.float32), "brake_v": jnp.zeros(2, jnp.float32)}
         x_ctrl0 = jnp.concatenate([body0, forces0])
         plan0 = (rollout(x_ctrl0, controls0), controls0, gains0, jnp.float32(0.0))
@@ -391,16 +364,14 @@ def make_replan_rollouts(nominal, uncertainty, max_delay_ticks: int, replan_tick
             body, forces, est, buffer, gust, roll, last, ctl, plan = carry
             b, nz, ref_j = inputs
             t0 = b.astype(jnp.float32) * (replan_ticks * dt_s)
-            if reference == "roll":
-                ref_j = warped(ref, ctl, b, t0)
             plan = replan(plan, ctl, t0, jnp.concatenate([body, est]), ref_j)
             times = t0 + jnp.arange(replan_ticks, dtype=jnp.float32) * dt_s
             carry, outs = jax.lax.scan(tick, (body, forces, est, buffer, gust, roll, last, ctl, plan), (times, nz))
             return carry, outs
 
         carry0 = (body0, forces0, forces0, buffer0, jnp.zeros(3, jnp.float32), jnp.float32(0.0), r0, ctl0, plan0)
-        if reference == "time":   # the nominal's solve at each re-plan's time (solves every solve_ticks from 0)
-            ref_rows = jax.tree_util.tree_map(lambda a: a[::replan_ticks // solve_ticks][:active], ref[:4])
+        if reference:   # the nominal's solve at each re-plan's time (solves every solve_ticks from 0)
+            ref_rows = jax.tree_util.tree_map(lambda a: a[::replan_ticks // solve_ticks][:active], ref)
         else:
             ref_rows = jnp.zeros(active)
         carry, outs = jax.lax.scan(block, carry0, (jnp.arange(active), noise[:active], ref_rows))
