@@ -187,7 +187,7 @@ def main(argv=None) -> None:
     parser.add_argument("--replan-iterations", type=int, default=1)
     parser.add_argument("--replan-horizon", type=int, default=None)
     parser.add_argument("--replan-hold-s", type=float, default=0.8)
-    parser.add_argument("--replan-linearise", choices=("case", "nominal"), default="case")
+    parser.add_argument("--replan-linearise", choices=("case", "nominal", "solver"), default="case")
     parser.add_argument("--replan-alphas", default="1,0.5,0.25")
     args = parser.parse_args(argv)
     rows = args.rows.split(",")

@@ -610,7 +610,9 @@ class Replan:
     hold_s after the nominal's recovery (then the last plan held). linearise "case": each pass
     linearises the model along the case's own plan (the solver's iteration); "nominal": the
     nominal flight's linearisation and Riccati matrices at the same time, the gradient and the
-    line search the case's own (flight/control/replan.make_reference; ~20x cheaper)."""
+    line search the case's own (flight/control/replan.make_reference; ~20x cheaper); "solver":
+    the planner's own solve per case (its iterations, stops and gains: the flown loop; the
+    iterations and alphas settings unused)."""
     rate_hz: float = 40.0
     iterations: int = 1
     horizon: int | None = None
@@ -626,8 +628,8 @@ class Replan:
             raise PredictError(f"replan iterations >= 1, horizon >= 2, hold_s >= 0 (got {self!r})")
         if not self.alphas or not all(0 < a <= 1 for a in self.alphas):
             raise PredictError(f"replan alphas in (0, 1] (got {self.alphas!r})")
-        if self.linearise not in ("case", "nominal"):
-            raise PredictError(f"replan linearise 'case' or 'nominal' (got {self.linearise!r})")
+        if self.linearise not in ("case", "nominal", "solver"):
+            raise PredictError(f"replan linearise 'case', 'nominal' or 'solver' (got {self.linearise!r})")
 
     @property
     def ticks(self) -> int:
@@ -659,7 +661,7 @@ class Predictor:
             nominal_lin = replan.linearise == "nominal"
             self._rollouts = make_replan_rollouts(nominal, uncertainty, self.max_delay, replan.ticks,
                                                   replan.iterations, replan.alphas, replan.horizon, until_s,
-                                                  reference=nominal_lin)
+                                                  reference=nominal_lin, exact=replan.linearise == "solver")
             self._initial = initial_plan(nominal) + (make_reference(nominal, replan.horizon) if nominal_lin
                                                      else None,)
         self._compiled_for = set()

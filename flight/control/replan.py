@@ -106,7 +106,7 @@ def make_reference(nominal, horizon: int | None = None):
 
 def make_replan_rollouts(nominal, uncertainty, max_delay_ticks: int, replan_ticks: int = 10,
                          iterations: int = 1, alphas=(1.0, 0.5, 0.25), horizon: int | None = None,
-                         replan_until_s: float | None = None, reference: bool = False):
+                         replan_until_s: float | None = None, reference: bool = False, exact: bool = False):
     """A jitted rollouts(cases, x0, controls0, gains0) -> per tick (N, T, 6), make_rollouts'
     columns (z, x, y, accumulated roll, tilt, body-rate norm); cases as predict.draw_cases
     gives them; controls0 (H, 4), gains0 (H, 4, n_x): the controller's first plan from the
@@ -114,7 +114,7 @@ def make_replan_rollouts(nominal, uncertainty, max_delay_ticks: int, replan_tick
     import jax
     import jax.numpy as jnp
 
-    from flight.control.ilqr import _backward_pass, make_cost, make_cost_derivatives, make_dynamics
+    from flight.control.ilqr import _backward_pass, make_cost, make_cost_derivatives, make_dynamics, make_solver
     from flight.control.predict import _jnp_root, _plant_step
 
     c = nominal.controller
@@ -147,6 +147,7 @@ def make_replan_rollouts(nominal, uncertainty, max_delay_ticks: int, replan_tick
     dynamics = make_dynamics(vehicle, plan_dt, config.integrator, True)
     stage_cost, terminal_cost = make_cost(config)
     stage_d, terminal_d = make_cost_derivatives(config)
+    solver = make_solver(dynamics, stage_cost, terminal_cost, config, 0.0, u_max, (stage_d, terminal_d))
     jac = jax.vmap(jax.jacfwd(dynamics, argnums=(0, 1)))
     u_targets = jnp.full((h, 4), u_hover, jnp.float32)
     k_steps = jnp.arange(h + 1, dtype=jnp.float32) * plan_dt
@@ -317,6 +318,12 @@ def make_replan_rollouts(nominal, uncertainty, max_delay_ticks: int, replan_tick
             shift = jnp.floor((t - plan_t) / plan_dt + 1e-4).astype(jnp.int32)
             warm = controls[jnp.clip(shift + jnp.arange(h), 0, h - 1)]
             targets = targets_of(ctl, t, x_ctrl)
+            if exact:   # the planner's own solve, its stops and its usable test (ILQRSolver, Plan.usable)
+                sol = solver(x_ctrl, warm, targets, u_targets)
+                usable = (jnp.isfinite(sol.cost) & jnp.all(jnp.isfinite(sol.controls)) & jnp.all(jnp.isfinite(sol.gains))
+                          & (sol.converged | (sol.cost < sol.initial_cost)))
+                return jax.tree_util.tree_map(lambda new, old: jnp.where(usable, new, old),
+                                              (sol.states, sol.controls, sol.gains, t), plan)
             xs = rollout(x_ctrl, jnp.clip(warm, 0.0, u_max))
             us = jnp.clip(warm, 0.0, u_max)
             cost0 = cost_of(xs, us, targets)
