@@ -2,6 +2,8 @@
 
     .venv/bin/python bench/predict_calibration.py [--flights 20] [--rollouts 1000]
         [--rows nominal,mass+10%,wind-2m/s] [--replay] [--cases] [--oracle K]
+        [--flight-seed 1000] [--cache DIR] [--fly-only]
+        [--replan HZ [--replan-iterations 1] [--replan-horizon H] [--replan-hold-s 0.8]]
 
 For each row: the prediction (flight/control/predict.py: per case, the controller's policy on its
 vehicle, over --rollouts drawn cases; --replay: the nominal's plans and gains in every case, as
@@ -17,6 +19,12 @@ the mean |flown - rollout|; --cases: every case). With 20 flights a calibrated b
 steadier check. --oracle K: the first K cases also replay the controller's flight on their own
 vehicle (what the anchors interpolate), which splits flown - rollout into the interpolation's
 part and the rest (plant, sampling, metrics: the flown controller against its policy replayed).
+--flight-seed S: row r's flights are drawn with seed S + r (1000: the calibration set; another S,
+flights the prediction was not tuned on). --cache DIR: each flown flight's figures kept in DIR
+(one JSON file per row, seed and count; the flights are lockstep, so the same bytes every run),
+a re-run flies only those missing; --fly-only: fill the cache, no prediction.
+--replan HZ: the re-planning rollouts (flight/control/replan.py: each case re-plans from its
+state at HZ, no anchors) instead of the replayed policies.
 
 This calibrates the predictor against re-planning on the simulator's plant; the stack's
 estimators and transport are not in these flights.
@@ -25,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import sys
 import time
 from pathlib import Path
@@ -36,7 +45,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from flight import motor_model
 from flight.control.flip import Phase, RollAccumulator, flip_metrics, heights
 from flight.control.flip_runner import FlipController
-from flight.control.predict import TICK_RATE_HZ, Predictor, Uncertainty, draw_cases, fly_nominal, metrics_from_series
+from flight.control.predict import (TICK_RATE_HZ, Predictor, Replan, Uncertainty, draw_cases, fly_nominal,
+                                    metrics_from_series)
 from flight.vehicle import load_vehicle
 from simulator.config import SimConfig
 from simulator.plant import Plant
@@ -134,6 +144,24 @@ def oracle_figures(predictor, nominal, cases: dict, k: int, controller) -> dict:
     return {name: m[name] for name in FIGURES}
 
 
+def flown_figures(controller, vehicle, cases: dict, flights: int, ticks: int, uncertainty: Uncertainty,
+                  cache: Path | None, row: str, seed: int) -> list[dict]:
+    """The flights of the row's cases, from the cache where flown before (lockstep: the same
+    figures every time), each new one written at once (an interrupted run keeps what it flew)."""
+    path = None if cache is None else cache / f"{row.replace('/', '_')}-seed{seed}-n{flights}.json"
+    done = json.loads(path.read_text()) if path is not None and path.exists() else {}
+    out = []
+    for i in range(flights):
+        if str(i) not in done:
+            f = fly_case(controller, vehicle, cases, i, ticks, uncertainty)
+            done[str(i)] = {k: bool(v) if k == "completed" else float(v) for k, v in f.items()}
+            if path is not None:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                path.write_text(json.dumps(done))
+        out.append(done[str(i)])
+    return out
+
+
 def _feedback(controller, t, x, u_max):
     from flight.control.ilqr import feedback_control
     return feedback_control(controller.plan, t - controller.plan_t_s, x, u_max)
@@ -150,6 +178,17 @@ def main(argv=None) -> None:
                         help="also fly the controller on the first K cases' own vehicles (no wind) and "
                              "replay that policy with the case's noise: splits flown - rollout into "
                              "the anchors' interpolation (oracle - rollout) and the rest (flown - oracle)")
+    parser.add_argument("--flight-seed", type=int, default=1000,
+                        help="row r's flights drawn with this seed + r (default 1000, the calibration set)")
+    parser.add_argument("--cache", type=Path, help="keep the flown flights' figures here; fly only the missing")
+    parser.add_argument("--fly-only", action="store_true", help="fly (and cache) the flights, no prediction")
+    parser.add_argument("--replan", type=float, default=0.0, metavar="HZ",
+                        help="re-planning rollouts at this rate (flight/control/replan.py; 0: the replayed policies)")
+    parser.add_argument("--replan-iterations", type=int, default=1)
+    parser.add_argument("--replan-horizon", type=int, default=None)
+    parser.add_argument("--replan-hold-s", type=float, default=0.8)
+    parser.add_argument("--replan-linearise", choices=("case", "nominal", "solver"), default="case")
+    parser.add_argument("--replan-alphas", default="1,0.5,0.25")
     args = parser.parse_args(argv)
     rows = args.rows.split(",")
     unknown = [r for r in rows if r not in ROWS]
@@ -166,12 +205,20 @@ def main(argv=None) -> None:
     pooled, total, details, oracles = 0, 0, [], []
     for r, row in enumerate(rows):
         uncertainty = ROWS[row]
-        predictor = Predictor(nominal, uncertainty, controller=controller, adapt=not args.replay)
-        prediction = predictor.predict(args.rollouts, seed=0)
-        cases, _ = draw_cases(vehicle, nominal, args.flights, uncertainty, seed=1000 + r)
+        r = list(ROWS).index(row)   # the row's seed whichever rows are asked for
+        cases, _ = draw_cases(vehicle, nominal, args.flights, uncertainty, seed=args.flight_seed + r)
         start = time.perf_counter()
-        flown = [fly_case(controller, vehicle, cases, i, nominal.ticks, uncertainty) for i in range(args.flights)]
+        flown = flown_figures(controller, vehicle, cases, args.flights, nominal.ticks, uncertainty, args.cache,
+                              row, args.flight_seed + r)
         wall = time.perf_counter() - start
+        if args.fly_only:
+            print(f"| {row} | flown | {args.flights} flights in {wall:.0f} s | | | |")
+            continue
+        replan = None if not args.replan else Replan(
+            args.replan, args.replan_iterations, args.replan_horizon, args.replan_hold_s,
+            tuple(float(a) for a in args.replan_alphas.split(",")), args.replan_linearise)
+        predictor = Predictor(nominal, uncertainty, controller=controller, adapt=not args.replay, replan=replan)
+        prediction = predictor.predict(args.rollouts, seed=0)
         # the rollouts of the very cases flown: where the model departs from the flights
         cases["weights"] = predictor.policy.weights(vehicle, uncertainty, cases)
         paired = metrics_from_series(np.asarray(predictor._rollouts(cases, *predictor.tables()), dtype=np.float64),
@@ -196,6 +243,8 @@ def main(argv=None) -> None:
         print(f"| {row} | timing | {args.rollouts} rollouts in {prediction.rollout_s:.2f} s after a "
               f"{prediction.compile_s:.1f} s compile; {prediction.anchor_flights} anchor flights in "
               f"{prediction.anchor_s:.1f} s | | | |")
+    if args.fly_only:
+        return
     print(f"\npooled: {pooled}/{total} flown figures inside their band ({pooled / total:.1%})")
     if oracles:
         print(f"\n| row | figure | cases | mean flown - rollout | mean oracle - rollout (the anchors) | "
