@@ -2,7 +2,7 @@
 
     python bench/link.py [--profiles none,lan,bad] [--missions hover,flip-short]
                          [--modes realtime,lockstep] [--placement ground] [--seed N] [--out DIR]
-                         [--link-only] [--emulator auto|netem|forwarder]
+                         [--link-only] [--emulator auto|netem|forwarder] [--secure [tls|tls+quic]]
 
 Two hosts as bench/two_hosts.py makes them (network namespaces "vehicle" and "ground"; an
 impaired link is `tc netem` where the kernel has it, else bench/support/linkemu.py forwarding
@@ -17,7 +17,8 @@ loss each way), bad (50 +- 20 ms, 5 %), or DELAY_MS/JITTER_MS/LOSS_PCT.
    recorder and MAVLink bridge on the ground, a router per host). One line per flight: completed,
    crashed, hold RMS, wall time per simulated second, messages lost vehicle -> ground (all keys),
    the latency of pos/state (vehicle -> ground) and planner/setpoint (ground -> vehicle), and in
-   lockstep whether the flight is the one-host flight message for message.
+   lockstep whether the flight is the one-host flight message for message. `--secure`: the
+   two-host flights secured (bench/two_hosts.py --secure; the one-host flight stays open).
 
 Each flight's own report (per key) is in <out>/<mission>-<mode>-<profile>/ground/metrics.json and
 bench/two_hosts.py's printout above the summary. Namespaces and processes are removed after each
@@ -108,6 +109,8 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=str(ROOT / "runs" / "link"))
     p.add_argument("--link-only", action="store_true", help="only step 1: the link alone")
     p.add_argument("--no-link", action="store_true", help="skip step 1")
+    p.add_argument("--secure", nargs="?", const="tls", choices=tuple(two_hosts.SECURE_LINKS), metavar="LINK",
+                   help="the two-host flights secured (bench/two_hosts.py --secure): tls (default) or tls+quic")
     args = p.parse_args(argv)
     try:
         profiles = [parse_profile(x) for x in args.profiles.split(",")]
@@ -160,7 +163,8 @@ def main(argv=None) -> int:
                 print(f"link: {mission.name} {mode} across {prof} (load average {os.getloadavg()[0]:.1f})", flush=True)
                 rc = two_hosts.main(["--mission", mission.path, "--seed", str(args.seed), "--link", prof.name,
                                      "--emulator", args.emulator, "--placement", args.placement, "--no-one-host",
-                                     "--out", str(run_out), *lock])
+                                     "--out", str(run_out), *lock,
+                                     *(["--secure", args.secure] if args.secure else [])])
                 if rc in (2, 130):
                     code = code or rc
                 if rc == 130:

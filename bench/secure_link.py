@@ -2,7 +2,7 @@
 
     python bench/secure_link.py [-n 30] [--mode tls+quic|tls|quic|tcp+udp|tls+quic1-6|tls+tls7|tcp+tcp7]
                                 [--log FILTER] [--timeout S] [--router]
-    python bench/secure_link.py --across lan [--link tls|tls+quic] [--no-check] [-n 20] [--timeout S]
+    python bench/secure_link.py --across lan [--link tls|tls+quic|open] [--no-check] [-n 20] [--timeout S]
 
 Per attempt, on loopback: a "vehicle" router listening on the mode's endpoints (mutual TLS with the
 certificates of `zenpilot certs`, made here for a two-machine stack), a "ground" router connecting
@@ -243,7 +243,8 @@ def main() -> int:
     ap.add_argument("--across", metavar="PROFILE",
                     help="across an emulated link (bench/two_hosts.py's --link: lan, bad, D/J/L), the machines' routers "
                          "in two network namespaces (root)")
-    ap.add_argument("--link", default="tls", choices=("tls", "tls+quic"), help="--across: the secured link (default tls)")
+    ap.add_argument("--link", default="tls", choices=("tls", "tls+quic", "open"),
+                    help="--across: the secured link (default tls), or the open split's (two-hosts-ground.toml as it is)")
     ap.add_argument("--no-check", action="store_true", help="--across: the ground's router without the link check")
     args = ap.parse_args()
     if args.n < 1 or not args.timeout > 0:
@@ -273,7 +274,7 @@ def main() -> int:
 
 
 def main_across(args) -> int:
-    from bench.two_hosts import parse_profile, secure_stacks
+    from bench.two_hosts import STACKS, parse_profile, secure_stacks
     import argparse
     try:
         profile = parse_profile(args.across)
@@ -282,7 +283,8 @@ def main_across(args) -> int:
         return 2
     linked = reopens = 0
     with tempfile.TemporaryDirectory(prefix="secure-link-across-") as tmp:
-        stacks = secure_stacks("ground", Path(tmp), args.link)
+        stacks = (dict.fromkeys(("vehicle", "ground"), STACKS["ground"]) if args.link == "open"
+                  else secure_stacks("ground", Path(tmp), args.link))
         for i in range(args.n):
             got = attempt_across(profile, stacks, Path(tmp), not args.no_check, args.timeout, i)
             ok = got["reliable"] is not None and got["best_effort"] is not None
@@ -293,8 +295,10 @@ def main_across(args) -> int:
                                       + (f" ({got['reopened']} re-opened)" if got["reopened"] else "") if ok else
                                       f"NOT LINKED within {args.timeout:g} s (reliable {got['reliable']}, best effort "
                                       f"{got['best_effort']})"), flush=True)
+        from deploy.router import checks_link
+        checked = not args.no_check and checks_link(load_stack(stacks["ground"]), "ground")
     print(f"{linked} of {args.n} linked (across {profile}, {args.link}, "
-          + ("the link checked" if not args.no_check else "no link check") + f"; {reopens} re-opened)")
+          + ("the link checked" if checked else "no link check") + f"; {reopens} re-opened)")
     return 0 if linked == args.n else 1
 
 

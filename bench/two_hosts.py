@@ -44,7 +44,8 @@ the link probes are tools of their host's machine. LINK: `tls` (the default): TL
 split has TCP (control prio 0-6, bulk 7-7), its UDP link left out; `tls+quic`: QUIC's datagrams
 (rel=0) where it has UDP. Across `lan` QUIC's datagrams queue behind its congestion control (the
 streams to the ground 1.3 s late, the flip aborted): docs/reliability.md, "A secured split over
-an unreliable link".
+an unreliable link". The one-host comparison flies the open stack (`zenpilot fly` refuses a
+[security] stack: it is for the split).
 
 The simulator ends the run when the mission ends; the vehicle's `zenpilot down` then stops its
 services and router, the ground's stops its own, whose recorder writes flight.mcap on the ground

@@ -143,11 +143,12 @@ def test_a_quic_link_is_checked_from_a_session_of_its_own(tmp_path):
     assert not checks_link(plain, "ground")
 
 
-def test_a_secured_link_of_several_endpoints_is_checked_an_open_one_is_not(tmp_path):
+def test_a_link_of_several_endpoints_is_checked_one_of_one_is_not(tmp_path):
     """TLS at priorities 0-6 and TLS at 7-7 (the secured split's control and bulk links): the first
     declarations may go on either and arrive out of order; nothing crossed in 1 of 2 flights across
     lan (docs/reliability.md), so the connecting router checks it as a QUIC link, and the accepting
-    router echoes. The same endpoints without [security] (an open split) are left as they were."""
+    router echoes. The same endpoints without [security] (an open split: it met the same across
+    `bad`) too; a link of one endpoint is left as it was."""
     from deploy.router import checks_link, echoes_links
     links = '["tls/10.0.0.2:7448?prio=0-6", "tls/10.0.0.2:7449?prio=7-7"]'
     two = SECURE.replace('connect = ["tls/10.0.0.2:7448"]', f"connect = {links}", 1).replace(
@@ -160,7 +161,9 @@ def test_a_secured_link_of_several_endpoints_is_checked_an_open_one_is_not(tmp_p
     open_split = two.replace("[security]\ndir = \"keys\"\n", "").replace("tls/", "tcp/")
     assert "[security]" not in open_split
     plain = load_stack(stack_file(tmp_path, open_split))
-    assert not checks_link(plain, "ground") and not echoes_links(plain, "vehicle")
+    assert checks_link(plain, "ground") and echoes_links(plain, "vehicle")
+    single = load_stack(stack_file(tmp_path, SECURE.replace("[security]\ndir = \"keys\"\n", "").replace("tls/", "tcp/")))
+    assert not checks_link(single, "ground") and not echoes_links(single, "vehicle")
 
 
 def test_make_keys_writes_secret_files_private_and_never_overwrites(tmp_path):
