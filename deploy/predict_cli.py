@@ -52,6 +52,11 @@ def add_parser(sub) -> None:
     p.add_argument("--replay", action="store_true",
                    help="every case replays the nominal's plans and gains: no flights on the knots (faster), "
                         "pessimistic on a stronger vehicle (the planner's flip_predict_adapt=false)")
+    p.add_argument("--replan", action="store_true",
+                   help="every case re-plans as flown: the planner's own iLQR solve from the case's state at the "
+                        "controller's rate inside the rollouts (flight/control/replan.py; no flights on the knots). "
+                        "The closest model of the flown flips, and slow: ~40 min for 1000 on a 2-core CPU, for a GPU "
+                        "(docs/flip-history.md)")
     p.add_argument("--json", metavar="FILE", help="also write the summary per flip item as JSON")
     p.add_argument("--compile-cache-dir", metavar="DIR", default="",
                    help="keep the compiled solver and rollouts in DIR (JAX's persistent cache, as the planner's "
@@ -61,7 +66,7 @@ def add_parser(sub) -> None:
 
 
 def cmd_predict(args) -> int:
-    from flight.control.predict import PredictError, Uncertainty, build_predictor
+    from flight.control.predict import PredictError, Replan, Uncertainty, build_predictor
     from flight.vehicle import load_vehicle
     from services.stack import load_mission
 
@@ -75,6 +80,8 @@ def cmd_predict(args) -> int:
                                   wind_m_s=args.wind_m_s, gust_m_s=args.gust_m_s, delay_max_s=args.delay_ms / 1e3)
     except PredictError as exc:
         raise ValueError(f"predict: {exc}") from None
+    if args.replan and args.replay:
+        raise ValueError("predict: --replan and --replay are two models: ask for one")
     mission = load_mission(args.mission)
     vehicle = load_vehicle(mission.vehicle)
     flips = [(i, item) for i, item in enumerate(mission.items) if item["type"] == "flip"]
@@ -94,8 +101,9 @@ def cmd_predict(args) -> int:
     refused, out = 0, []
     for index, item in flips:
         try:
+            kwargs = {"replan": Replan(100.0, linearise="solver")} if args.replan else {}
             predictor = build_predictor(vehicle, item["method"], item["altitude_m"], uncertainty,
-                                        adapt=not args.replay)
+                                        adapt=not args.replay, **kwargs)
         except PredictError as exc:
             print(f"item {index} ({item['method']}): cannot predict: {exc}")
             out.append({"item": index, "method": item["method"], "error": str(exc)})
@@ -105,7 +113,8 @@ def cmd_predict(args) -> int:
         refused += reason is not None
         print(f"\nitem {index}: {item['method']} flip from {item['altitude_m']:g} m "
               f"(nominal flight {predictor.nominal_s:.1f} s, solver compile and {predictor.nominal.solves} iLQR solves; "
-              f"{result.anchor_flights} flights on the knots' vehicles in {result.anchor_s:.1f} s; "
+              + ("each case re-planning as flown; " if args.replan else
+                 f"{result.anchor_flights} flights on the knots' vehicles in {result.anchor_s:.1f} s; ") +
               f"rollouts compiled in {result.compile_s:.2f} s, "
               f"{args.rollouts} rollouts in {result.rollout_s:.2f} s)")
         print(f"  {'figure':<38} {'p5':>8} {'median':>8} {'p95':>8}")

@@ -654,6 +654,8 @@ class Predictor:
             self._rollouts = make_rollouts(nominal, uncertainty, self.max_delay)
         else:
             from flight.control.replan import initial_plan, make_reference, make_replan_rollouts
+            if nominal.method != "ilqr-project":
+                raise PredictError(f"the re-planning rollouts fly the project's flip (ilqr-project), not {nominal.method}")
             self.policy = anchored_policy(nominal, uncertainty, controller, adapt=False)   # no flights
             if "land" not in nominal.phases:
                 raise PredictError("the nominal flight never recovered: nothing to re-plan to")

@@ -1,4 +1,4 @@
-"""The flip's rollouts that re-plan: the flown controller's loop in JAX, cheaper (issue 25 item 1).
+"""The flip's rollouts that re-plan: the flown controller's loop in JAX (issue 25 item 1).
 
 flight/control/predict.py's default rollouts replay a time-varying affine policy (the plans and
 gains the controller flew on each vehicle, interpolated between the knots' flights); the flown
@@ -8,17 +8,20 @@ gains does not (docs/flip-history.md). These rollouts put that loop inside the b
 
 * the phase machine of flight/control/flip.FlipPhaseMachine (the project's flip: flip ->
   recovery -> the settle's hold) and its targets, on the case's own state, every tick;
-* every `replan_ticks` ticks an iLQR step from the state (the file's model, as the planner's),
-  warm-started from the previous plan shifted by the time since: `iterations` passes of
-  linearisation, Riccati backward pass and line search (the solver's own pieces,
-  flight/control/ilqr.py), the gains those of the last pass;
+* every `replan_ticks` ticks a re-plan from the state (the file's model, as the planner's),
+  warm-started from the previous plan shifted by the time since: exact=True the planner's own
+  solve (flight/control/ilqr.make_solver: the flown loop); else `iterations` passes of
+  linearisation, Riccati backward pass and line search, the linearisation the case's own or,
+  reference=True, the nominal flight's at the same time (make_reference; the gradient and the
+  line search stay the case's);
 * between re-plans the motor driver's law u = u_plan + K (x - x_plan) (flight/control/plan.plan_feedback),
   the control delay, the case's plant (predict._plant_step) and gusts, as predict.make_rollouts.
 
-Cheaper than the flown loop in three ways, each a setting: a lower re-planning rate (the flown
-one is 100 Hz), one iLQR iteration a re-plan (the flown: up to 8, to convergence) and a line
-search over fewer step sizes. bench/predict_calibration.py --replan measures what that costs the
-calibration. No anchor flights: each case's answer to its vehicle is its own re-planning.
+No anchor flights: each case's answer to its vehicle is its own re-planning. Measured
+(docs/flip-history.md, "Re-planning inside the rollouts"): the exact loop models each flown case
+to 0.01 m and 0.2 deg but costs ~0.5 s a re-plan for 1000 cases on a 2-core CPU (~30-40 min a
+prediction); below 100 Hz the controller is another one, and the nominal's linearisation
+(~20 s) spreads less than flown. predict.Predictor(replan=Replan(...)) builds them.
 """
 from __future__ import annotations
 

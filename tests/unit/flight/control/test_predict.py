@@ -263,7 +263,7 @@ def test_cli_prints_the_envelope_and_refuses_bad_arguments(tmp_path, jax_compile
     assert no_flip.returncode == 2 and "has no flip item" in no_flip.stderr
 
 
-def test_cli_replay_flag_asks_for_the_nominals_policy_in_every_case(monkeypatch, capsys):
+def test_cli_replay_and_replan_flags_ask_for_their_models(monkeypatch, capsys):
     """`zenpilot predict --replay` builds the predictor with adapt=False (no flights on the knots);
     without it, adapt=True. The predictor is stubbed: only what the command asks for is checked."""
     import argparse
@@ -272,13 +272,19 @@ def test_cli_replay_flag_asks_for_the_nominals_policy_in_every_case(monkeypatch,
     from deploy import predict_cli
     asked = []
 
-    def build(vehicle, method, altitude_m, uncertainty, adapt=True):
-        asked.append(adapt)
+    def build(vehicle, method, altitude_m, uncertainty, adapt=True, replan=None):
+        asked.append((adapt, replan))
         raise PredictError("stub")
     monkeypatch.setattr(predict, "build_predictor", build)
     parser = argparse.ArgumentParser()
     predict_cli.add_parser(parser.add_subparsers())
     for argv, adapt in ((["predict", "--replay"], False), (["predict"], True)):
         args = parser.parse_args(argv)
-        assert args.func(args) == 0 and asked[-1] is adapt
+        assert args.func(args) == 0 and asked[-1] == (adapt, None)
     assert "cannot predict: stub" in capsys.readouterr().out
+    # --replan: every case re-plans with the planner's own solve at its rate; not with --replay
+    args = parser.parse_args(["predict", "--replan"])
+    assert args.func(args) == 0 and asked[-1] == (True, Replan(100.0, linearise="solver"))
+    with pytest.raises(ValueError, match="two models"):
+        args = parser.parse_args(["predict", "--replan", "--replay"])
+        args.func(args)
