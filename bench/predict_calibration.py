@@ -45,8 +45,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from flight import motor_model
 from flight.control.flip import Phase, RollAccumulator, flip_metrics, heights
 from flight.control.flip_runner import FlipController
-from flight.control.predict import (TICK_RATE_HZ, Predictor, Replan, Uncertainty, draw_cases, fly_nominal,
+from flight.control.predict import (TICK_RATE_HZ, Predictor, Uncertainty, draw_cases, fly_nominal,
                                     metrics_from_series)
+from flight.control.replan import Replan
 from flight.vehicle import load_vehicle
 from simulator.config import SimConfig
 from simulator.plant import Plant

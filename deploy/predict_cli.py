@@ -66,7 +66,8 @@ def add_parser(sub) -> None:
 
 
 def cmd_predict(args) -> int:
-    from flight.control.predict import PredictError, Replan, Uncertainty, build_predictor
+    from flight.control.predict import PredictError, Uncertainty, build_predictor
+    from flight.control.replan import Replan
     from flight.vehicle import load_vehicle
     from services.stack import load_mission
 

@@ -602,48 +602,14 @@ def metrics_from_series(series: np.ndarray, flip_tick: int, tick_s: float, altit
     }
 
 
-@dataclass(frozen=True)
-class Replan:
-    """The re-planning rollouts' settings (flight/control/replan.py): an iLQR step every
-    1 / rate_hz from the case's state (the flown controller: 100 Hz, to convergence), with
-    `iterations` passes, over `horizon` steps of the plan (None: the controller's), until
-    hold_s after the nominal's recovery (then the last plan held). linearise "case": each pass
-    linearises the model along the case's own plan (the solver's iteration); "nominal": the
-    nominal flight's linearisation and Riccati matrices at the same time, the gradient and the
-    line search the case's own (flight/control/replan.make_reference; ~20x cheaper); "solver":
-    the planner's own solve per case (its iterations, stops and gains: the flown loop; the
-    iterations and alphas settings unused)."""
-    rate_hz: float = 40.0
-    iterations: int = 1
-    horizon: int | None = None
-    hold_s: float = 0.8
-    alphas: tuple = (1.0, 0.5, 0.25)
-    linearise: str = "case"
-
-    def __post_init__(self):
-        ticks = TICK_RATE_HZ / self.rate_hz if math.isfinite(self.rate_hz) and self.rate_hz > 0 else 0.0
-        if not (abs(ticks - round(ticks)) < 1e-6 and round(ticks) >= 1):
-            raise PredictError(f"replan rate_hz must divide {TICK_RATE_HZ:g} Hz (got {self.rate_hz!r})")
-        if self.iterations < 1 or (self.horizon is not None and self.horizon < 2) or not self.hold_s >= 0:
-            raise PredictError(f"replan iterations >= 1, horizon >= 2, hold_s >= 0 (got {self!r})")
-        if not self.alphas or not all(0 < a <= 1 for a in self.alphas):
-            raise PredictError(f"replan alphas in (0, 1] (got {self.alphas!r})")
-        if self.linearise not in ("case", "nominal", "solver"):
-            raise PredictError(f"replan linearise 'case', 'nominal' or 'solver' (got {self.linearise!r})")
-
-    @property
-    def ticks(self) -> int:
-        return int(round(TICK_RATE_HZ / self.rate_hz))
-
-
 class Predictor:
     """A nominal flip and its compiled rollouts; predict() draws and flies N cases."""
 
     def __init__(self, nominal: NominalFlip, uncertainty: Uncertainty = Uncertainty(), nominal_s: float = 0.0,
-                 controller=None, adapt: bool = True, replan: Replan | None = None):
+                 controller=None, adapt: bool = True, replan=None):
         """controller: the FlipController that flies the anchors (default: the nominal's);
         adapt: False replays the nominal's policy in every case (anchored_policy);
-        replan: each case re-plans instead (flight/control/replan.py; no anchor flights)."""
+        replan: a flight/control/replan.Replan: each case re-plans instead (no anchor flights)."""
         self.nominal = nominal
         self.uncertainty = uncertainty
         self.nominal_s = nominal_s
@@ -652,20 +618,9 @@ class Predictor:
         if replan is None:
             self.policy = anchored_policy(nominal, uncertainty, controller, adapt)
             self._rollouts = make_rollouts(nominal, uncertainty, self.max_delay)
-        else:
-            from flight.control.replan import initial_plan, make_reference, make_replan_rollouts
-            if nominal.method != "ilqr-project":
-                raise PredictError(f"the re-planning rollouts fly the project's flip (ilqr-project), not {nominal.method}")
+        else:   # built by the flight/control/replan.Replan given (this module does not import it)
             self.policy = anchored_policy(nominal, uncertainty, controller, adapt=False)   # no flights
-            if "land" not in nominal.phases:
-                raise PredictError("the nominal flight never recovered: nothing to re-plan to")
-            until_s = nominal.phases.index("land") * nominal.tick_s + replan.hold_s
-            nominal_lin = replan.linearise == "nominal"
-            self._rollouts = make_replan_rollouts(nominal, uncertainty, self.max_delay, replan.ticks,
-                                                  replan.iterations, replan.alphas, replan.horizon, until_s,
-                                                  reference=nominal_lin, exact=replan.linearise == "solver")
-            self._initial = initial_plan(nominal) + (make_reference(nominal, replan.horizon) if nominal_lin
-                                                     else None,)
+            self._rollouts, self._initial = replan.rollouts(nominal, uncertainty, self.max_delay)
         self._compiled_for = set()
 
     def series(self, n: int, seed: int = 0) -> tuple[np.ndarray, float, float]:
@@ -705,7 +660,7 @@ class Predictor:
 
 def build_predictor(vehicle: Vehicle, method: str = "ilqr-project", altitude_m: float = 5.0,
                     uncertainty: Uncertainty = Uncertainty(), controller=None, adapt: bool = True,
-                    replan: Replan | None = None) -> Predictor:
+                    replan=None) -> Predictor:
     start = time.perf_counter()
     nominal = fly_nominal(vehicle, method, altitude_m, controller=controller)
     return Predictor(nominal, uncertainty, time.perf_counter() - start, adapt=adapt, replan=replan)

@@ -21,16 +21,18 @@ No anchor flights: each case's answer to its vehicle is its own re-planning. Mea
 (docs/flip-history.md, "Re-planning inside the rollouts"): the exact loop models each flown case
 to 0.01 m and 0.2 deg but costs ~0.5 s a re-plan for 1000 cases on a 2-core CPU (~30-40 min a
 prediction); below 100 Hz the controller is another one, and the nominal's linearisation
-(~20 s) spreads less than flown. predict.Predictor(replan=Replan(...)) builds them.
+(~20 s) spreads less than flown. predict.Predictor(replan=Replan(...)) flies them.
 """
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from flight import motor_model
 from flight.control.flip import PROJECT_FLIP
+from flight.control.predict import TICK_RATE_HZ, PredictError, _jnp_root, _plant_step, fly_nominal
 from flight.quat import quat_multiply, wrap_angle
 
 TWO_PI = 2.0 * math.pi
@@ -51,7 +53,6 @@ def nominal_solves(nominal) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The nominal flight flown again (lockstep: the same flight), each of its solves kept:
     (states (J, H+1, n_x), controls (J, H, 4), targets (J, H+1, n_x)), float32, one a solve
     (every 1 / solve_rate_hz from t = 0; a solve that was not used kept all the same)."""
-    from flight.control.predict import fly_nominal
     c = nominal.controller
     planner = c.planner
     kept = []
@@ -118,7 +119,6 @@ def make_replan_rollouts(nominal, uncertainty, max_delay_ticks: int, replan_tick
     import jax.numpy as jnp
 
     from flight.control.ilqr import _backward_pass, make_cost, make_cost_derivatives, make_dynamics, make_solver
-    from flight.control.predict import _jnp_root, _plant_step
 
     c = nominal.controller
     if c is None or getattr(c, "planner", None) is None or c.flip_config != PROJECT_FLIP:
@@ -406,3 +406,51 @@ def initial_plan(nominal) -> tuple[np.ndarray, np.ndarray]:
     c.start(0.0, nominal.x0, nominal.altitude_m)
     c.step(0.0, nominal.x0, 1.0, solve=True)
     return c.plan.controls.astype(np.float32), c.plan.gains.astype(np.float32)
+
+
+@dataclass(frozen=True)
+class Replan:
+    """The re-planning rollouts' settings: an iLQR step every
+    1 / rate_hz from the case's state (the flown controller: 100 Hz, to convergence), with
+    `iterations` passes, over `horizon` steps of the plan (None: the controller's), until
+    hold_s after the nominal's recovery (then the last plan held). linearise "case": each pass
+    linearises the model along the case's own plan (the solver's iteration); "nominal": the
+    nominal flight's linearisation and Riccati matrices at the same time, the gradient and the
+    line search the case's own (flight/control/replan.make_reference; ~20x cheaper); "solver":
+    the planner's own solve per case (its iterations, stops and gains: the flown loop; the
+    iterations and alphas settings unused)."""
+    rate_hz: float = 40.0
+    iterations: int = 1
+    horizon: int | None = None
+    hold_s: float = 0.8
+    alphas: tuple = (1.0, 0.5, 0.25)
+    linearise: str = "case"
+
+    def __post_init__(self):
+        ticks = TICK_RATE_HZ / self.rate_hz if math.isfinite(self.rate_hz) and self.rate_hz > 0 else 0.0
+        if not (abs(ticks - round(ticks)) < 1e-6 and round(ticks) >= 1):
+            raise PredictError(f"replan rate_hz must divide {TICK_RATE_HZ:g} Hz (got {self.rate_hz!r})")
+        if self.iterations < 1 or (self.horizon is not None and self.horizon < 2) or not self.hold_s >= 0:
+            raise PredictError(f"replan iterations >= 1, horizon >= 2, hold_s >= 0 (got {self!r})")
+        if not self.alphas or not all(0 < a <= 1 for a in self.alphas):
+            raise PredictError(f"replan alphas in (0, 1] (got {self.alphas!r})")
+        if self.linearise not in ("case", "nominal", "solver"):
+            raise PredictError(f"replan linearise 'case', 'nominal' or 'solver' (got {self.linearise!r})")
+
+    @property
+    def ticks(self) -> int:
+        return int(round(TICK_RATE_HZ / self.rate_hz))
+
+    def rollouts(self, nominal, uncertainty, max_delay_ticks: int) -> tuple:
+        """(the jitted rollouts, their tables after the start state) for Predictor(replan=self)."""
+        if nominal.method != "ilqr-project":
+            raise PredictError(f"the re-planning rollouts fly the project's flip (ilqr-project), not {nominal.method}")
+        if "land" not in nominal.phases:
+            raise PredictError("the nominal flight never recovered: nothing to re-plan to")
+        until_s = nominal.phases.index("land") * nominal.tick_s + self.hold_s
+        nominal_lin = self.linearise == "nominal"
+        rollouts = make_replan_rollouts(nominal, uncertainty, max_delay_ticks, self.ticks, self.iterations,
+                                        self.alphas, self.horizon, until_s, reference=nominal_lin,
+                                        exact=self.linearise == "solver")
+        return rollouts, initial_plan(nominal) + (make_reference(nominal, self.horizon) if nominal_lin else None,)
+

@@ -15,7 +15,6 @@ from flight.control.predict import (
     AnchoredPolicy,
     PredictError,
     Predictor,
-    Replan,
     Uncertainty,
     anchor_extents,
     anchor_plant,
@@ -26,6 +25,7 @@ from flight.control.predict import (
     metrics_from_series,
     nominal_params,
 )
+from flight.control.replan import Replan
 from flight.vehicle import load_vehicle
 
 ROOT = Path(__file__).resolve().parents[4]
