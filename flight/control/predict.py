@@ -482,6 +482,21 @@ def draw_cases(vehicle: Vehicle, nominal: NominalFlip, n: int, uncertainty: Unce
     }, max_delay
 
 
+def euler_roll(q, jnp):
+    """The roll angle of quaternion q (w, x, y, z), in JAX."""
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    return jnp.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+
+
+def start_body(case, x0, jnp):
+    """A case's rigid-body start (13 states) and attitude: the nominal start x0 with the case's
+    drawn estimator error (start_dq, start_error) applied, in JAX."""
+    body0 = x0[:13]
+    q0 = quat_multiply(body0[6:10], case["start_dq"], jnp)
+    err = case["start_error"]
+    return jnp.concatenate([body0[0:3] + err[0:3], body0[3:6] + err[3:6], q0, body0[10:13] + err[6:9]]), q0
+
+
 def make_rollouts(nominal: NominalFlip, uncertainty: Uncertainty, max_delay_ticks: int):
     """A jitted rollouts(cases, u_plan, gains, x_plan, x0) -> per tick (N, T, 6): z, x, y,
     accumulated roll, tilt, body-rate norm. The tables are an AnchoredPolicy's (A, T, ...),
@@ -500,16 +515,10 @@ def make_rollouts(nominal: NominalFlip, uncertainty: Uncertainty, max_delay_tick
     gust_gain = uncertainty.gust_m_s * math.sqrt(1.0 - gust_decay ** 2)
     hover_f = float(vehicle.hover_thrust_per_motor_n)
 
-    def euler_roll(q):
-        w, x, y, z = q[0], q[1], q[2], q[3]
-        return jnp.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-
     def one(case, u_plan, gains, x_plan, x0):
         w = case["weights"]
-        body0 = x0[:13]
-        q0 = quat_multiply(body0[6:10], case["start_dq"], jnp)
+        body0, q0 = start_body(case, x0, jnp)
         err = case["start_error"]
-        body0 = jnp.concatenate([body0[0:3] + err[0:3], body0[3:6] + err[3:6], q0, body0[10:13] + err[6:9]])
         forces0 = jnp.full(4, hover_f, jnp.float32)
         params = {k: case[k] for k in ("mass", "inertia", "thrust_scale", "tau")}
         buffer0 = jnp.tile((kf * (w @ u_plan[:, 0]) ** 2)[None], (max_delay_ticks + 1, 1))
@@ -535,14 +544,14 @@ def make_rollouts(nominal: NominalFlip, uncertainty: Uncertainty, max_delay_tick
             est_next = est if ctrl_tau is None else motor_model.root_step(_jnp_root(est), _jnp_root(command),
                                                                           ctrl_decay) ** 2
             gust_next = gust * gust_decay + gust_gain * noise * jnp.array([1.0, 1.0, 1.0])
-            r = euler_roll(body[6:10])
+            r = euler_roll(body[6:10], jnp)
             roll_next = roll + wrap_angle(r - last, jnp)
             q = body[6:10]
             tilt = jnp.arccos(jnp.clip((q[0] ** 2 - q[1] ** 2 - q[2] ** 2 + q[3] ** 2) / jnp.sum(q * q), -1.0, 1.0))
             out = jnp.stack([body[2], body[0], body[1], roll_next, tilt, jnp.linalg.norm(body[10:13])])
             return (body_next, forces_next, est_next, buffer, gust_next, roll_next, r), out
 
-        carry0 = (body0, forces0, forces0, buffer0, jnp.zeros(3, jnp.float32), jnp.float32(0.0), euler_roll(q0))
+        carry0 = (body0, forces0, forces0, buffer0, jnp.zeros(3, jnp.float32), jnp.float32(0.0), euler_roll(q0, jnp))
         tables = (jnp.swapaxes(u_plan, 0, 1), jnp.swapaxes(gains, 0, 1), jnp.swapaxes(x_plan, 0, 1))
         _, outs = jax.lax.scan(tick, carry0, tables + (case["gust_noise"],))
         return outs

@@ -32,16 +32,12 @@ import numpy as np
 
 from flight import motor_model
 from flight.control.flip import PROJECT_FLIP
-from flight.control.predict import TICK_RATE_HZ, PredictError, _jnp_root, _plant_step, fly_nominal
+from flight.control.predict import (TICK_RATE_HZ, PredictError, _jnp_root, _plant_step, euler_roll, fly_nominal,
+                                    start_body)
 from flight.quat import quat_multiply, wrap_angle
 
 TWO_PI = 2.0 * math.pi
 FLIP, RECOVERY, SETTLE = 0, 1, 2     # the phases a rollout goes through (it starts at the flip's)
-
-
-def euler_roll(q, jnp):
-    w, x, y, z = q[0], q[1], q[2], q[3]
-    return jnp.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
 
 
 def euler_yaw(q, jnp):
@@ -299,10 +295,7 @@ def make_replan_rollouts(nominal, uncertainty, max_delay_ticks: int, replan_tick
         return out
 
     def one(case, x0, controls0, gains0, ref):
-        body0 = x0[:13]
-        q0 = quat_multiply(body0[6:10], case["start_dq"], jnp)
-        err = case["start_error"]
-        body0 = jnp.concatenate([body0[0:3] + err[0:3], body0[3:6] + err[3:6], q0, body0[10:13] + err[6:9]])
+        body0, q0 = start_body(case, x0, jnp)
         forces0 = jnp.full(4, hover_f, jnp.float32)
         params = {k: case[k] for k in ("mass", "inertia", "thrust_scale", "tau")}
         buffer0 = jnp.tile((kf * u_hover ** 2) * jnp.ones((1, 4), jnp.float32), (max_delay_ticks + 1, 1))
