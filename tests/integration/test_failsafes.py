@@ -8,9 +8,12 @@ vision gone -> the EKF coasts, then the attitude level lands."""
 
 import pytest
 
+from .conftest import ROOT
 from .faults import TRUTH_STATE, fly_with_fault
 
 pytestmark = pytest.mark.integration
+# the fault 5 s into a hover with a 6 s hold (hover-fault.toml: in the hold from 4.7 s)
+AT = dict(at_s=5.0, mission=str(ROOT / "tests" / "integration" / "missions" / "hover-fault.toml"))
 
 GENTLE_M_S = 1.0     # touchdown speed of a controlled descent (0.5 m/s sink; a fall from 1 m: 4.4 m/s)
 LEVEL_DEG = 15.0
@@ -36,7 +39,7 @@ def assert_landed_gently(m, within_s):
 
 def test_attitude_killed_the_motor_driver_lands(tmp_path):
     kept = {}
-    m = fly_with_fault(tmp_path, "attitude", "kill", settings=TRUTH_STATE, keep=kept)
+    m = fly_with_fault(tmp_path, "attitude", "kill", **AT, settings=TRUTH_STATE, keep=kept)
     assert_landed_gently(m, within_s=6.0)
     assert_no_stale_command_acted_on(kept["log"])
     assert m["failsafes"]["motors"]["failsafe_engaged"] == 1 and m["failsafes"]["motors"]["failsafe_landed"] == 1
@@ -44,19 +47,19 @@ def test_attitude_killed_the_motor_driver_lands(tmp_path):
 
 
 def test_attitude_killed_on_the_estimates(tmp_path):
-    m = fly_with_fault(tmp_path, "attitude", "kill", settings=("sim.max_duration_s=20",))
+    m = fly_with_fault(tmp_path, "attitude", "kill", **AT, settings=("sim.max_duration_s=17",))
     assert_landed_gently(m, within_s=6.0)
 
 
 def test_position_killed_the_attitude_level_lands(tmp_path):
-    m = fly_with_fault(tmp_path, "position", "kill", settings=TRUTH_STATE + ("sim.max_duration_s=20",))
+    m = fly_with_fault(tmp_path, "position", "kill", **AT, settings=TRUTH_STATE + ("sim.max_duration_s=17",))
     assert_landed_gently(m, within_s=6.0)
     assert m["failsafes"]["attitude"]["failsafe_engaged"] == 1
     assert "motors" not in m["failsafes"] or "failsafe_engaged" not in m["failsafes"]["motors"]
 
 
 def test_planner_killed_position_holds_then_lands(tmp_path):
-    m = fly_with_fault(tmp_path, "planner", "kill", settings=TRUTH_STATE + ("sim.max_duration_s=22",))
+    m = fly_with_fault(tmp_path, "planner", "kill", **AT, settings=TRUTH_STATE + ("sim.max_duration_s=19",))
     # held 5 s (planner_loss_land_after_s) where it was, then landed
     assert_landed_gently(m, within_s=10.0)
     assert m["fault"]["ground_after_s"] > 5.0
@@ -64,7 +67,7 @@ def test_planner_killed_position_holds_then_lands(tmp_path):
 
 
 def test_vision_killed_the_ekf_coasts_then_lands(tmp_path):
-    m = fly_with_fault(tmp_path, "vision", "kill", settings=("sim.max_duration_s=22",))
+    m = fly_with_fault(tmp_path, "vision", "kill", **AT, settings=("sim.max_duration_s=19",))
     assert_landed_gently(m, within_s=10.0)
     assert m["fault"]["ground_after_s"] > 3.0   # coasted vision_timeout_s first
     assert m["failsafes"]["position"]["vision_lost"] == 1
@@ -76,7 +79,7 @@ def test_vision_killed_the_ekf_coasts_then_lands(tmp_path):
 @pytest.mark.realtime
 def test_attitude_frozen_2s_real_time_the_motor_driver_covers_and_hands_back(tmp_path):
     kept = {}
-    m = fly_with_fault(tmp_path, "attitude", "stop", stop_s=2.0, lockstep=False, settings=TRUTH_STATE, keep=kept)
+    m = fly_with_fault(tmp_path, "attitude", "stop", **AT, stop_s=2.0, lockstep=False, settings=TRUTH_STATE, keep=kept)
     f = m["fault"]
     assert not m["crashed"], m["crash_reason"]
     assert f["min_altitude_soon_m"] > 0.2, f            # descending slowly, not falling (fault + 5 s)
@@ -88,7 +91,7 @@ def test_attitude_frozen_2s_real_time_the_motor_driver_covers_and_hands_back(tmp
 
 @pytest.mark.realtime
 def test_position_frozen_2s_real_time_the_attitude_level_covers(tmp_path):
-    m = fly_with_fault(tmp_path, "position", "stop", stop_s=2.0, lockstep=False, settings=TRUTH_STATE)
+    m = fly_with_fault(tmp_path, "position", "stop", **AT, stop_s=2.0, lockstep=False, settings=TRUTH_STATE)
     f = m["fault"]
     assert not m["crashed"], m["crash_reason"]
     assert f["min_altitude_soon_m"] > 0.2, f

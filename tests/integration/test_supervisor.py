@@ -42,8 +42,10 @@ def _service_pid(out, module: str, instance: str | None = None) -> int:
 
 
 def _fly_and(out, fault, *extra):
-    """A real-time hover on the estimates; `fault()` 5 s after its first tick; what `fly` said."""
-    proc = fly(out, "hover", *extra, lockstep=False, background=True)
+    """A real-time hover on the estimates (a 6 s hold, from 4.7 s); `fault()` 5 s after its first
+    tick; what `fly` said."""
+    proc = fly(out, str(ROOT / "tests" / "integration" / "missions" / "hover-fault.toml"), *extra,
+               lockstep=False, background=True)
     try:
         deadline = time.monotonic() + 120
         while "first tick" not in _read(out / "logs" / "sim.log"):
