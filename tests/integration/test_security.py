@@ -269,8 +269,8 @@ def test_unauthorised_motor_commands_never_reach_the_motor_driver(tmp_path, proc
 
 def test_secured_split_flies_a_hover(tmp_path):
     """The access control lets the split do all it needs: planner and recorder on the ground
-    host's router, the flight services on the vehicle's, linked over TLS, a lockstep hover
-    (keys made with `zenpilot certs`, each machine started with `zenpilot up -d --machine`). ~60 s."""
+    host's router, the flight services on the vehicle's, linked over TLS, a short lockstep hover
+    (keys made with `zenpilot certs`, each machine started with `zenpilot up -d --machine`). ~20 s."""
     text = DEFAULT_STACK.read_text()
     services = text[text.index("[services.sim]"):].replace('[services.planner]\nmachine = "vehicle"',
                                                            '[services.planner]\nmachine = "ground"')
@@ -288,7 +288,7 @@ def test_secured_split_flies_a_hover(tmp_path):
     refused = subprocess.run([sys.executable, "-m", "deploy.cli", "fly", "--stack", str(stack), "--lockstep",
                               "--out", str(tmp_path / "fly")], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert refused.returncode == 2 and "machine by machine" in refused.stderr, refused.stderr
-    common = ("--stack", str(stack), "--lockstep", "--mission", "hover")
+    common = ("--stack", str(stack), "--lockstep", "--mission", str(ROOT / "tests" / "integration" / "missions" / "hover-short.toml"))
     try:
         zenpilot("vehicle", "up", "-d", *common, "--machine", "vehicle", "--set", "sim.stop_after_mission=true",
                  "--out", str(tmp_path / "vehicle"))
