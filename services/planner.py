@@ -181,6 +181,7 @@ class PlannerLoop:
         self.lead_auto = not io.lockstep and io.params["plan_lead_auto"]
         self.state_ages = deque(maxlen=max(1, round(2.0 * io.rate_hz)))   # plan_lead_auto: the last 2 s
         self.flip_lead_s = self.lead_s   # fixed for a flip at its start: the plans' clock must not jump
+        self.max_lead_s = io.params["flip_max_lead_s"]
         self.flip_measured = None   # with a lead: (sample time, full state at it, the pos/state)
         self.sent = deque(maxlen=8)   # with a lead: (start, Plan) of the plans sent, oldest first
         if self.controllers:
@@ -220,6 +221,11 @@ class PlannerLoop:
                 if self.lead_auto and self.state_ages else self.lead_s
             if self.lead_auto:
                 print(f"zenpilot-planner: flip plans lead by {self.flip_lead_s:.3f} s", flush=True)
+                if self.max_lead_s and self.flip_lead_s > self.max_lead_s:
+                    self.count("flip_refused_late_states")
+                    self.io.problem(f"flip refused: the states reach the planner {self.flip_lead_s:.3f} s late, "
+                                    f"more than flip_max_lead_s {self.max_lead_s:g} s: the vehicle holds")
+                    return "refused", False, True, self.flip_pos
         lead = self.flip_lead_s if c.state_dim == 17 else 0.0   # the rotor-lag model's plans (ilqr-project)
         if lead:   # the plan starts where it will fly: the state predicted to then (flight/control/lead.py)
             t_x, x_measured, pos = self.flip_measured

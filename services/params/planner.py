@@ -27,6 +27,12 @@ PARAMS = {
     "plan_lead_auto": Param(False, doc="... at least that: the median age of the position states as they arrived "
                                        "over the last 2 s before the flip (the link's latency one way, taken for the "
                                        "plans' too), fixed for the flip; real time only"),
+    # across a 5 % loss TLS link the states came ~0.2 s old and a flip planned from them fell 5 m
+    # (docs/reliability.md); the open split's UDP across the same link: 0.077 s, flown
+    "flip_max_lead_s": Param(0.15, "s", 0.0,
+                             doc="with plan_lead_auto: a flip whose plans would lead by more than this (the states "
+                                 "reach the planner that late) is refused, never started, the vehicle held "
+                                 "(`flip-refused`); 0: no bound"),
     "compile_cache_dir": Param("~/.cache/zenpilot/jax",
                                doc="where compiled iLQR solvers are kept between starts; \"\": compile every start"),
     # flight/control/predict.py; `zenpilot predict` prints the same

@@ -250,3 +250,54 @@ def test_with_a_lead_the_flips_plans_start_that_far_ahead_from_the_predicted_sta
     assert first and abs(first[5]["states"][2] - 5.0) > 1e-4
     io, loop = loop_for("none", flip_methods=["ilqr-project"], plan_lead_s=0.04, flip_predict_rollouts=0)
     assert loop.lead_s == 0.0   # lockstep: a plan flies in the tick after it is made
+
+
+class StartingController(FakeController):
+    """A flip controller that only notes that it was started."""
+    def __init__(self, method):
+        super().__init__(method)
+        self.started = False
+
+    def lead(self, x, sent, dt):
+        return x
+
+    def start(self, *args):
+        self.started = True
+
+    def step(self, t, x, settle_s, solve):
+        from types import SimpleNamespace
+        return SimpleNamespace(plan=None, phase="flip", done=False, failed=False, position_ref_m=[0.0, 0.0, 5.0])
+
+
+@pytest.mark.parametrize("bound, refused", [(0.15, True), (0.25, False), (0.0, False)])
+def test_a_flip_whose_states_come_too_late_is_refused_and_the_vehicle_held(monkeypatch, bound, refused):
+    """plan_lead_auto across a link whose states arrive 0.2 s old (TLS at 5 % loss, where such a
+    flip fell): over flip_max_lead_s the flip is never started - no plan, `flip-refused`, the
+    position held, the reason in the log and the counts; under the bound, or with none, it starts."""
+    import services.planner as planner
+    controllers = {}
+    monkeypatch.setattr(planner, "flip_controllers",
+                        lambda io, methods: controllers.update({m: StartingController(m) for m in methods}) or controllers)
+    io = FakeIO("planner", PARAMS, {"flip_methods": ["ilqr-project"], "flip_predict_rollouts": 0,
+                                    "plan_lead_auto": True, "flip_max_lead_s": bound}, rate_hz=50.0, lockstep=False)
+    io.tick_rate = 400.0
+    loop = PlannerLoop(io, "none")
+    states, commands = io.received(schemas.POSITION_STATE, "position"), io.received(schemas.PLANNER_COMMAND, "mavlink")
+    atts = io.received(schemas.ATTITUDE_STATE, "attitude")
+    commands.push(0.0, command("arm"))
+    commands.push(0.0, command("takeoff", altitude_m=5.0))
+    for n in range(60):
+        t = n / loop.io.rate_hz + 1.0
+        states.push(t - 0.2, state((0.0, 0.0, 5.0)))
+        atts.push(t - 0.2, attitude())
+        if n == 5:
+            commands.push(t, command("flip"))
+        loop.step(t)
+    _, sp = io.sent(schemas.PLANNER_SETPOINT)[-1]
+    if refused:
+        assert sp["phase"] == "flip-refused" and sp["mode"] == "position" and sp["position_m"][2] == 5.0, sp
+        assert io.sent(schemas.PLANNER_PLAN) == [] and io.rejected == {"flip_refused_late_states": 1}
+        assert any("flip refused: the states reach the planner 0.200 s late" in p for p in io.problems), io.problems
+    else:
+        assert sp["phase"] == "flip" and io.rejected == {}, sp
+    assert controllers["ilqr-project"].started is not refused
