@@ -116,7 +116,7 @@ def _tcp_bytes_received(port: int) -> int:
     return sum(int(w.split(":")[1]) for w in lines if w.startswith("bytes_received:"))
 
 
-@pytest.mark.realtime   # Zenoh's handshakes time out: at the idle class, starved by a loaded machine, the routers once never linked in 30 s
+@pytest.mark.realtime   # Zenoh's handshakes time out: at the idle class, starved by a loaded machine, they never completed in 30 s
 def test_two_routers_carry_best_effort_streams_on_their_udp_link_and_reliable_messages_on_tcp():
     """Routers linked as two-hosts-ground.toml links them (TCP and UDP for the control priorities):
     a best-effort stream crosses without touching the TCP link (no retransmission can hold it
@@ -127,12 +127,26 @@ def test_two_routers_carry_best_effort_streams_on_their_udp_link_and_reliable_me
               "transport/unicast/max_links": MAX_LINKS}
     vehicle = _open({**common, "listen/endpoints": links})
     time.sleep(0.5)   # listening before the ground connects, as the two-host stacks start them
-    ground = _open({**common, "listen/endpoints": [], "connect/endpoints": links})
     got = []
+    probe = vehicle.declare_publisher("zp/0/planner/plan")
+    ground = None
     try:
-        time.sleep(1.0)
-        ground.declare_subscriber("zp/0/planner/plan", lambda s: got.append(len(s.payload)))
-        time.sleep(0.5)
+        # Zenoh 1.10.2's race: routers linked by several endpoints sometimes route nothing, ever
+        # (once in a loaded suite); the ground's router is opened again, as deploy/router.py's
+        # CheckedLink does
+        for _attempt in range(3):
+            if ground is not None:
+                ground.close()
+            ground = _open({**common, "listen/endpoints": [], "connect/endpoints": links})
+            time.sleep(1.0)
+            ground.declare_subscriber("zp/0/planner/plan", lambda s: got.append(len(s.payload)))
+            deadline = time.monotonic() + 10.0
+            while not got and time.monotonic() < deadline:   # the links and the subscription are up end to end
+                probe.put(b"x")
+                time.sleep(0.05)
+            if got:
+                break
+        assert got, "the routers never linked, three times"
 
         def send(reliability) -> tuple[int, int]:
             """(messages received, bytes the TCP link carried) for 50 messages of 1000 bytes (an idle-class
@@ -149,18 +163,14 @@ def test_two_routers_carry_best_effort_streams_on_their_udp_link_and_reliable_me
                 time.sleep(0.01)
             return len(got) - n, _tcp_bytes_received(tcp) - before
 
-        probe = vehicle.declare_publisher("zp/0/planner/plan")
-        deadline = time.monotonic() + 30.0   # a first attempt that fails is retried within 1-4 s
-        while not got and time.monotonic() < deadline:   # the links and the subscription are up end to end
-            probe.put(b"x")
-            time.sleep(0.05)
-        assert got, "the routers never linked"
+        time.sleep(0.5)
         received, tcp_bytes = send(zenoh.Reliability.RELIABLE)
         assert received == 50 and tcp_bytes >= 50 * 1000
         received, tcp_bytes = send(publisher_reliability(schemas.PLANNER_PLAN, lockstep=False))
         assert received >= 40 and tcp_bytes < 1000   # across on UDP (loopback: a datagram lost at most rarely)
     finally:
-        ground.close()
+        if ground is not None:
+            ground.close()
         vehicle.close()
 
 
