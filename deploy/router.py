@@ -148,7 +148,9 @@ class CheckedLink:
 
     def __init__(self, make_config, ping: str, echo: str, check_s: float = CHECK_S, log=None):
         self.make_config, self.ping, self.echo, self.check_s = make_config, ping, echo, check_s
-        self.log = log or (lambda line: print(f"zenpilot-router: {line}", file=sys.stderr, flush=True))
+        # the wall clock on each line: a link lost mid-flight is matched with the outage's times
+        self.log = log or (lambda line: print(f"zenpilot-router: {line} (at {time.time():.3f})", file=sys.stderr,
+                                              flush=True))
         self.opens = 0
         self.endpoint = ""
         self.echoed = threading.Event()
@@ -242,6 +244,8 @@ def main(argv=None) -> None:
     p.add_argument("--machine", help="run this machine's router as the stack file describes it")
     args = p.parse_args(argv)
     tie_to_parent()
+    if os.environ.get("RUST_LOG"):   # Zenoh's own log, when asked for (how its links come and go)
+        zenoh.init_log_from_env_or("error")
     try:
         conf, listen = router_config(args.listen, args.stack, args.machine)
         stack = load_stack(args.stack) if args.machine else None
