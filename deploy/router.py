@@ -249,9 +249,17 @@ def _close(session: zenoh.Session) -> bool:
     return not closing.is_alive()
 
 
+# a machine whose router carries these is never opened again: cut, they would lose each other
+CONTROL_SERVICES = ("sim", "motors", "standby", "attitude", "position")
+
+
 def health_keys(stack, machine: str) -> list[str]:
-    """The health keys of the services on other machines than `machine` (and its machine-less
-    tools): what comes through the link while it routes."""
+    """What `machine`'s router watches besides its link's echo before it opens them again: the
+    health of every service not on `machine` (those of other machines on its host, as `vehicle`
+    beside `vehicle-router`, keep coming while the link is down: such a router is never opened
+    again); none, never opened again, where `machine` runs the vehicle's control services."""
+    if any(s.machine == machine for n, s in stack.services.items() if n in CONTROL_SERVICES):
+        return []
     return [f"zp/{stack.vehicle_id}/{n}/health" for n, s in stack.services.items() if s.machine not in ("", machine)]
 
 

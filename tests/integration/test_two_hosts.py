@@ -174,4 +174,7 @@ def test_the_secured_split_hovers_across_a_lossy_link(tmp_path):
         assert r["resumed_after_restore_s"] <= RESUME_BOUND_S, (key, r)
     vehicle = outage["vehicle"]
     assert not vehicle["crashed"] and vehicle["failsafes"]["position"]["planner_lost"] >= 1, vehicle
-    assert vehicle["min_altitude_cut_to_restore_m"] >= 0.5, vehicle
+    # in the air at the cut (at 1 m: 0.998 m measured; lower if a loaded machine took off late) and
+    # held there, not fallen (0.997 m at the lowest)
+    assert vehicle["altitude_at_cut_m"] >= 0.3, vehicle
+    assert vehicle["min_altitude_cut_to_restore_m"] >= vehicle["altitude_at_cut_m"] - 0.25, vehicle
