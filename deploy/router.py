@@ -350,6 +350,8 @@ def main(argv=None) -> None:
         try:
             session, listen, link = relink(args, stack, session, link, log, stop)
         except zenoh.ZError as exc:
+            if stop.is_set():   # asked to stop while its ports were not free yet: nothing left open
+                return
             print(f"zenpilot-router: error: cannot open the router again on {args.machine}: {exc}",
                   file=sys.stderr, flush=True)
             raise SystemExit(2)
