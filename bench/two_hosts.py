@@ -5,6 +5,7 @@
                               [--link none|lan|bad|lan100|lan100-qos|D/J/L]
                               [--emulator auto|netem|forwarder] [--out DIR] [--no-one-host]
                               [--flood BYTES@HZ[:PRIORITY]] [--stop SERVICE@T_S[:FOR_S]]
+                              [--outage T_S:FOR_S]
 
 Two hosts are two network namespaces that this bench creates (root, `ip netns`): "vehicle"
 (10.77.0.1/24) and "ground" (10.77.0.2/24), loopback up in each, nothing else: no route out, so
@@ -75,6 +76,18 @@ declares; its session is capped as the vehicle machine's services' are (`bulk_ma
 flight, SIGCONT after FOR_S (if its supervisor has not killed and restarted it by then), and
 report when each host's supervisor saw it: the vehicle's from /proc, the ground's from the
 service's beats across the link (deploy/supervisor.py, other machines' services).
+
+`--outage T_S:FOR_S` (real time): the link cut both ways T_S after the simulator's first tick
+(its "first tick at" line) for FOR_S, then restored: the link namespace's two veth ends set
+down, then up (the forwarder always carries such a link, also `--link none`). Each host's end
+then has no carrier, as with a cable pulled or a radio out of range: every frame sent meanwhile
+is lost, none queued by the link (what a TCP stream still holds in its host's send buffer it
+sends again). metrics.json's two_hosts.outage: when it was cut and restored, per key that
+crosses, when it arrived last before the cut and first after the restore (and how many samples
+older than the cut came after it); the ground router's link lines (CheckedLink); and the
+vehicle's own record across the outage (its probe writes <out>/vehicle/witness.mcap, the keys
+deploy.metrics reads: the ground's recorder sees nothing of the vehicle while cut), with its
+metrics: crashed or not, failsafes, altitudes.
 
 The same mission is then flown on one host with `zenpilot fly` (same stack, seed and mode) into
 <out>/one-host/, its per-key losses beside; in lockstep the two logs are compared message for
@@ -225,6 +238,9 @@ RESTART_GRACE_S = 10.0   # a supervisor's back-off (at most 8 s, deploy/supervis
 WALL_CLOCK_FIELDS = ("solve_ms", "overrun_solves")   # the wall clock's, even in lockstep (planner/plan)
 SCOUTING_GROUP = "224.0.0.224"  # Zenoh's multicast scouting group (port 7446)
 SERVICES = ("sim", "motors", "attitude", "position", "vision", "planner", "mavlink")
+WITNESS = "witness.mcap"   # --outage: the vehicle's own record (its probe's), the keys deploy.metrics reads
+WITNESS_KEYS = ("sim/truth", "sim/imu", "motors/pwm", "att/state", "pos/state", "pos/setpoint", "vision/pose",
+                "planner/setpoint", "*/health")
 
 
 class BenchError(Exception):
@@ -257,7 +273,7 @@ class TwoHosts:
     loss. Either way both hosts keep their addresses on one /24 and nothing leaves the namespaces."""
 
     def __init__(self, tag: str, profile: LinkProfile, emulator: str = "auto", link_seed: int = 0,
-                 out: Path | None = None):
+                 out: Path | None = None, cuttable: bool = False):
         self.ns = {"vehicle": f"zp{tag}-vehicle", "ground": f"zp{tag}-ground"}
         self.dev = {"vehicle": f"zp{tag}v", "ground": f"zp{tag}g"}  # interface names: 15 characters at most
         self.link_dev = {"vehicle": f"zp{tag}lv", "ground": f"zp{tag}lg"}   # the forwarder's ends
@@ -268,6 +284,7 @@ class TwoHosts:
         self.method = "veth"            # what impairs the link: veth (nothing), netem, forwarder
         self.forwarder: subprocess.Popen | None = None
         self.forwarder_stats: dict | None = None
+        self.cuttable = cuttable        # --outage: the link namespace's ends are what is cut
 
     def open(self) -> None:
         for host in ("vehicle", "ground"):
@@ -281,9 +298,12 @@ class TwoHosts:
         if self.profile.rate_mbit and self.emulator == "netem":
             raise BenchError(f"--link {self.profile.name}: its capacity and queues are the forwarder's "
                              f"(--emulator forwarder)")
-        if self.profile.impaired and not self.profile.rate_mbit and self.emulator in ("auto", "netem") and self._netem():
+        if self.cuttable and self.emulator == "netem":
+            raise BenchError("--outage cuts the link namespace's ends: --emulator auto or forwarder")
+        if self.profile.impaired and not self.profile.rate_mbit and self.emulator in ("auto", "netem") \
+                and not self.cuttable and self._netem():
             self.method = "netem"
-        elif self.profile.impaired:
+        elif self.profile.impaired or self.cuttable:
             self._forwarder()
             self.method = "forwarder"
         else:
@@ -349,6 +369,13 @@ class TwoHosts:
                                  f"{(self.out / 'link' / 'linkemu.log').read_text().strip()}")
             time.sleep(0.05)
 
+    def set_link(self, up: bool) -> float:
+        """The link both ways down (an outage: each host's end loses its carrier, frames sent are
+        lost) or up again; the wall-clock time once both ends are set."""
+        for host in ("vehicle", "ground"):
+            run(["ip", "-n", self.ns["link"], "link", "set", "dev", self.link_dev[host], "up" if up else "down"])
+        return time.time()
+
     def stop_forwarder(self) -> dict | None:
         """Stop the forwarder (it writes what it did: frames, losses, the delays it gave, its CPU)."""
         if self.forwarder is not None and self.forwarder.poll() is None:
@@ -381,6 +408,19 @@ class TwoHosts:
                     "rx_dropped": s["rx"]["dropped"], "tx_dropped": s["tx"]["dropped"]}
         except (ValueError, KeyError, IndexError):
             return {}
+
+    def tcp_states(self, host: str) -> dict[str, int]:
+        """The host's TCP sockets towards the other host, by state (ESTAB, SYN-SENT, ...), and its UDP
+        sockets to it with datagrams waiting unread ("UDP unread")."""
+        other = GROUND_IP if host == "vehicle" else VEHICLE_IP
+        got: dict[str, int] = {}
+        for line in run(["ip", "netns", "exec", self.ns[host], "ss", "-Htan"], check=False).stdout.splitlines():
+            if other in line:
+                got[line.split()[0]] = got.get(line.split()[0], 0) + 1
+        for line in run(["ip", "netns", "exec", self.ns[host], "ss", "-Huan"], check=False).stdout.splitlines():
+            if other in line and int(line.split()[1]) > 0:   # datagrams from the other host nobody reads
+                got["UDP unread"] = got.get("UDP unread", 0) + 1
+        return got
 
     def sockets(self) -> dict:
         """What crosses the link and whether anything listens for multicast scouting."""
@@ -478,8 +518,10 @@ class Probes:
     def __init__(self, hosts: TwoHosts, out: Path):
         self.hosts, self.out, self.procs = hosts, out, {}
 
-    def start(self, host: str, endpoint: str, keys: list[str], stack: str | None = None) -> None:
-        """`stack`: a secured stack file, whose login the probe presents (the host's machine's)."""
+    def start(self, host: str, endpoint: str, keys: list[str], stack: str | None = None,
+              log_keys: list[str] | None = None) -> None:
+        """`stack`: a secured stack file, whose login the probe presents (the host's machine's);
+        `log_keys`: also written, decoded, into <out>/<host>/witness.mcap (the host's own record)."""
         if not keys:
             return
         path = self.out / host / "linkprobe.json"
@@ -487,7 +529,9 @@ class Probes:
         log = open(self.out / host / "linkprobe.log", "w")
         self.procs[host] = subprocess.Popen(
             self.hosts.argv(host, [sys.executable, "-m", "bench.support.linkprobe", "-e", endpoint,
-                                   *(["--stack", stack] if stack else []), "--out", str(path), *keys]),
+                                   *(["--stack", stack] if stack else []), "--out", str(path),
+                                   *([f"--log={self.out / host / WITNESS}", *(f"--log-key={k}" for k in log_keys)]
+                                     if log_keys else []), *keys]),
             cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + 20.0
         while "linkprobe: listening" not in (self.out / host / "linkprobe.log").read_text():
@@ -655,7 +699,8 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
     if not args.lockstep:   # arrival - header time is a latency only when headers are wall-clock times
         probes.start("ground", router, incoming_keys(split, {"ground"}), stacks["ground"] if args.secure else None)
         probes.start("vehicle", router, incoming_keys(split, {"vehicle", "vehicle-router"}),
-                     stacks["vehicle"] if args.secure else None)
+                     stacks["vehicle"] if args.secure else None,
+                     [f"zp/{split.vehicle_id}/{k}" for k in WITNESS_KEYS] if args.outage else None)
     cap = 0.0 if args.rogue else split.machines[split.service("sim").machine].bulk_max_hz   # the camera's machine
     flood = start_flood(hosts, out, args.flood, router, cap) if args.flood else {}
     t_fly = time.monotonic()
@@ -680,7 +725,27 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
     deadline, sampled, status = time.monotonic() + limit, None, ""
     down_since: dict[str, float] = {}
     fault = {"service": args.stop[0], "at_s": args.stop[1], "for_s": args.stop[2]} if args.stop else None
+    outage = {"at_s": args.outage[0], "for_s": args.outage[1]} if args.outage else None
     while _running(pids["sim"]):
+        if outage is not None and "restored_unix" not in outage:   # --outage: cut, then restore, the link
+            if "first_tick_unix" not in outage:
+                first = re.search(r"first tick at ([0-9.]+)", _read(out / "vehicle" / "logs" / "sim.log"))
+                if first:
+                    outage["first_tick_unix"] = float(first.group(1))
+            elif "cut_unix" not in outage and time.time() >= outage["first_tick_unix"] + outage["at_s"]:
+                outage["cut_unix"] = hosts.set_link(False)
+                print(f"two_hosts: the link cut {outage['cut_unix'] - outage['first_tick_unix']:.2f} s after the "
+                      f"simulator's first tick", flush=True)
+            elif "cut_unix" in outage and time.time() >= outage["cut_unix"] + outage["for_s"]:
+                outage["restored_unix"] = hosts.set_link(True)
+                print(f"two_hosts: the link restored after {outage['restored_unix'] - outage['cut_unix']:.2f} s",
+                      flush=True)
+        if outage is not None and "cut_unix" in outage and time.time() < outage.get("restored_unix", float("inf")) + 20:
+            # the ground's TCP links to the vehicle while cut and after: each change of their states
+            states = hosts.tcp_states("ground")
+            tcp = outage.setdefault("ground_tcp", [])
+            if not tcp or tcp[-1][1] != states:
+                tcp.append([round(time.time() - outage["cut_unix"], 2), states])
         if fault is not None:   # --stop: SIGSTOP a vehicle service, SIGCONT it later (if still there)
             into = time.monotonic() - t_fly
             if "stopped_unix" not in fault and into >= fault["at_s"]:
@@ -708,8 +773,18 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
             raise BenchError(f"service(s) stopped during the flight: {', '.join(dead)} "
                              f"(logs in {out / 'vehicle' / 'logs'} and {out / 'ground' / 'logs'})")
         if time.monotonic() > deadline:
-            raise BenchError(f"the flight did not end within {limit:.0f} s")
-        if sampled is None and time.monotonic() - t_fly > 5.0:
+            if outage is None or "restored_unix" not in outage:
+                raise BenchError(f"the flight did not end within {limit:.0f} s")
+            # after an outage: what crossed and what the vehicle did are the finding (a link back
+            # that routes nothing never brings the ground's "mission completed" to the simulator)
+            print(f"two_hosts: error: the flight did not end within {limit:.0f} s; stopping it", file=sys.stderr)
+            outage["flight_ended"] = False
+            break
+        # --outage: not while a cut is due or on (`zenpilot status` holds this loop for seconds
+        # under load: a cut asked for 3 s after the first tick once came at 5.75 s)
+        cut_near = outage is not None and time.time() < outage.get("restored_unix", float("inf")) + 3.0 and (
+            "first_tick_unix" not in outage or time.time() > outage["first_tick_unix"] + outage["at_s"] - 5.0)
+        if sampled is None and time.monotonic() - t_fly > 5.0 and not cut_near:
             sampled = hosts.sockets()  # mid-flight: every service linked
             # liveliness and health of every service as the ground sees them across the link
             try:
@@ -749,8 +824,10 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
             pass
     if fault is not None and "stopped_unix" in fault:
         fault["seen_s"] = fault_seen(out, fault)
+    if outage is not None:
+        outage.update(outage_report(out, outage, arrivals, info, split.vehicle_id))
     metrics["two_hosts"] = {"link": link, "sockets": sampled, "timing": timing, "status": status, "fault": fault,
-                            "supervisor": supervised, "flood": flooded,
+                            "supervisor": supervised, "flood": flooded, "outage": outage,
                             "placement": args.placement, "stack": stack_path.name, "lockstep": args.lockstep,
                             "secure": args.secure,
                             "profile": dataclasses.asdict(p), "emulator": hosts.method, "forwarder": forwarder,
@@ -761,6 +838,91 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
         metrics["two_hosts"]["wall_per_sim_s"] = timing["flight wall s"] / metrics["duration_s"]
     (out / "ground" / "metrics.json").write_text(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
     return metrics
+
+
+def _read(path: Path) -> str:
+    try:
+        return path.read_text(errors="replace")
+    except OSError:
+        return ""
+
+
+ROUTER_LINK_LINE = re.compile(r"zenpilot-router: (.*(?:link to the other host|the machine's router|listening again)"
+                              r".*?)(?: \(at ([0-9.]+)\))?$")
+
+
+def _lost_in_outage(rows: list, cut: float, back: float | None) -> int | None:
+    """The samples sent from the cut until `back` (the sample time of the first one sent after the
+    restore that came) that never came, per sender: the outage's share of the key's losses (the
+    rest is the link's own)."""
+    if back is None:
+        return None
+    lost = 0
+    for source in {r[3] for r in rows}:
+        mine = sorted((r[2], r[1]) for r in rows if r[3] == source)
+        before = [q for q, t in mine if t < cut]
+        after = [q for q, t in mine if t >= back]
+        if before and after:
+            inside = sum(1 for q, t in mine if cut <= t < back)
+            lost += after[0] - before[-1] - 1 - inside
+    return lost
+
+
+def outage_report(out: Path, outage: dict, arrivals: dict, info: dict, vehicle_id: int) -> dict:
+    """--outage: per key that crossed (the probes' arrivals), when it came last before the cut and
+    first after the restore, relative to them (s); the routers' link lines; the vehicle's own record."""
+    got: dict = {"keys": {}, "routers": {}}
+    cut, restored = outage.get("cut_unix"), outage.get("restored_unix")
+    if cut is None:
+        got["error"] = "the flight ended before the cut"
+        return got
+    if "first_tick_unix" in outage:
+        got["cut_after_first_tick_s"] = round(cut - outage["first_tick_unix"], 3)
+    for host, records in arrivals.items():
+        for key, rows in records.items():
+            before = [r[0] for r in rows if r[0] <= cut]
+            # what arrived with the link down: what was in flight at the cut (the link's delay), else nothing
+            during = [r for r in rows if cut + 0.2 < r[0] < (restored or float("inf"))]
+            after = [r for r in rows if restored is not None and r[0] >= restored]
+            got["keys"][key] = {
+                "to": host, "last_before_cut_s": round(before[-1] - cut, 3) if before else None,
+                "during": len(during),
+                "resumed_after_restore_s": round(after[0][0] - restored, 3) if after else None,
+                "gap_s": round(after[0][0] - before[-1], 3) if after and before else None,
+                # sent before the restore, delivered after it: held by a TCP stream, or by the
+                # kernel while it resolved the other host's address again (its neighbour queue)
+                "sent_before_restore_after_it": sum(1 for r in after if r[1] < restored),
+                "oldest_after_restore_s": max((round(r[0] - r[1], 3) for r in after if r[1] < restored), default=None),
+                "first_age_after_restore_s": round(after[0][0] - after[0][1], 3) if after else None,
+                "lost_in_outage": _lost_in_outage(rows, cut, min((r[1] for r in after if r[1] >= restored),
+                                                                 default=None))}
+    for host, log in (("ground", out / "ground" / "logs" / "router.log"),
+                      ("vehicle", out / "vehicle" / "router" / "logs" / "router.log")):
+        lines = []
+        for line in _read(log).splitlines():
+            m = ROUTER_LINK_LINE.search(line)
+            if m:
+                lines.append({"line": m.group(1), "after_cut_s": round(float(m.group(2)) - cut, 3) if m.group(2) else None})
+        got["routers"][host] = lines
+    witness = out / "vehicle" / WITNESS
+    if witness.exists():
+        try:
+            m, _ = flight_metrics(witness, info, vehicle_id)
+            got["vehicle"] = {k: m.get(k) for k in ("completed", "crashed", "crash_reason", "mission_state",
+                                                    "failsafes", "max_tilt_deg", "duration_s")}
+            log = read_log(witness)
+            truth = [x for x in log.get(f"zp/{vehicle_id}/sim/truth", [])]
+            z = [(x["header"]["t_s"], x["position_m"][2]) for x in truth]
+            if z:
+                got["vehicle"]["altitude_at_cut_m"] = min(z, key=lambda p: abs(p[0] - cut))[1]
+                got["vehicle"]["min_altitude_cut_to_restore_m"] = min(
+                    (h for t, h in z if cut <= t <= (restored or float("inf"))), default=None)
+                if restored is not None:
+                    got["vehicle"]["altitude_at_restore_m"] = min(z, key=lambda p: abs(p[0] - restored))[1]
+                    got["vehicle"]["max_altitude_after_restore_m"] = max((h for t, h in z if t >= restored), default=None)
+        except Exception as exc:   # the record is a bench's: say why it is missing, keep the flight's figures
+            got["vehicle"] = {"error": f"{type(exc).__name__}: {exc}"}
+    return got
 
 
 def fly_one_host(mission, args, out: Path) -> tuple[dict | None, float]:
@@ -889,6 +1051,34 @@ def key_table(keys: dict, one: dict | None = None) -> str:
     return "\n".join(lines)
 
 
+def outage_text(o: dict) -> str:
+    """--outage: the cut, each key's return, the routers' link lines, the vehicle's own record."""
+    if "cut_unix" not in o:
+        return f"outage: not made ({o.get('error', 'the flight ended first')})"
+    lines = ["outage: THE FLIGHT DID NOT END (the simulator stopped by the bench at its limit)"] \
+        if o.get("flight_ended") is False else []
+    lines += [f"outage: the link cut {o.get('cut_after_first_tick_s', float('nan')):.2f} s after the simulator's first "
+             f"tick for {o['restored_unix'] - o['cut_unix']:.2f} s" if "restored_unix" in o else
+             "outage: the link cut and never restored (the flight ended first)"]
+    lines.append(f"  {'key':<26} {'to':<8} {'last before cut s':>17} {'during':>6} {'back after restore s':>20} "
+                 f"{'gap s':>7} {'sent before, late':>17} {'their oldest s':>14}")
+    for key in sorted(o["keys"], key=lambda k: (o["keys"][k]["to"], k)):
+        r = o["keys"][key]
+        lines.append(f"  {key.split('/', 2)[-1]:<26} {r['to']:<8} {_fmt(r['last_before_cut_s']):>17} {r['during']:>6} "
+                     f"{_fmt(r['resumed_after_restore_s']):>20} {_fmt(r['gap_s']):>7} "
+                     f"{r['sent_before_restore_after_it']:>17} {_fmt(r['oldest_after_restore_s']):>14}")
+    for host, said in o.get("routers", {}).items():
+        for x in said:
+            lines.append(f"  {host} router, {_fmt(x['after_cut_s'])} s after the cut: {x['line']}")
+    if o.get("ground_tcp"):
+        lines.append("  the ground's TCP links to the vehicle (s after the cut: states): " + "; ".join(
+            f"{t:g}: {', '.join(f'{k} {n}' for k, n in st.items()) or 'none'}" for t, st in o["ground_tcp"]))
+    v = o.get("vehicle")
+    if v:
+        lines.append("  the vehicle's own record: " + ", ".join(f"{k} {_fmt(val)}" for k, val in v.items()))
+    return "\n".join(lines)
+
+
 def resolve_mission(name: str):
     if not name.endswith(".toml") and not (ROOT / "deploy" / "missions" / f"{name}.toml").exists() \
             and (TEST_MISSIONS / f"{name}.toml").exists():
@@ -907,6 +1097,18 @@ def stop_spec(text: str) -> tuple[str, float, float]:
         raise argparse.ArgumentTypeError(f"{text!r}: expected SERVICE@T_S[:FOR_S], e.g. vision@8:2") from None
     if not service or out[1] < 0 or out[2] <= 0:
         raise argparse.ArgumentTypeError(f"{text!r}: a service, T_S >= 0, FOR_S > 0")
+    return out
+
+
+def outage_spec(text: str) -> tuple[float, float]:
+    """T_S:FOR_S -> (t_s, for_s)."""
+    at, sep, length = text.partition(":")
+    try:
+        out = float(at), float(length)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected T_S:FOR_S, e.g. 8:3") from None
+    if not sep or out[0] < 0 or out[1] <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: T_S >= 0 and FOR_S > 0")
     return out
 
 
@@ -940,6 +1142,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--stop", type=stop_spec, metavar="SERVICE@T_S[:FOR_S]",
                    help="real time: SIGSTOP a vehicle service T_S into the flight for FOR_S (default 2) s; "
                         "reports when each host's supervisor saw it")
+    p.add_argument("--outage", type=outage_spec, metavar="T_S:FOR_S",
+                   help="real time: cut the link both ways T_S after the simulator's first tick, restore it FOR_S "
+                        "later; reports when each key crossed again")
     p.add_argument("--rogue", action="store_true",
                    help="the flood from outside the stack: its session not capped as the vehicle's services' are")
     return p
@@ -976,7 +1181,10 @@ def main(argv=None) -> int:
         print(f"two_hosts: warning: {stack_path.name} no longer matches the default stack for: "
               f"{', '.join(sorted(drift))}", file=sys.stderr)
 
-    hosts = TwoHosts(str(os.getpid()), profile, args.emulator, args.link_seed, out)
+    if args.outage and args.lockstep:
+        print("two_hosts: error: --outage is real time (in lockstep a cut link stops the clock)", file=sys.stderr)
+        return 2
+    hosts = TwoHosts(str(os.getpid()), profile, args.emulator, args.link_seed, out, cuttable=bool(args.outage))
     signal.signal(signal.SIGTERM, _stop)
     two = one = None
     code = 0
@@ -1045,6 +1253,8 @@ def main(argv=None) -> int:
         print(f"fault: {f['service']} stopped (SIGSTOP) {f['at_s']:g} s into the flight for {f['for_s']:g} s; seen by "
               + (", ".join(f"the {h}'s supervisor after {v['after_s'] * 1e3:.0f} ms ({v['event']}: {v['detail']})"
                            for h, v in f.get("seen_s", {}).items()) or "no supervisor"))
+    if th.get("outage"):
+        print(outage_text(th["outage"]))
     t = th["timing"]
     if th["status"]:
         print("`zenpilot status` on the ground, mid-flight (the recorder does not log its own health):")
@@ -1076,7 +1286,14 @@ def main(argv=None) -> int:
     print(f"flight log: {out / 'ground' / LOG_NAME} ({th['log_bytes'] / 1e6:.1f} MB, on the ground side; "
           f"on the vehicle side: {'yes' if th['log_on_vehicle_side'] else 'none'}); metrics: "
           f"{out / 'ground' / 'metrics.json'} (plots: zenpilot report {out / 'ground'})")
-    return code or (0 if two.get("completed") and not two.get("crashed") else 1)
+    judged = two
+    if (th.get("outage") or {}).get("flight_ended") is False:
+        return code or 1
+    if (th.get("outage") or {}).get("vehicle", {}).get("crashed") is not None:
+        # the ground's log has the outage's gap (and samples from it delivered late): a failsafe
+        # landing in it may read as "motors cut in the air"; the vehicle's own record has it all
+        judged = th["outage"]["vehicle"]
+    return code or (0 if judged.get("completed") and not judged.get("crashed") else 1)
 
 
 if __name__ == "__main__":

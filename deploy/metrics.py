@@ -405,7 +405,7 @@ MOTOR_CUT_ALTITUDE_M = 0.3
 HARD_TOUCHDOWN_M_S = 2.0   # vertical speed at touchdown above this: a fall, not a landing
 
 
-FAILSAFE_COUNTS = ("failsafe_engaged", "failsafe_landed", "failsafe_recovered", "planner_lost",
+FAILSAFE_COUNTS = ("failsafe_engaged", "failsafe_landed", "failsafe_recovered", "planner_lost", "planner_back",
                    "planner_lost_landed", "vision_lost")
 
 

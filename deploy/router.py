@@ -17,7 +17,13 @@ links) the routers stay linked and never learn each other's subscriptions (docs/
 own in this process (CheckedLink), which pings a key the other router echoes (echo_links) and
 opens itself again when no echo came back within CHECK_S; the machine's router, where its
 services connect, opens once the link echoed (or after GATE_S) and links to that session on
-loopback. From then on the link is only watched, never re-opened, so no service is cut by it.
+loopback. From then on the link is only watched, never re-opened, so no service is cut by it,
+with one exception: a link lost for RELINK_S (no echo, and no health from any other machine's
+service through the machine's router) is opened again with the machine's router, as at the start
+(`relink`): after an outage longer than Zenoh's lease the routers' link may form again and route
+nothing, ever (docs/reliability.md, "The link lost mid-flight"); the connecting machine's own
+services are cut from their router for the few seconds it takes, when they have nothing of the
+other host anyway.
 """
 
 from __future__ import annotations
@@ -42,6 +48,10 @@ CLOSE_S = 3.0
 CHECK_S = 2.0   # no echo for this long: the link to the other host is opened again (linked: ~1 s)
 PING_S = 0.25
 GATE_S = 8.0   # the longest the machine's router waits for its link's first echo (the launcher: 10 s)
+# no echo and nothing from the other machines' services for this long: the link and the machine's
+# router open again. Past Zenoh's 10 s lease and the ~2 s its links took to come back by themselves
+# after a 15 s outage (docs/reliability.md, "The link lost mid-flight")
+RELINK_S = 20.0
 
 
 def link_keys(vehicle_id: int, machine: str) -> tuple[str, str]:
@@ -148,10 +158,13 @@ class CheckedLink:
 
     def __init__(self, make_config, ping: str, echo: str, check_s: float = CHECK_S, log=None):
         self.make_config, self.ping, self.echo, self.check_s = make_config, ping, echo, check_s
-        self.log = log or (lambda line: print(f"zenpilot-router: {line}", file=sys.stderr, flush=True))
+        # the wall clock on each line: a link lost mid-flight is matched with the outage's times
+        self.log = log or (lambda line: print(f"zenpilot-router: {line} (at {time.time():.3f})", file=sys.stderr,
+                                              flush=True))
         self.opens = 0
         self.endpoint = ""
         self.echoed = threading.Event()
+        self.last_echo = time.monotonic()   # or the session's opening, before the first echo
         self._changing = threading.Condition()
         self._settled = self._reopening = False
         self._stop = threading.Event()
@@ -192,8 +205,10 @@ class CheckedLink:
                 continue
             last = [time.monotonic()]
 
+            self.last_echo = last[0]
+
             def echoed(_sample) -> None:
-                last[0] = time.monotonic()
+                last[0] = self.last_echo = time.monotonic()
                 self.echoed.set()
             session.declare_subscriber(self.echo, echoed)
             pub = session.declare_publisher(self.ping, priority=zenoh.Priority.DATA_HIGH, express=True)
@@ -234,6 +249,56 @@ def _close(session: zenoh.Session) -> bool:
     return not closing.is_alive()
 
 
+# a machine whose router carries these is never opened again: cut, they would lose each other
+CONTROL_SERVICES = ("sim", "motors", "standby", "attitude", "position")
+
+
+def health_keys(stack, machine: str) -> list[str]:
+    """What `machine`'s router watches besides its link's echo before it opens them again: the
+    health of every service not on `machine` (those of other machines on its host, as `vehicle`
+    beside `vehicle-router`, keep coming while the link is down: such a router is never opened
+    again); none, never opened again, where `machine` runs the vehicle's control services."""
+    if any(s.machine == machine for n, s in stack.services.items() if n in CONTROL_SERVICES):
+        return []
+    return [f"zp/{stack.vehicle_id}/{n}/health" for n, s in stack.services.items() if s.machine not in ("", machine)]
+
+
+def open_router(args, stack, log) -> tuple:
+    """The machine's router as main() runs it: its checked link first where it has one (opened until
+    it echoes, or GATE_S), then its own session. Returns (session, listen, link or None)."""
+    conf, listen = router_config(args.listen, args.stack, args.machine)
+    link = None
+    if stack is not None and checks_link(stack, args.machine):
+        link = CheckedLink(lambda e: link_config(stack, args.machine, e), *link_keys(stack.vehicle_id, args.machine)).start()
+        if not link.echoed.wait(GATE_S):
+            log(f"no echo over the link to the other host within {GATE_S:g} s: the machine's router opens without "
+                f"it (the link is watched from now on)")
+        conf, listen = router_config(args.listen, args.stack, args.machine, link.settle())
+    try:
+        session = zenoh.open(conf)
+    except BaseException:
+        if link is not None:
+            link.stop()
+        raise
+    return session, listen, link
+
+
+def relink(args, stack, session, link, log, stop: threading.Event) -> tuple:
+    """The link lost for RELINK_S: the machine's router and its link closed and opened again as at
+    the start (open_router), the router's ports retried while the old session lets them go."""
+    link.stop()
+    if not _close(session):
+        log(f"the machine's router did not close within {CLOSE_S:g} s")
+    for attempt in range(30):
+        try:
+            return open_router(args, stack, log)
+        except zenoh.ZError as exc:   # its ports not free yet
+            if stop.wait(1.0):
+                raise
+            log(f"the machine's router cannot open again yet ({exc}); again in 1 s")
+    return open_router(args, stack, log)
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(prog="zenpilot-router", description=__doc__.splitlines()[0])
     p.add_argument("-l", "--listen", action="append", default=[], metavar="ENDPOINT",
@@ -242,18 +307,16 @@ def main(argv=None) -> None:
     p.add_argument("--machine", help="run this machine's router as the stack file describes it")
     args = p.parse_args(argv)
     tie_to_parent()
+    if os.environ.get("RUST_LOG"):   # Zenoh's own log, when asked for (how its links come and go)
+        zenoh.init_log_from_env_or("error")
+
+    def log(line: str) -> None:
+        print(f"zenpilot-router: {line} (at {time.time():.3f})", file=sys.stderr, flush=True)
+    stop = threading.Event()
+    on_stop_signals(stop.set)
     try:
-        conf, listen = router_config(args.listen, args.stack, args.machine)
         stack = load_stack(args.stack) if args.machine else None
-        link = None
-        if stack is not None and checks_link(stack, args.machine):
-            link = CheckedLink(lambda e: link_config(stack, args.machine, e), *link_keys(stack.vehicle_id, args.machine)).start()
-            if not link.echoed.wait(GATE_S):
-                print(f"zenpilot-router: no echo over the link to the other host within {GATE_S:g} s: the "
-                      f"machine's router opens without it (the link is watched from now on, not re-opened)",
-                      file=sys.stderr, flush=True)
-            conf, listen = router_config(args.listen, args.stack, args.machine, link.settle())
-        session = zenoh.open(conf)
+        session, listen, link = open_router(args, stack, log)
     except (StackError, ValueError) as exc:
         print(f"zenpilot-router: error: {exc}", file=sys.stderr)
         raise SystemExit(2)
@@ -261,12 +324,38 @@ def main(argv=None) -> None:
         print(f"zenpilot-router: error: cannot open the router on {args.listen or args.machine}: {exc}",
               file=sys.stderr)
         raise SystemExit(2)
-    stop = threading.Event()
-    on_stop_signals(stop.set)
-    if stack is not None and echoes_links(stack, args.machine):
-        echo_links(session, stack.vehicle_id, [m for m in stack.machines if m != args.machine])
     print(f"zenpilot-router: listening on {', '.join(listen)}", flush=True)
-    stop.wait()
+    watched = health_keys(stack, args.machine) if link is not None else []
+    relink_s = RELINK_S
+    while True:
+        if stack is not None and echoes_links(stack, args.machine):
+            echo_links(session, stack.vehicle_id, [m for m in stack.machines if m != args.machine])
+        heard = [time.monotonic()]
+
+        def on_health(_sample, heard=heard) -> None:
+            heard[0] = time.monotonic()
+        for key in watched:   # what the machine's services receive anyway (a recorder: everything)
+            session.declare_subscriber(key, on_health)
+        # a link with nothing of the other machines to watch is never opened again
+        while not stop.wait(1.0):
+            now = time.monotonic()
+            if watched and now - link.last_echo >= relink_s and now - heard[0] >= relink_s:
+                break
+        if stop.is_set():
+            break
+        log(f"no echo and nothing from the other host's services for {relink_s:g} s: the link and the "
+            f"machine's router open again")
+        # the other host gone for long (switched off): its services' router is cut less and less often
+        relink_s = RELINK_S if link.echoed.is_set() else min(2.0 * relink_s, 3.0 * RELINK_S)
+        try:
+            session, listen, link = relink(args, stack, session, link, log, stop)
+        except zenoh.ZError as exc:
+            if stop.is_set():   # asked to stop while its ports were not free yet: nothing left open
+                return
+            print(f"zenpilot-router: error: cannot open the router again on {args.machine}: {exc}",
+                  file=sys.stderr, flush=True)
+            raise SystemExit(2)
+        log(f"listening again on {', '.join(listen)}")
     if link is not None:
         link.stop()
     # A router holds nothing to save: its close is given a few seconds, then the process ends

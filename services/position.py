@@ -13,7 +13,10 @@ is held and the planner's attitude reference passed through.
 Failsafes (the vehicle's own, never waiting on the ground): the planner's setpoint older
 than `setpoint_timeout_s` -> hold the position we had; after `planner_loss_land_after_s` of
 it, land there (the height reference sinking at `land_speed_m_s`; on the ground -> idle,
-"planner_lost_landed"); a fresh setpoint takes over again. No camera fix fused for
+"planner_lost_landed"); a fresh setpoint takes over again, its position reached from where the
+vehicle is at `land_speed_m_s` ("planner_back"), not as a step: the planner's mission went on
+while it was lost (a landing's reference 0.9 m below, after a 2 s link outage, saturated the
+tilt and the mixer's collective with it: the vehicle climbed to 3 m, once 83 m; docs/reliability.md). No camera fix fused for
 `vision_timeout_s` while flying on the estimate -> the EKF coasts (its covariance grows) and
 the position level withholds its setpoint, so that the attitude level's own descent lands the
 vehicle ("vision_lost"); a fix fused again resumes it. A camera fix older than
@@ -110,6 +113,8 @@ class PositionLoop:
         self.k, self.alpha = io.live_array("k"), io.live_array("alpha")  # param/set applies them live
         self.allocation = vehicle.allocation
         self.hold_position = None    # planner lost: the position held (then landed at)
+        self.lost_flying = False     # ... while flying on its setpoints (counted planner_lost)
+        self.resume = None           # the planner back: (where from, when) of the ramp to its setpoint
         self.hold_since = 0.0
         self.landed = False
         self.landed_for = 0.0
@@ -306,10 +311,15 @@ class PositionLoop:
             self.hold_position = pos.copy()  # planner lost: hold the position we had
             self.hold_since, self.landed = t, False
             if sp is not None and sp["armed"] and sp["mode"] != "idle":
+                self.lost_flying = True
                 self.count("planner_lost")
                 self.io.problem(f"failsafe: no planner setpoint at t={t:.3f}: holding, landing after "
                                 f"{p['planner_loss_land_after_s']} s")
         if not stale:
+            if self.lost_flying:   # back after a loss in the air: its setpoint reached as a ramp
+                self.lost_flying = False
+                self.resume = (pos.copy(), t)
+                self.count("planner_back")
             self.hold_position = None
         flying = sp is not None and sp["armed"] and sp["mode"] != "idle"
         if self.estimate and flying and self.fused_t is not None:
@@ -340,6 +350,8 @@ class PositionLoop:
             thrust = altitude_law(m_eff, g, pos[2], vel[2], ref_pos[2], k[2], alpha[2], roll, pitch)
         else:
             ref_pos = self.hold_position if stale else np.asarray(sp["position_m"])
+            if self.resume is not None and not stale:
+                ref_pos = self.resumed(ref_pos, t)
             yaw_ref = yaw if stale else sp["attitude_rad"][2]
             if p["max_tilt_deg"] != self.tilt_deg:
                 self.tilt_deg = p["max_tilt_deg"]
@@ -380,6 +392,18 @@ class PositionLoop:
         self.thrust_n = thrust
         self.setpoint_out.put({"attitude_ref_rad": att_ref, "thrust_n": thrust}, t_s=t)
         self.publish_state(t, pos, vel, ref_pos, cov, thrust_scale)
+
+    def resumed(self, target, t: float):
+        """The planner back after a loss: the reference moves from where the vehicle was towards
+        `target` at land_speed_m_s, then is the target (the ramp ends)."""
+        start, t0 = self.resume
+        step = target - start
+        dist = float(np.linalg.norm(step))
+        reach = self.p["land_speed_m_s"] * (t - t0)
+        if reach >= dist:
+            self.resume = None
+            return target
+        return start + step * (reach / dist)
 
     def publish_state(self, t, pos, vel, ref_pos, cov, thrust_scale) -> None:
         velocities = self.velocities

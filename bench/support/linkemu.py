@@ -94,7 +94,7 @@ class Direction:
         self.heap: list = []          # the same with --reorder: by departure time
         self.n = 0
         self.last_departure = 0.0
-        self.received = self.dropped = self.sent = self.send_errors = 0
+        self.received = self.dropped = self.sent = self.send_errors = self.recv_errors = 0
         self.largest = 0
         self.delays: list[float] = []  # given, s (bounded below)
 
@@ -104,6 +104,9 @@ class Direction:
             try:
                 frame, addr = self.src.recvfrom(MAX_FRAME)
             except BlockingIOError:
+                return
+            except OSError:   # its interface set down (an outage: bench/two_hosts.py --outage): ENETDOWN once
+                self.recv_errors += 1
                 return
             if addr[2] == PACKET_OUTGOING:
                 continue
@@ -193,7 +196,7 @@ class Direction:
                              "delay_ms": {"high": spread(self.tx_delays[HIGH]), "low": spread(self.tx_delays[LOW])},
                              "queue_full_dropped": {"high": self.tx_dropped[HIGH], "low": self.tx_dropped[LOW]}}}
         return {**wire, "received": self.received, "dropped": self.dropped, "sent": self.sent,
-                "send_errors": self.send_errors, "queued_at_exit": len(self.queue) + len(self.heap),
+                "send_errors": self.send_errors, "recv_errors": self.recv_errors, "queued_at_exit": len(self.queue) + len(self.heap),
                 "largest_frame": self.largest, "delay_ms": {"p1": q(0.01), "p50": q(0.5), "p99": q(0.99),
                                                              "max": q(1.0),
                                                              "mean": round(1e3 * sum(d) / len(d), 3) if d else None}}

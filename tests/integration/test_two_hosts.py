@@ -10,7 +10,10 @@
 - the short hover across `lan` with the same placement secured (`--secure tls`: [security], keys by
   `zenpilot certs`, mutual TLS, passwords, the vehicle router's access control; about 30 s): it
   flies, and the vehicle's telemetry reaches the ground in time (TLS + QUIC's datagrams, queued
-  behind QUIC's congestion control, brought it 1.3 s late: docs/reliability.md).
+  behind QUIC's congestion control, brought it 1.3 s late: docs/reliability.md); and with the
+  link cut both ways for 2 s in its landing (`--outage 5:2`) the vehicle holds on its own, both
+  directions cross again soon after the restore, and the vehicle goes down to the planner's
+  reference, not up (docs/reliability.md, "The link lost mid-flight").
 
 Nothing is left behind; needs root."""
 
@@ -128,8 +131,14 @@ def test_the_flip_across_a_lossy_link_with_the_planner_on_the_ground(tmp_path):
         for k in ("zp/0/pos/state", "zp/0/planner/setpoint")))
 
 
+# after a 2 s cut of the secured lan link the keys crossed again 1.0-1.3 s after the restore (TCP's
+# retransmission, load average 5-7); a loaded CI machine is given 5 s
+RESUME_BOUND_S = 5.0
+
+
 def test_the_secured_split_hovers_across_a_lossy_link(tmp_path):
-    out = _two_hosts(tmp_path, "--mission", "hover-short", "--placement", "ground", "--link", "lan", "--secure", "tls")
+    out = _two_hosts(tmp_path, "--mission", "hover-short", "--placement", "ground", "--link", "lan", "--secure", "tls",
+                     "--outage", "5:2")
     assert "secured: tls" in out, out
     metrics = json.loads((tmp_path / "ground" / "metrics.json").read_text())
     assert metrics["completed"] and not metrics["crashed"], out
@@ -146,11 +155,30 @@ def test_the_secured_split_hovers_across_a_lossy_link(tmp_path):
     # the ground got the vehicle's telemetry, late by the link (>= its 15 ms minimum) and not by seconds
     # (TLS + QUIC: p50 1.2 s), and the flight log on the ground has the vehicle's health (its rates); a
     # TCP stream loses what the routers drop while it waits out a retransmission: 0.5-2.9 % measured,
-    # 11.5 % once in a CI run beside two other jobs
-    keys = link["keys"]
+    # 11.5 % once in a CI run beside two other jobs (the outage's own share left out: 8 % with the
+    # TCP streams' backlog after it)
+    keys, outage = link["keys"], link["outage"]
     for key in ("zp/0/pos/state", "zp/0/sim/imu"):
         r = keys[key]
         assert r["to"] == "ground" and r["n"] > 100, (key, r)
-        assert 15.0 <= r["latency_ms"]["p50"] <= 200.0 and r["lost"] <= 0.25 * r["expected"], (key, r)
+        assert 15.0 <= r["latency_ms"]["p50"] <= 200.0, (key, r)
+        assert r["lost_probe"] - outage["keys"][key]["lost_in_outage"] <= 0.25 * r["expected_probe"], (key, r)
     assert keys["zp/0/planner/setpoint"]["n"] > 50, keys["zp/0/planner/setpoint"]
     assert metrics["rates_hz"]["sim"] and metrics["rates_hz"]["attitude"], out
+    # the outage: cut in the landing (5 s after the first tick: the climb to 1 m, 0.5 + 1 s held),
+    # nothing crossed while cut, both ways back within the bound; the vehicle (its own record: the
+    # ground saw none of it) noticed the planner gone (position's failsafe), held its height, was
+    # never crashed, and went on down: back, the planner's reference was ~0.9 m below, and stepped
+    # to it the vehicle climbed to 3 m, once 83 m (now reached as a ramp: `planner_back`)
+    assert outage["restored_unix"] - outage["cut_unix"] >= 2.0, outage
+    for key in ("zp/0/pos/state", "zp/0/sim/imu", "zp/0/planner/setpoint"):
+        r = outage["keys"][key]
+        assert r["during"] == 0 and r["resumed_after_restore_s"] is not None, (key, r)
+        assert r["resumed_after_restore_s"] <= RESUME_BOUND_S, (key, r)
+    vehicle = outage["vehicle"]
+    assert not vehicle["crashed"] and vehicle["failsafes"]["position"]["planner_lost"] >= 1, vehicle
+    # in the air at the cut (0.64 / 1.0 m measured: a loaded machine lands later) and held there, not
+    # fallen (0.19 m below at most), nor climbing after it (0.46 / 1.0 m at the highest)
+    assert vehicle["altitude_at_cut_m"] >= 0.3, vehicle
+    assert vehicle["min_altitude_cut_to_restore_m"] >= vehicle["altitude_at_cut_m"] - 0.25, vehicle
+    assert vehicle["max_altitude_after_restore_m"] <= vehicle["altitude_at_cut_m"] + 0.2, vehicle

@@ -6,7 +6,7 @@ import argparse
 import pytest
 
 from bench.support.linkemu import PACKET_OUTGOING, VNET_HDR_LEN, Direction, dscp
-from bench.two_hosts import PROFILES, parse_profile, seq_loss
+from bench.two_hosts import PROFILES, _lost_in_outage, outage_spec, parse_profile, seq_loss
 
 HOST = 0   # sll_pkttype of a frame for this host
 
@@ -77,6 +77,37 @@ def test_loss_is_seeded_and_near_its_rate():
 def test_frames_the_host_sent_itself_are_not_forwarded():
     d, src = make(jitter_s=0.0)
     assert run(d, 10, 0.001, src, kind=PACKET_OUTGOING) == [] and d.received == 0
+
+
+def test_an_interface_set_down_is_an_error_once_not_the_forwarder_s_end():
+    """--outage sets the forwarder's interfaces down: its raw socket reports ENETDOWN once, then
+    nothing until they are up again; the forwarder counts it and forwards what comes after."""
+    d, src = make(jitter_s=0.0)
+    waiting = src.recvfrom
+
+    def down_once(n, state={"down": True}):
+        if state.pop("down", False):
+            raise OSError(100, "Network is down")
+        return waiting(n)
+    src.recvfrom = down_once
+    d.take(0.0)
+    assert d.recv_errors == 1 and d.received == 0
+    assert len(run(d, 5, 0.001, src)) == 5 and d.stats()["recv_errors"] == 1
+
+
+def test_outage_spec_and_what_the_outage_lost():
+    assert outage_spec("8:3") == (8.0, 3.0) and outage_spec("0:0.5") == (0.0, 0.5)
+    for bad in ("8", "8:", "-1:3", "8:0", "x:3"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            outage_spec(bad)
+    # [arrival, sample time, seq, source]: seq 1-3 before the cut at 10.0, 4-5 sent while cut and
+    # delivered late, 6-9 never, 10 on once back (the first sent after the restore: at 12.4): 4 lost
+    # to the outage; another sender's gap before the cut (its seq 2) is the link's, not the outage's
+    rows = [[t + 0.02, t, q, "a"] for q, t in ((1, 9.8), (2, 9.9), (3, 9.95))]
+    rows += [[12.3, 10.1, 4, "a"], [12.3, 10.2, 5, "a"], [12.5, 12.4, 10, "a"]]
+    rows += [[9.0, 9.0, 1, "b"], [9.5, 9.5, 3, "b"], [12.6, 12.6, 30, "b"]]
+    assert _lost_in_outage(rows, 10.0, 12.4) == 4 + 26
+    assert _lost_in_outage(rows, 10.0, None) is None
 
 
 def test_profiles():

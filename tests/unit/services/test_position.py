@@ -80,6 +80,32 @@ def test_planner_lost_holds_then_lands_then_idles():
     assert io.sent(schemas.POSITION_SETPOINT)[-1][1]["thrust_n"] == 0.0
 
 
+def test_the_planner_back_after_a_loss_is_reached_as_a_ramp_not_a_step():
+    """A 2 s link outage in a landing: the planner's reference went on down while the position
+    level held; stepped to it (0.9 m below) the law asked for the least thrust and the most tilt
+    and the vehicle climbed to 3 m (once 83 m). Back, the reference moves from where the vehicle
+    is at land_speed_m_s; a planner never lost (the first setpoint of a flight) is followed at once."""
+    io, loop = truth_loop(setpoint_timeout_s=0.5, planner_loss_land_after_s=5.0)
+    truths, planner = io.received(schemas.TRUTH, "sim"), io.received(schemas.PLANNER_SETPOINT, "planner")
+    truths.push(1.0, truth([0.0, 0.0, 0.6]))
+    planner.push(1.0, setpoint([0.0, 0.0, 0.6], phase="land"))
+    loop.step(1.0)
+    assert list(io.sent(schemas.POSITION_STATE)[-1][1]["position_ref_m"]) == [0.0, 0.0, 0.6]
+    truths.push(2.0, truth([0.0, 0.0, 0.6]))
+    loop.step(2.0)   # lost: held
+    speed = DEFAULT["land_speed_m_s"]
+    refs = []
+    for n in range(300):   # back, its reference 0.9 m below
+        t = 3.0 + n / 100
+        truths.push(t, truth([0.0, 0.0, 0.6]))
+        planner.push(t, setpoint([0.0, 0.0, -0.3], phase="land"))
+        loop.step(t)
+        refs.append(io.sent(schemas.POSITION_STATE)[-1][1]["position_ref_m"][2])
+    assert io.rejected == {"planner_lost": 1, "planner_back": 1}
+    assert refs[0] == pytest.approx(0.6) and refs[100] == pytest.approx(0.6 - speed * 1.0)
+    assert all(a >= b for a, b in zip(refs, refs[1:])) and refs[-1] == -0.3   # reached, then the planner's own
+
+
 def _pose(position):
     return {"position_m": position, "quaternion_wxyz": [1.0, 0.0, 0.0, 0.0],
             "position_cov_m2": list(np.eye(3).reshape(-1) * 1e-4),

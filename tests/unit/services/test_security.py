@@ -166,6 +166,18 @@ def test_a_link_of_several_endpoints_is_checked_one_of_one_is_not(tmp_path):
     assert not checks_link(single, "ground") and not echoes_links(single, "vehicle")
 
 
+def test_a_router_watches_the_other_hosts_health_and_never_one_flying_the_vehicle():
+    """deploy/router.py opens a lost link and its router again only after no echo and no health
+    from the keys health_keys names: the other machines' services (the ground watches the
+    vehicle's); a machine running the control services watches nothing (never opened again)."""
+    from deploy.router import health_keys
+    stack = load_stack(ROOT / "tests" / "integration" / "stacks" / "two-hosts-ground.toml")
+    assert health_keys(stack, "ground") == [f"zp/0/{n}/health" for n in ("sim", "motors", "attitude", "position", "vision")]
+    assert health_keys(stack, "vehicle") == []
+    # the router machine beside the vehicle's services watches them too: they keep coming, it never re-links
+    assert "zp/0/motors/health" in health_keys(stack, "vehicle-router")
+
+
 def test_make_keys_writes_secret_files_private_and_never_overwrites(tmp_path):
     stack = load_stack(stack_file(tmp_path, SECURE))
     made = security.make_keys(tmp_path / "keys", stack)
