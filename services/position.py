@@ -13,7 +13,8 @@ is held and the planner's attitude reference passed through.
 Failsafes (the vehicle's own, never waiting on the ground): the planner's setpoint older
 than `setpoint_timeout_s` -> hold the position we had; after `planner_loss_land_after_s` of
 it, land there (the height reference sinking at `land_speed_m_s`; on the ground -> idle,
-"planner_lost_landed"); a fresh setpoint takes over again, its position reached from where the
+"planner_lost_landed", and down until the planner disarms: "planner_back_landed"); in the air a
+fresh setpoint takes over again, its position reached from where the
 vehicle is at `land_speed_m_s` ("planner_back"), not as a step: the planner's mission went on
 while it was lost (a landing's reference 0.9 m below, after a 2 s link outage, saturated the
 tilt and the mixer's collective with it: the vehicle climbed to 3 m, once 83 m; docs/reliability.md). No camera fix fused for
@@ -316,6 +317,17 @@ class PositionLoop:
                 self.io.problem(f"failsafe: no planner setpoint at t={t:.3f}: holding, landing after "
                                 f"{p['planner_loss_land_after_s']} s")
         if not stale:
+            if self.landed:   # landed by the failsafe: down until the planner disarms (as PX4 disarms)
+                if sp["armed"] and sp["mode"] != "idle":
+                    if self.lost_flying:
+                        self.lost_flying = False
+                        self.count("planner_back_landed")
+                        self.io.problem(f"the planner is back at t={t:.3f}, the vehicle landed without it: it "
+                                        "stays down until the planner disarms (then arm and take off again)")
+                    self.setpoint_out.put({"attitude_ref_rad": [0.0, 0.0, yaw], "thrust_n": 0.0}, t_s=t)
+                    self.publish_state(t, pos, vel, pos, cov, thrust_scale)
+                    return
+                self.landed = False
             if self.lost_flying:   # back after a loss in the air: its setpoint reached as a ramp
                 self.lost_flying = False
                 self.resume = (pos.copy(), t)

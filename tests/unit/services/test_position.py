@@ -56,6 +56,10 @@ def test_idle_or_disarmed_asks_for_no_thrust():
 
 
 def test_planner_lost_holds_then_lands_then_idles():
+    _landed_by_the_failsafe()
+
+
+def _landed_by_the_failsafe():
     io, loop = truth_loop(setpoint_timeout_s=0.5, planner_loss_land_after_s=1.0)
     truths, planner = io.received(schemas.TRUTH, "sim"), io.received(schemas.PLANNER_SETPOINT, "planner")
     truths.push(1.0, truth([0.5, 0.0, 2.0]))
@@ -78,6 +82,25 @@ def test_planner_lost_holds_then_lands_then_idles():
         loop.step(t)
     assert io.rejected.get("planner_lost_landed") == 1
     assert io.sent(schemas.POSITION_SETPOINT)[-1][1]["thrust_n"] == 0.0
+    return io, loop, truths, planner
+
+
+def test_landed_by_the_failsafe_it_stays_down_until_the_planner_disarms():
+    """The planner back after the failsafe landed the vehicle (its mission still flying, 2 m up):
+    no take-off by itself; once the planner disarms, a new arm flies again."""
+    io, loop, truths, planner = _landed_by_the_failsafe()
+    for n in range(100):
+        t = 7.5 + n / 100
+        truths.push(t, truth([0.5, 0.0, 0.0]))
+        planner.push(t, setpoint([0.0, 0.0, 2.0]))
+        loop.step(t)
+        assert io.sent(schemas.POSITION_SETPOINT)[-1][1]["thrust_n"] == 0.0
+    assert io.rejected.get("planner_back_landed") == 1 and "stays down until the planner disarms" in io.problems[-1]
+    for t, armed in ((8.5, False), (8.6, True)):
+        truths.push(t, truth([0.5, 0.0, 0.0]))
+        planner.push(t, setpoint([0.0, 0.0, 2.0], armed=armed))
+        loop.step(t)
+    assert io.sent(schemas.POSITION_SETPOINT)[-1][1]["thrust_n"] > 0.0   # armed again: it climbs
 
 
 def test_the_planner_back_after_a_loss_is_reached_as_a_ramp_not_a_step():
