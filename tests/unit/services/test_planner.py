@@ -218,12 +218,9 @@ def test_an_uploaded_flip_item_flies_the_ground_stations_method():
         == ["baseline"]
 
 
-@pytest.mark.parametrize("params, lead", [({"plan_lead_s": 0.04}, 0.04),
-                                          ({"plan_lead_auto": True}, 0.03),   # the states' age on arrival
-                                          ({"plan_lead_s": 0.05, "plan_lead_auto": True}, 0.05)])
-def test_with_a_lead_the_flips_plans_start_that_far_ahead_from_the_predicted_state(params, lead):
-    """A planner across a link (planner.plan_lead_s, plan_lead_auto): each plan starts lead
-    seconds after the run that made it, solved from the state flown forward on the model to then."""
+def _flip_across_a_link(params: dict, age_s: float, runs: int) -> FakeIO:
+    """A real-time planner (50 Hz) hovering at 5 m on states `age_s` old, as across a link, asked
+    for a flip at its sixth run, stepped `runs` times from t = 1 s; its FakeIO."""
     io = FakeIO("planner", PARAMS, {"flip_methods": ["ilqr-project"], "flip_predict_rollouts": 0, **params},
                 rate_hz=50.0, lockstep=False)
     io.tick_rate = 400.0
@@ -232,14 +229,23 @@ def test_with_a_lead_the_flips_plans_start_that_far_ahead_from_the_predicted_sta
     atts = io.received(schemas.ATTITUDE_STATE, "attitude")
     commands.push(0.0, command("arm"))
     commands.push(0.0, command("takeoff", altitude_m=5.0))
-    rate = loop.io.rate_hz
-    for n in range(0, int(1.5 * rate)):
-        t = n / rate
-        states.push(t + 0.97, state((0.0, 0.0, 5.0)))   # measured 30 ms ago, as across a link
-        atts.push(t + 0.97, attitude())
+    for n in range(runs):
+        t = 1.0 + n / io.rate_hz
+        states.push(t - age_s, state((0.0, 0.0, 5.0)))
+        atts.push(t - age_s, attitude())
         if n == 5:
-            commands.push(t + 1.0, command("flip"))
-        loop.step(t + 1.0)
+            commands.push(t, command("flip"))
+        loop.step(t)
+    return io
+
+
+@pytest.mark.parametrize("params, lead", [({"plan_lead_s": 0.04}, 0.04),
+                                          ({"plan_lead_auto": True}, 0.03),   # the states' age on arrival
+                                          ({"plan_lead_s": 0.05, "plan_lead_auto": True}, 0.05)])
+def test_with_a_lead_the_flips_plans_start_that_far_ahead_from_the_predicted_state(params, lead):
+    """A planner across a link (planner.plan_lead_s, plan_lead_auto): each plan starts lead
+    seconds after the run that made it, solved from the state flown forward on the model to then."""
+    io = _flip_across_a_link(params, age_s=0.03, runs=75)   # states measured 30 ms ago
     problems = [p for p in io.problems if "use_one_solver_thread" not in p]   # JAX started by another test first
     assert io.rejected == {} and not problems, problems
     plans = io.sent(schemas.PLANNER_PLAN)
@@ -278,21 +284,7 @@ def test_a_flip_whose_states_come_too_late_is_refused_and_the_vehicle_held(monke
     controllers = {}
     monkeypatch.setattr(planner, "flip_controllers",
                         lambda io, methods: controllers.update({m: StartingController(m) for m in methods}) or controllers)
-    io = FakeIO("planner", PARAMS, {"flip_methods": ["ilqr-project"], "flip_predict_rollouts": 0,
-                                    "plan_lead_auto": True, "flip_max_lead_s": bound}, rate_hz=50.0, lockstep=False)
-    io.tick_rate = 400.0
-    loop = PlannerLoop(io, "none")
-    states, commands = io.received(schemas.POSITION_STATE, "position"), io.received(schemas.PLANNER_COMMAND, "mavlink")
-    atts = io.received(schemas.ATTITUDE_STATE, "attitude")
-    commands.push(0.0, command("arm"))
-    commands.push(0.0, command("takeoff", altitude_m=5.0))
-    for n in range(60):
-        t = n / loop.io.rate_hz + 1.0
-        states.push(t - 0.2, state((0.0, 0.0, 5.0)))
-        atts.push(t - 0.2, attitude())
-        if n == 5:
-            commands.push(t, command("flip"))
-        loop.step(t)
+    io = _flip_across_a_link({"plan_lead_auto": True, "flip_max_lead_s": bound}, age_s=0.2, runs=60)
     _, sp = io.sent(schemas.PLANNER_SETPOINT)[-1]
     if refused:
         assert sp["phase"] == "flip-refused" and sp["mode"] == "position" and sp["position_m"][2] == 5.0, sp
