@@ -54,6 +54,12 @@ GATE_S = 8.0   # the longest the machine's router waits for its link's first ech
 RELINK_S = 20.0
 
 
+def router_log(line: str) -> None:
+    """A line of the router's log; the wall clock on each: a link lost mid-flight is matched with
+    the outage's times."""
+    print(f"zenpilot-router: {line} (at {time.time():.3f})", file=sys.stderr, flush=True)
+
+
 def link_keys(vehicle_id: int, machine: str) -> tuple[str, str]:
     """The keys a connecting machine's link pings and its accepting router echoes (a verbatim
     chunk, @link: no service's wildcard subscription receives them)."""
@@ -158,9 +164,7 @@ class CheckedLink:
 
     def __init__(self, make_config, ping: str, echo: str, check_s: float = CHECK_S, log=None):
         self.make_config, self.ping, self.echo, self.check_s = make_config, ping, echo, check_s
-        # the wall clock on each line: a link lost mid-flight is matched with the outage's times
-        self.log = log or (lambda line: print(f"zenpilot-router: {line} (at {time.time():.3f})", file=sys.stderr,
-                                              flush=True))
+        self.log = log or router_log
         self.opens = 0
         self.endpoint = ""
         self.echoed = threading.Event()
@@ -309,9 +313,7 @@ def main(argv=None) -> None:
     tie_to_parent()
     if os.environ.get("RUST_LOG"):   # Zenoh's own log, when asked for (how its links come and go)
         zenoh.init_log_from_env_or("error")
-
-    def log(line: str) -> None:
-        print(f"zenpilot-router: {line} (at {time.time():.3f})", file=sys.stderr, flush=True)
+    log = router_log
     stop = threading.Event()
     on_stop_signals(stop.set)
     try:
