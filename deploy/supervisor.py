@@ -39,8 +39,10 @@ real-time priority below every loop of its machine (`supervisor_priority`; repor
 refuses it), Zenoh's receiving threads with it, and it discounts its own stalls from every beat
 silence: a poll later than STALL_S past its due time (the supervisor starved), and a spell in
 which no beat at all arrived while two or more of this machine's loops had been beating (its
-reception starved: independent processes do not all stop at once). A service is stuck only for
-beats it missed while the supervisor was demonstrably watching. Both are counted in
+reception starved: independent processes do not all stop at once); after a deaf spell of
+DEAF_TRANSPORT_S or more (the router, not the supervisor: its link check re-opened it, or a link
+was closing) the loops' sessions reconnect one by one, so RECONNECT_GRACE_S more is discounted.
+A service is stuck only for beats it missed while the supervisor was demonstrably watching. Both are counted in
 supervisor.json (`own`) and its health; one longer than POLL_S is an event. What no stall of the
 supervisor explains is a silent loop whose thread has neither run nor waited to run for
 LOOP_IDLE_S (its times in /proc/<pid>/schedstat unchanged: blocked, e.g. every loop of the machine
@@ -79,6 +81,12 @@ STALL_S = 0.05   # a poll this late past its due time: the supervisor was starve
 DEAF_S = 0.15    # no beat from anyone this long, two or more loops beating: its reception was starved
 BEATING_WITHIN_S = 1.0   # a source counts as beating when the quiet began if it beat this recently
 KEPT_STALLS = 256   # the own stalls remembered (a silence longer than they reach counts them less)
+# A deaf spell this long is the transport's (the machine's router re-opened by its link check, a
+# link closing), not a starved thread: every session then reconnects to the router on its own,
+# Zenoh retrying every 1 s and backing off to 4 s, so the loops are heard again one by one. The
+# first beat back ends the spell; the others get RECONNECT_GRACE_S more before they count as stuck.
+DEAF_TRANSPORT_S = 1.0
+RECONNECT_GRACE_S = 5.0
 PRIORITY_ENV = "ZENPILOT_SUPERVISOR_PRIORITY"   # an explicit priority (0: normal), e.g. a bench's comparison
 
 
@@ -364,6 +372,8 @@ class Supervisor:
             if heard is not None and heard > self._deaf_from:   # beats again
                 start, self._deaf_from = self._deaf_from, None
                 self._stalled("deaf", start, heard)
+                if heard - start >= DEAF_TRANSPORT_S:   # (a span ending later: discounted as it passes)
+                    self.stalls.append((heard, heard + RECONNECT_GRACE_S))
         elif heard is not None and now - heard - self.discounted(heard, now) > DEAF_S:   # not a late wake-up's
             local = [t for src, t in self._beat_at.items() if src not in self.remote and t >= heard - BEATING_WITHIN_S]
             if len(local) >= 2:

@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 
 import deploy.supervisor
-from deploy.supervisor import (BEAT_SILENCE_S, HEALTH_SILENCE_S, POLL_S, PRIORITY_ENV, REMOTE_BEAT_SILENCE_S, START_S,
+from deploy.supervisor import (BEAT_SILENCE_S, HEALTH_SILENCE_S, POLL_S, PRIORITY_ENV, RECONNECT_GRACE_S, REMOTE_BEAT_SILENCE_S,
+                               START_S,
                                Supervisor, backoff_s, loop_runnable_ns, process_state, supervisor_priority)
 from services.stack import StackError, load_stack
 
@@ -294,6 +295,29 @@ def test_a_supervisor_that_hears_no_beat_from_any_loop_kills_none(tmp_path):
     run_for(sup, clock, 1.0, beating=list(LOOPS))
     assert launcher.killed == [] and all(w.stucks == 0 for w in sup.watches.values()), said
     assert sup.own["deaf"] == 1 and 0.6 <= sup.own["deaf_max_s"] <= 0.7 and "heard no beat from any loop" in said[-1]
+
+
+def test_loops_reconnecting_one_by_one_after_their_router_came_back_are_not_killed(tmp_path):
+    # a ground station's router re-opened by its link check (bench/two_hosts.py --link bad --outage
+    # 6:25): no beat from anyone for 8 s, then the sessions reconnect one by one, Zenoh retrying
+    # every 1 s up to 4 s: the planner and the bridge, heard 0.8 s after the first, were killed
+    sup, launcher, clock, said = flying(tmp_path)
+    run_for(sup, clock, 8.0)
+    run_for(sup, clock, 1.0, beating=["attitude"])
+    run_for(sup, clock, 2.5, beating=["attitude", "position"])
+    assert launcher.killed == [] and sup.watches["motors"].stucks == 0, said
+    run_for(sup, clock, 2.0, beating=list(LOOPS))
+    assert launcher.killed == [] and all(w.state == "running" for w in sup.watches.values()), said
+    # a loop that never comes back is still killed, once the grace has passed
+    sup, launcher, clock, said = flying(tmp_path)
+    run_for(sup, clock, 8.0)
+    run_for(sup, clock, RECONNECT_GRACE_S + 1.0, beating=["attitude", "position"])
+    assert launcher.killed == ["motors"], said
+    # a short deaf spell (a starved receiving thread) gives no grace
+    sup, launcher, clock, said = flying(tmp_path)
+    run_for(sup, clock, 0.5)
+    run_for(sup, clock, 0.8, beating=["attitude", "position"])
+    assert launcher.killed == ["motors"], said
 
 
 def test_a_real_hang_is_still_seen_within_half_a_second_and_killed(tmp_path):
