@@ -114,6 +114,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench.support.flooder import flood_spec  # noqa: E402
+from bench.support.trace import CpuWatch  # noqa: E402
+from bench.support.trace import split as trace_split  # noqa: E402
 from deploy.metrics import compute_metrics  # noqa: E402
 from flight.control.mission import MissionError  # noqa: E402
 from schemas.flightlog import LOG_NAME, read_log  # noqa: E402
@@ -609,6 +611,43 @@ def stop_flood(procs: dict) -> dict:
     return got
 
 
+def stop_trace(taps: dict, cpu, arrivals: dict, out: Path) -> dict:
+    """--trace: the wiretaps' frames matched to the probes' rows (bench.support.trace.split), and
+    the CPU each process and thread took over the flight."""
+    wire = {}
+    for host, proc in taps.items():
+        proc.terminate()
+        try:
+            proc.communicate(timeout=60)
+            wire[host] = json.loads((out / host / "wiretap.json").read_text())
+        except (subprocess.TimeoutExpired, OSError, ValueError) as exc:
+            print(f"two_hosts: the {host} wiretap gave nothing: {exc}", file=sys.stderr)
+            proc.kill()
+            proc.wait()
+    other = {"ground": "vehicle", "vehicle": "ground"}
+    result = {"cpu": cpu.stop(), "wiretap": {h: {"frames": w["frames"], "dropped_by_kernel": w["dropped_by_kernel"]}
+                                             for h, w in wire.items()}, "split": {}}
+    for host, rows in arrivals.items():   # the receiving host's probe: sent from the other host's end
+        if host in wire and other[host] in wire:
+            result["split"].update(trace_split(rows, wire[other[host]]["out"], wire[host]["in"]))
+    return result
+
+
+def trace_text(trace: dict, keys: list[str]) -> str:
+    lines = ["trace: each control message's latency split at the link's ends (kernel timestamps), ms "
+             "p50 / p99 [mean over the end-to-end top 1 %]:"]
+    for key in keys:
+        r = trace["split"].get(key)
+        if r:
+            lines.append(f"  {key}: " + "; ".join(f"{n} {r[n]['p50']} / {r[n]['p99']} [{r['tail_1pct_mean'][n]}]"
+                                                  for n in ("end_to_end", "sender_host", "link", "receiver_host"))
+                         + f" ({r['matched']} of {r['of']} matched)")
+    c = trace["cpu"]
+    lines.append(f"CPU over {c['wall_s']} s, % of one core: hosts " + ", ".join(f"{k} {v}" for k, v in c["hosts_pct"].items()))
+    lines.append("  " + ", ".join(f"{k} {v}" for k, v in c["processes_pct"].items() if v >= 1.0))
+    return "\n".join(lines)
+
+
 def _q(xs: list[float], f: float) -> float | None:
     return xs[min(len(xs) - 1, int(f * len(xs)))] if xs else None
 
@@ -701,6 +740,17 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
         probes.start("vehicle", router, incoming_keys(split, {"vehicle", "vehicle-router"}),
                      stacks["vehicle"] if args.secure else None,
                      [f"zp/{split.vehicle_id}/{k}" for k in WITNESS_KEYS] if args.outage else None)
+    taps, cpu = {}, None
+    if args.trace and not args.lockstep:   # --trace: the control frames at each end of the link, CPU per thread
+        for host in ("vehicle", "ground"):
+            (out / host / "wiretap.json").unlink(missing_ok=True)
+            taps[host] = subprocess.Popen(hosts.argv(host, [sys.executable, "-m", "bench.support.wiretap",
+                                                            hosts.dev[host], "--out", str(out / host / "wiretap.json")]),
+                                          cwd=ROOT, stdout=subprocess.PIPE, text=True)
+            if not taps[host].stdout.readline().startswith("wiretap:"):
+                raise BenchError(f"{host}: the wiretap did not start")
+        cpu = CpuWatch({h: ns for h, ns in hosts.ns.items()})
+        cpu.start()
     cap = 0.0 if args.rogue else split.machines[split.service("sim").machine].bulk_max_hz   # the camera's machine
     flood = start_flood(hosts, out, args.flood, router, cap) if args.flood else {}
     t_fly = time.monotonic()
@@ -798,6 +848,7 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
     time.sleep(0.3)
     arrivals = probes.stop()
     flooded = stop_flood(flood)
+    trace = stop_trace(taps, cpu, arrivals, out) if cpu is not None else None
     # as `zenpilot fly` stops them: the vehicle's services first (stopped later, the recorder would
     # log the motors re-sending their last command after the simulator ended), then the ground,
     # whose recorder writes the flight log when stopped
@@ -827,7 +878,7 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
     if outage is not None:
         outage.update(outage_report(out, outage, arrivals, info, split.vehicle_id))
     metrics["two_hosts"] = {"link": link, "sockets": sampled, "timing": timing, "status": status, "fault": fault,
-                            "supervisor": supervised, "flood": flooded, "outage": outage,
+                            "supervisor": supervised, "flood": flooded, "outage": outage, "trace": trace,
                             "placement": args.placement, "stack": stack_path.name, "lockstep": args.lockstep,
                             "secure": args.secure,
                             "profile": dataclasses.asdict(p), "emulator": hosts.method, "forwarder": forwarder,
@@ -1145,6 +1196,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--outage", type=outage_spec, metavar="T_S:FOR_S",
                    help="real time: cut the link both ways T_S after the simulator's first tick, restore it FOR_S "
                         "later; reports when each key crossed again")
+    p.add_argument("--trace", action="store_true",
+                   help="real time: where the control keys' time goes (wiretaps at the link's two ends, kernel "
+                        "timestamps) and the CPU per process and thread over the flight")
     p.add_argument("--rogue", action="store_true",
                    help="the flood from outside the stack: its session not capped as the vehicle's services' are")
     return p
@@ -1255,6 +1309,8 @@ def main(argv=None) -> int:
                            for h, v in f.get("seen_s", {}).items()) or "no supervisor"))
     if th.get("outage"):
         print(outage_text(th["outage"]))
+    if th.get("trace"):
+        print(trace_text(th["trace"], sorted(th["trace"]["split"])))
     t = th["timing"]
     if th["status"]:
         print("`zenpilot status` on the ground, mid-flight (the recorder does not log its own health):")

@@ -1,0 +1,140 @@
+"""Where a two-host flight's time went (bench/two_hosts.py --trace): CPU per process and thread,
+and each control message's latency split at the link's two ends.
+
+CpuWatch: a thread that reads, once a second, the CPU time (utime + stime, /proc/<pid>/task/<tid>/stat)
+of every thread of every process in the given network namespaces; `result()` gives each
+process's and thread's CPU seconds between the first and the last time it was seen, and their
+share of a core over the watch's wall time.
+
+split(): per key that crossed, the probe's rows ([arrival, t_s, seq, source]) matched by (source,
+seq, t_s) to the sender's wiretap ("out": when the frame left the sender's end of the link) and
+the receiver's ("in": when it came in at the other end), kernel clock: sender host = wire out -
+t_s, link = wire in - wire out, receiver host = arrival - wire in; p50/p99 of each, and their
+means over the messages in the end-to-end latency's top 1 % (which part the tail is made of).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import threading
+import time
+
+TICK = os.sysconf("SC_CLK_TCK")
+
+
+def _label(pid: int) -> str:
+    """python -m services.sim ... -> services.sim; deploy.router's machine and the flooder's sink named."""
+    try:
+        argv = open(f"/proc/{pid}/cmdline", "rb").read().split(b"\0")
+    except OSError:
+        return str(pid)
+    argv = [a.decode(errors="replace") for a in argv if a]
+    if not argv:
+        return str(pid)
+    if "-m" in argv[:-1]:
+        name = argv[argv.index("-m") + 1]
+        if "--machine" in argv[:-1]:
+            name += f"[{argv[argv.index('--machine') + 1]}]"
+        if "--sink" in argv:
+            name += "[sink]"
+        return name
+    return os.path.basename(argv[0])
+
+
+def _ticks(path: str) -> tuple[str, int] | None:
+    try:
+        text = open(path).read()
+    except OSError:
+        return None
+    comm = text[text.index("(") + 1:text.rindex(")")]
+    fields = text[text.rindex(")") + 2:].split()
+    return comm, int(fields[11]) + int(fields[12])   # utime, stime (fields 14, 15 of stat)
+
+
+class CpuWatch(threading.Thread):
+    def __init__(self, namespaces: dict[str, str], period_s: float = 1.0):
+        super().__init__(name="cpuwatch", daemon=True)
+        self.namespaces, self.period_s = namespaces, period_s
+        self.stop_event = threading.Event()
+        self.seen: dict[tuple[int, int], list] = {}   # (pid, tid) -> [host, label, comm, first, last]
+        self.labels: dict[int, str] = {}
+        self.t0 = self.t1 = None
+
+    def sample(self) -> None:
+        for host, ns in self.namespaces.items():
+            proc = subprocess.run(["ip", "netns", "pids", ns], capture_output=True, text=True)
+            for pid in (int(p) for p in proc.stdout.split()):
+                if pid not in self.labels:
+                    self.labels[pid] = _label(pid)
+                try:
+                    tids = os.listdir(f"/proc/{pid}/task")
+                except OSError:
+                    continue
+                for tid in tids:
+                    got = _ticks(f"/proc/{pid}/task/{tid}/stat")
+                    if got is None:
+                        continue
+                    row = self.seen.get((pid, int(tid)))
+                    if row is None:
+                        self.seen[(pid, int(tid))] = [host, self.labels[pid], got[0], got[1], got[1]]
+                    else:
+                        row[4] = got[1]
+
+    def run(self) -> None:
+        self.t0 = time.monotonic()
+        while not self.stop_event.is_set():
+            self.sample()
+            self.t1 = time.monotonic()
+            self.stop_event.wait(self.period_s)
+
+    def stop(self) -> dict:
+        self.stop_event.set()
+        self.join(10)
+        return self.result()
+
+    def result(self) -> dict:
+        wall = max((self.t1 or 0) - (self.t0 or 0), 1e-9)
+        procs: dict[str, float] = {}
+        threads: dict[str, float] = {}
+        for (pid, _), (host, label, comm, first, last) in self.seen.items():
+            cpu = (last - first) / TICK
+            procs[f"{host}: {label}"] = procs.get(f"{host}: {label}", 0.0) + cpu
+            threads[f"{host}: {label} / {comm}"] = threads.get(f"{host}: {label} / {comm}", 0.0) + cpu
+        hosts: dict[str, float] = {}
+        for name, cpu in procs.items():
+            hosts[name.split(":")[0]] = hosts.get(name.split(":")[0], 0.0) + cpu
+
+        def pct(d: dict) -> dict:
+            return {k: round(100 * v / wall, 1) for k, v in sorted(d.items(), key=lambda kv: -kv[1])}
+        return {"wall_s": round(wall, 1), "hosts_pct": pct(hosts), "processes_pct": pct(procs),
+                "threads_pct": {k: v for k, v in pct(threads).items() if v >= 1.0}}
+
+
+def _q(xs: list[float], f: float) -> float | None:
+    return round(xs[min(len(xs) - 1, int(f * len(xs)))], 2) if xs else None
+
+
+def split(probe_rows: dict[str, list], sent: list, received: list) -> dict:
+    """Per key: the probe's rows matched to the wiretaps' (sender's "out", receiver's "in")."""
+    out_at = {(r[3], r[2], r[1]): r[0] for r in sent}
+    in_at = {(r[3], r[2], r[1]): r[0] for r in received}
+    result = {}
+    for key, rows in probe_rows.items():
+        parts = []
+        for arrival, t_s, seq, source in rows:
+            k = (source, seq, t_s)
+            if k in out_at and k in in_at:
+                w_out, w_in = out_at[k], in_at[k]
+                parts.append((1e3 * (arrival - t_s), 1e3 * (w_out - t_s), 1e3 * (w_in - w_out), 1e3 * (arrival - w_in)))
+        if not parts:
+            continue
+        names = ("end_to_end", "sender_host", "link", "receiver_host")
+        row = {"matched": len(parts), "of": len(rows)}
+        for i, name in enumerate(names):
+            xs = sorted(p[i] for p in parts)
+            row[name] = {"p50": _q(xs, 0.5), "p99": _q(xs, 0.99), "max": _q(xs, 1.0)}
+        tail = sorted(parts, key=lambda p: p[0])[int(0.99 * len(parts)):]
+        row["tail_1pct_mean"] = {name: round(sum(p[i] for p in tail) / len(tail), 2) for i, name in enumerate(names)}
+        result[key] = row
+    return result
