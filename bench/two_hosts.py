@@ -236,6 +236,9 @@ def secure_stacks(placement: str, out: Path, link: str = "tls+quic") -> dict[str
     return stacks
 
 
+# --link-rt: the forwarder's real-time priority, above every service's (the simulator's 90): a
+# link is hardware of its own, never slowed by the hosts' CPUs (here two cores shared by both)
+LINK_FIFO = 95
 RESTART_GRACE_S = 10.0   # a supervisor's back-off (at most 8 s, deploy/supervisor.py) and a start
 WALL_CLOCK_FIELDS = ("solve_ms", "overrun_solves")   # the wall clock's, even in lockstep (planner/plan)
 SCOUTING_GROUP = "224.0.0.224"  # Zenoh's multicast scouting group (port 7446)
@@ -275,7 +278,7 @@ class TwoHosts:
     loss. Either way both hosts keep their addresses on one /24 and nothing leaves the namespaces."""
 
     def __init__(self, tag: str, profile: LinkProfile, emulator: str = "auto", link_seed: int = 0,
-                 out: Path | None = None, cuttable: bool = False):
+                 out: Path | None = None, cuttable: bool = False, link_rt: bool = False):
         self.ns = {"vehicle": f"zp{tag}-vehicle", "ground": f"zp{tag}-ground"}
         self.dev = {"vehicle": f"zp{tag}v", "ground": f"zp{tag}g"}  # interface names: 15 characters at most
         self.link_dev = {"vehicle": f"zp{tag}lv", "ground": f"zp{tag}lg"}   # the forwarder's ends
@@ -287,6 +290,7 @@ class TwoHosts:
         self.forwarder: subprocess.Popen | None = None
         self.forwarder_stats: dict | None = None
         self.cuttable = cuttable        # --outage: the link namespace's ends are what is cut
+        self.link_rt = link_rt          # --link-rt: the forwarder above every service (SCHED_FIFO)
 
     def open(self) -> None:
         for host in ("vehicle", "ground"):
@@ -357,7 +361,8 @@ class TwoHosts:
         (self.out / "link").mkdir(parents=True, exist_ok=True)
         log = open(self.out / "link" / "linkemu.log", "w")
         self.forwarder = subprocess.Popen(
-            self.argv("link", [sys.executable, "-m", "bench.support.linkemu", self.link_dev["vehicle"],
+            self.argv("link", [*(["chrt", "-f", str(LINK_FIFO)] if self.link_rt else []),
+                               sys.executable, "-m", "bench.support.linkemu", self.link_dev["vehicle"],
                                self.link_dev["ground"], "--delay-ms", str(p.delay_ms), "--jitter-ms", str(p.jitter_ms),
                                "--loss-pct", str(p.loss_pct), "--seed", str(self.link_seed),
                                "--stats", str(self.out / "link" / "linkemu.json"),
@@ -1176,6 +1181,9 @@ def parser() -> argparse.ArgumentParser:
                    help="what impairs the link: tc netem where the kernel has it (auto), else the forwarder "
                         "(bench/support/linkemu.py in a third namespace)")
     p.add_argument("--link-seed", type=int, default=0, help="the forwarder's random seed (delays, losses)")
+    p.add_argument("--link-rt", action="store_true",
+                   help=f"the forwarder at real-time priority (SCHED_FIFO {LINK_FIFO}, above every service): a link "
+                        f"that the hosts' CPU load does not slow, as hardware of its own")
     p.add_argument("--placement", choices=tuple(STACKS), default="vehicle",
                    help="vehicle: one router on the vehicle, only the recorder on the ground (two-hosts.toml); "
                         "ground: a router per host, planner, recorder and MAVLink on the ground (two-hosts-ground.toml); "
@@ -1238,7 +1246,8 @@ def main(argv=None) -> int:
     if args.outage and args.lockstep:
         print("two_hosts: error: --outage is real time (in lockstep a cut link stops the clock)", file=sys.stderr)
         return 2
-    hosts = TwoHosts(str(os.getpid()), profile, args.emulator, args.link_seed, out, cuttable=bool(args.outage))
+    hosts = TwoHosts(str(os.getpid()), profile, args.emulator, args.link_seed, out, cuttable=bool(args.outage),
+                     link_rt=args.link_rt)
     signal.signal(signal.SIGTERM, _stop)
     two = one = None
     code = 0
