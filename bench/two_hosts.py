@@ -648,7 +648,9 @@ def trace_text(trace: dict, keys: list[str]) -> str:
                                                   for n in ("end_to_end", "sender_host", "link", "receiver_host"))
                          + f" ({r['matched']} of {r['of']} matched)")
     c = trace["cpu"]
-    lines.append(f"CPU over {c['wall_s']} s, % of one core: hosts " + ", ".join(f"{k} {v}" for k, v in c["hosts_pct"].items()))
+    lines.append(f"CPU over {c['wall_s']} s, % of one core: the machine busy {c['machine_busy_pct']} of "
+                 f"{100 * c['machine_cores']}, the hosts " + ", ".join(f"{k} {v}" for k, v in c["hosts_pct"].items())
+                 + f", anything else {c['others_pct']}")
     lines.append("  " + ", ".join(f"{k} {v}" for k, v in c["processes_pct"].items() if v >= 1.0))
     return "\n".join(lines)
 

@@ -42,6 +42,13 @@ def _label(pid: int) -> str:
     return os.path.basename(argv[0])
 
 
+def _machine_ticks() -> tuple[int, int]:
+    """(busy, total) clock ticks of every CPU since boot (/proc/stat): what else ran beside the hosts."""
+    fields = [int(x) for x in open("/proc/stat").readline().split()[1:]]
+    idle = fields[3] + fields[4]   # idle, iowait
+    return sum(fields) - idle, sum(fields)
+
+
 def _ticks(path: str) -> tuple[str, int] | None:
     try:
         text = open(path).read()
@@ -60,6 +67,7 @@ class CpuWatch(threading.Thread):
         self.seen: dict[tuple[int, int], list] = {}   # (pid, tid) -> [host, label, comm, first, last]
         self.labels: dict[int, str] = {}
         self.t0 = self.t1 = None
+        self.stat0 = self.stat1 = (0, 0)
 
     def sample(self) -> None:
         for host, ns in self.namespaces.items():
@@ -82,10 +90,10 @@ class CpuWatch(threading.Thread):
                         row[4] = got[1]
 
     def run(self) -> None:
-        self.t0 = time.monotonic()
+        self.t0, self.stat0 = time.monotonic(), _machine_ticks()
         while not self.stop_event.is_set():
             self.sample()
-            self.t1 = time.monotonic()
+            self.t1, self.stat1 = time.monotonic(), _machine_ticks()
             self.stop_event.wait(self.period_s)
 
     def stop(self) -> dict:
@@ -107,7 +115,10 @@ class CpuWatch(threading.Thread):
 
         def pct(d: dict) -> dict:
             return {k: round(100 * v / wall, 1) for k, v in sorted(d.items(), key=lambda kv: -kv[1])}
-        return {"wall_s": round(wall, 1), "hosts_pct": pct(hosts), "processes_pct": pct(procs),
+        busy = (self.stat1[0] - self.stat0[0]) / TICK if self.t1 else 0.0   # the whole machine, every process
+        return {"wall_s": round(wall, 1), "machine_busy_pct": round(100 * busy / wall, 1),
+                "machine_cores": os.cpu_count(), "others_pct": round(100 * (busy - sum(hosts.values())) / wall, 1),
+                "hosts_pct": pct(hosts), "processes_pct": pct(procs),
                 "threads_pct": {k: v for k, v in pct(threads).items() if v >= 1.0}}
 
 
