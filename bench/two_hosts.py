@@ -116,6 +116,7 @@ sys.path.insert(0, str(ROOT))
 from bench.support.flooder import flood_spec  # noqa: E402
 from bench.support.trace import CpuWatch  # noqa: E402
 from bench.support.trace import split as trace_split  # noqa: E402
+from bench.support.trace import stalls as trace_stalls  # noqa: E402
 from deploy.metrics import compute_metrics  # noqa: E402
 from flight.control.mission import MissionError  # noqa: E402
 from schemas.flightlog import LOG_NAME, read_log  # noqa: E402
@@ -632,9 +633,11 @@ def stop_trace(taps: dict, cpu, arrivals: dict, out: Path) -> dict:
     other = {"ground": "vehicle", "vehicle": "ground"}
     result = {"cpu": cpu.stop(), "wiretap": {h: {"frames": w["frames"], "dropped_by_kernel": w["dropped_by_kernel"]}
                                              for h, w in wire.items()}, "split": {}}
+    result["stalls"] = {}
     for host, rows in arrivals.items():   # the receiving host's probe: sent from the other host's end
         if host in wire and other[host] in wire:
             result["split"].update(trace_split(rows, wire[other[host]]["out"], wire[host]["in"]))
+            result["stalls"][other[host]] = trace_stalls(rows, wire[other[host]]["out"])
     return result
 
 
@@ -647,6 +650,10 @@ def trace_text(trace: dict, keys: list[str]) -> str:
             lines.append(f"  {key}: " + "; ".join(f"{n} {r[n]['p50']} / {r[n]['p99']} [{r['tail_1pct_mean'][n]}]"
                                                   for n in ("end_to_end", "sender_host", "link", "receiver_host"))
                          + f" ({r['matched']} of {r['of']} matched)")
+    for host, st in trace.get("stalls", {}).items():
+        lines.append(f"  stalls on the {host}'s host: {st['windows']} ({st['per_s']}/s) moments when messages of 3 keys "
+                     f"or more were all held over {st['over_ms']:g} ms before the link, held p50 {st['held_ms']['p50']} / "
+                     f"max {st['held_ms']['max']} ms ({st['late']} of {st['messages']} messages over {st['over_ms']:g} ms)")
     c = trace["cpu"]
     lines.append(f"CPU over {c['wall_s']} s, % of one core: the machine busy {c['machine_busy_pct']} of "
                  f"{100 * c['machine_cores']}, the hosts " + ", ".join(f"{k} {v}" for k, v in c["hosts_pct"].items())

@@ -11,6 +11,10 @@ seq, t_s) to the sender's wiretap ("out": when the frame left the sender's end o
 the receiver's ("in": when it came in at the other end), kernel clock: sender host = wire out -
 t_s, link = wire in - wire out, receiver host = arrival - wire in; p50/p99 of each, and their
 means over the messages in the end-to-end latency's top 1 % (which part the tail is made of).
+
+stalls(): on the sender's host, the moments when messages of several keys were all held (over
+10 ms each, within 10 ms of one another): something every key goes through stopped, as a
+router's routing does, rather than one service being late.
 """
 
 from __future__ import annotations
@@ -149,3 +153,29 @@ def split(probe_rows: dict[str, list], sent: list, received: list) -> dict:
         row["tail_1pct_mean"] = {name: round(sum(p[i] for p in tail) / len(tail), 2) for i, name in enumerate(names)}
         result[key] = row
     return result
+
+
+def stalls(probe_rows: dict[str, list], sent: list, late_ms: float = 10.0, keys_at_least: int = 3) -> dict:
+    """Windows in which messages of >= `keys_at_least` keys each spent over `late_ms` on the sender's
+    host (wire out - t_s), none more than `late_ms` apart; keys late by design (a median over
+    `late_ms`: a camera's header is its exposure time) left out."""
+    out_at = {(r[3], r[2], r[1]): r[0] for r in sent}
+    rows = []
+    for key, records in probe_rows.items():
+        mine = [(t_s, 1e3 * (out_at[(src, seq, t_s)] - t_s), key) for _, t_s, seq, src in records
+                if (src, seq, t_s) in out_at]
+        if mine and sorted(d for _, d, _ in mine)[len(mine) // 2] <= late_ms:
+            rows += mine
+    rows.sort()
+    windows, current = [], []
+    for row in (r for r in rows if r[1] > late_ms):
+        if current and row[0] - current[-1][0] > late_ms / 1e3:
+            windows.append(current)
+            current = []
+        current.append(row)
+    windows = [w for w in windows + [current] if len({r[2] for r in w}) >= keys_at_least]
+    held = sorted(max(r[1] for r in w) for w in windows)
+    span = rows[-1][0] - rows[0][0] if rows else 0.0
+    return {"messages": len(rows), "over_ms": late_ms, "late": sum(1 for r in rows if r[1] > late_ms),
+            "windows": len(windows), "per_s": round(len(windows) / span, 2) if span else None,
+            "held_ms": {"p50": _q(held, 0.5), "max": _q(held, 1.0)}}

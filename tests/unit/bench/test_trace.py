@@ -4,7 +4,7 @@ import struct
 
 import msgpack
 
-from bench.support.trace import split
+from bench.support.trace import split, stalls
 from bench.support.wiretap import headers
 
 
@@ -42,3 +42,25 @@ def test_split_puts_each_message_s_time_where_it_was_spent():
     assert abs(got["sender_host"]["max"] - 51.0) < 1e-6
     tail = got["tail_1pct_mean"]
     assert abs(tail["end_to_end"] - 72.0) < 1e-6 and abs(tail["sender_host"] - 51.0) < 1e-6
+
+
+def test_stalls_are_moments_when_several_keys_were_held_together():
+    probe, sent = {}, []
+    for key, source in (("zp/0/sim/imu", "sim"), ("zp/0/motors/pwm", "motors"), ("zp/0/att/command", "attitude"),
+                        ("zp/0/sim/camera", "camera")):
+        rows = []
+        for i in range(200):
+            t_s = 100.0 + i * 0.005
+            held = 0.001
+            if 50 <= i < 60 and source != "camera":   # all three control keys held together: one stall
+                held = 0.040
+            if i == 150 and source == "sim":           # one key late alone: no stall
+                held = 0.030
+            if source == "camera":                     # late by design (exposure time): left out
+                held = 0.052
+            sent.append([t_s + held, t_s, i, source])
+            rows.append([t_s + held + 0.02, t_s, i, source])
+        probe[key] = rows
+    got = stalls(probe, sent)
+    assert got["windows"] == 1 and got["messages"] == 600 and got["late"] == 31
+    assert abs(got["held_ms"]["max"] - 40.0) < 1e-6
