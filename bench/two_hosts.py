@@ -656,9 +656,11 @@ def trace_text(trace: dict, keys: list[str]) -> str:
                      f"max {st['held_ms']['max']} ms ({st['late']} of {st['messages']} messages over {st['over_ms']:g} ms)")
     c = trace["cpu"]
     lines.append(f"CPU over {c['wall_s']} s, % of one core: the machine busy {c['machine_busy_pct']} of "
-                 f"{100 * c['machine_cores']}, the hosts " + ", ".join(f"{k} {v}" for k, v in c["hosts_pct"].items())
-                 + f", anything else {c['others_pct']}")
-    lines.append("  " + ", ".join(f"{k} {v}" for k, v in c["processes_pct"].items() if v >= 1.0))
+                 f"{100 * c['machine_cores']}: the hosts " + ", ".join(f"{k} {v}" for k, v in c["hosts_pct"].items())
+                 + f"; the kernel's interrupts {c['interrupts_pct']}; processes outside the hosts {c['outside_pct']} ("
+                 + ", ".join(f"{k} {v}" for k, v in c["outside_top"].items()) + ")")
+    lines.append("  " + ", ".join(f"{k} {v}" for k, v in c["processes_pct"].items()
+                                  if v >= 1.0 and not k.startswith("outside: ")))
     return "\n".join(lines)
 
 

@@ -20,7 +20,6 @@ router's routing does, rather than one service being late.
 from __future__ import annotations
 
 import os
-import subprocess
 import threading
 import time
 
@@ -47,10 +46,10 @@ def _label(pid: int) -> str:
 
 
 def _machine_ticks() -> tuple[int, int]:
-    """(busy, total) clock ticks of every CPU since boot (/proc/stat): what else ran beside the hosts."""
+    """(busy, interrupts) clock ticks of every CPU since boot (/proc/stat)."""
     fields = [int(x) for x in open("/proc/stat").readline().split()[1:]]
     idle = fields[3] + fields[4]   # idle, iowait
-    return sum(fields) - idle, sum(fields)
+    return sum(fields) - idle, fields[5] + fields[6]   # busy; irq + softirq (the kernel moving packets)
 
 
 def _ticks(path: str) -> tuple[str, int] | None:
@@ -74,24 +73,40 @@ class CpuWatch(threading.Thread):
         self.stat0 = self.stat1 = (0, 0)
 
     def sample(self) -> None:
+        """Every process of the machine: per thread in the hosts' namespaces, as a whole outside them
+        (the bench itself, anything else). A process first seen after the first sample started
+        during the watch: all its CPU counts."""
+        inode = {}
         for host, ns in self.namespaces.items():
-            proc = subprocess.run(["ip", "netns", "pids", ns], capture_output=True, text=True)
-            for pid in (int(p) for p in proc.stdout.split()):
-                if pid not in self.labels:
-                    self.labels[pid] = _label(pid)
+            try:
+                inode[os.stat(f"/var/run/netns/{ns}").st_ino] = host
+            except OSError:
+                pass
+        for name in os.listdir("/proc"):
+            if not name.isdigit():
+                continue
+            pid = int(name)
+            try:
+                host = inode.get(os.stat(f"/proc/{pid}/ns/net").st_ino, "outside")
+            except OSError:
+                continue
+            if pid not in self.labels:
+                self.labels[pid] = _label(pid)
+            paths = [(0, f"/proc/{pid}/stat")]
+            if host != "outside":
                 try:
-                    tids = os.listdir(f"/proc/{pid}/task")
+                    paths = [(int(tid), f"/proc/{pid}/task/{tid}/stat") for tid in os.listdir(f"/proc/{pid}/task")]
                 except OSError:
                     continue
-                for tid in tids:
-                    got = _ticks(f"/proc/{pid}/task/{tid}/stat")
-                    if got is None:
-                        continue
-                    row = self.seen.get((pid, int(tid)))
-                    if row is None:
-                        self.seen[(pid, int(tid))] = [host, self.labels[pid], got[0], got[1], got[1]]
-                    else:
-                        row[4] = got[1]
+            for tid, path in paths:
+                got = _ticks(path)
+                if got is None:
+                    continue
+                row = self.seen.get((pid, tid))
+                if row is None:
+                    self.seen[(pid, tid)] = [host, self.labels[pid], got[0], got[1] if self.t1 is None else 0, got[1]]
+                else:
+                    row[4] = got[1]
 
     def run(self) -> None:
         self.t0, self.stat0 = time.monotonic(), _machine_ticks()
@@ -112,16 +127,22 @@ class CpuWatch(threading.Thread):
         for (pid, _), (host, label, comm, first, last) in self.seen.items():
             cpu = (last - first) / TICK
             procs[f"{host}: {label}"] = procs.get(f"{host}: {label}", 0.0) + cpu
-            threads[f"{host}: {label} / {comm}"] = threads.get(f"{host}: {label} / {comm}", 0.0) + cpu
+            if host != "outside":
+                threads[f"{host}: {label} / {comm}"] = threads.get(f"{host}: {label} / {comm}", 0.0) + cpu
         hosts: dict[str, float] = {}
         for name, cpu in procs.items():
             hosts[name.split(":")[0]] = hosts.get(name.split(":")[0], 0.0) + cpu
 
         def pct(d: dict) -> dict:
             return {k: round(100 * v / wall, 1) for k, v in sorted(d.items(), key=lambda kv: -kv[1])}
-        busy = (self.stat1[0] - self.stat0[0]) / TICK if self.t1 else 0.0   # the whole machine, every process
+        busy = (self.stat1[0] - self.stat0[0]) / TICK if self.t1 else 0.0   # the whole machine
+        irq = (self.stat1[1] - self.stat0[1]) / TICK if self.t1 else 0.0
+        outside = hosts.pop("outside", 0.0)
         return {"wall_s": round(wall, 1), "machine_busy_pct": round(100 * busy / wall, 1),
-                "machine_cores": os.cpu_count(), "others_pct": round(100 * (busy - sum(hosts.values())) / wall, 1),
+                "machine_cores": os.cpu_count(), "interrupts_pct": round(100 * irq / wall, 1),
+                "outside_pct": round(100 * outside / wall, 1),
+                "outside_top": {k[len("outside: "):]: v for k, v in list(pct(procs).items())[:40]
+                                if k.startswith("outside: ") and v >= 1.0},
                 "hosts_pct": pct(hosts), "processes_pct": pct(procs),
                 "threads_pct": {k: v for k, v in pct(threads).items() if v >= 1.0}}
 
