@@ -54,7 +54,7 @@ def test_a_droppable_message_waits_for_room_no_longer_for_being_fragmented():
     """Every router and session of the stack drops a droppable message that finds its link's queue
     full after the 1 ms any droppable message gets, fragmented or not: Zenoh's default 50 ms more for
     a fragmented one blocked a router's routing of every link behind a 1 MB image on a saturated link
-    (docs/reliability.md, "A link that honours DSCP")."""
+    (docs/reliability.md, "A link that honours DSCP"); a router's bulk queue takes a whole image."""
     assert _drop_waits(zenoh.Config()) == {"wait_before_drop": 1000, "max_wait_before_drop_fragments": 50000}
     ground = load_stack(str(STACKS / "two-hosts-ground.toml"))
     confs = [router_config([], str(STACKS / "two-hosts-ground.toml"), "vehicle-router")[0],
@@ -64,6 +64,8 @@ def test_a_droppable_message_waits_for_room_no_longer_for_being_fragmented():
              zenoh_config(service_parser("sim", "").parse_args(["--lockstep"]), load_stack(), "vehicle")]
     for conf in confs:
         assert _drop_waits(conf) == {"wait_before_drop": 1000, "max_wait_before_drop_fragments": 0}
+    for conf in confs[:3]:   # a router's bulk queue holds about a 1 MB image (Zenoh's most: 16 batches of 64 KB)
+        assert json.loads(str(conf))["transport"]["link"]["tx"]["queue"]["size"]["background"] == 16
 
 
 def _open(conf_items: dict) -> zenoh.Session:
