@@ -5,7 +5,7 @@
                               [--link none|lan|bad|lan100|lan100-qos|D/J/L]
                               [--emulator auto|netem|forwarder] [--out DIR] [--no-one-host]
                               [--flood BYTES@HZ[:PRIORITY]] [--stop SERVICE@T_S[:FOR_S]]
-                              [--outage T_S:FOR_S]
+                              [--outage T_S:FOR_S] [--trace] [--link-rt]
 
 Two hosts are two network namespaces that this bench creates (root, `ip netns`): "vehicle"
 (10.77.0.1/24) and "ground" (10.77.0.2/24), loopback up in each, nothing else: no route out, so
@@ -88,6 +88,14 @@ older than the cut came after it); the ground router's link lines (CheckedLink);
 vehicle's own record across the outage (its probe writes <out>/vehicle/witness.mcap, the keys
 deploy.metrics reads: the ground's recorder sees nothing of the vehicle while cut), with its
 metrics: crashed or not, failsafes, altitudes.
+
+`--trace` (real time): where the control keys' time goes. bench/support/wiretap.py on each host's
+end of the link notes when each EF-marked frame left or came in (the kernel's timestamps), matched
+to the probes' rows by header: each message's latency split into the sender's host, the link and
+the receiver's host (bench/support/trace.py), the stalls (moments when messages of several keys
+were all held on the sender's host: a router that routes nothing), and the CPU of every process
+and thread of the machine over the flight. `--link-rt`: the forwarder at SCHED_FIFO above every
+service, so that the link is not slowed by the hosts' load on the shared cores.
 
 The same mission is then flown on one host with `zenpilot fly` (same stack, seed and mode) into
 <out>/one-host/, its per-key losses beside; in lockstep the two logs are compared message for
