@@ -173,9 +173,9 @@ def bound_drop_wait(conf: zenoh.Config) -> None:
     message it has begun to fragment up to 50 ms more for its other fragments, and the thread that
     pushes it waits: in a router, the thread that routes every other link's messages. A 1 MB image
     on a saturated link held the control keys crossing the vehicle's router for ~50 ms
-    (docs/reliability.md, "A link that honours DSCP"). The cost: over a link too slow for the images,
-    more of them are cut part-sent (bulk_max_hz is the knob that fits the link). Lockstep blocks,
-    never drops: untouched."""
+    (docs/reliability.md, "A link that honours DSCP"). The cost: an image larger than the link's
+    queue (a router's bulk queue holds about 1 MB, deploy/router.py) crosses a saturated link only
+    when it has room for it whole. Lockstep blocks, never drops: untouched."""
     conf.insert_json5("transport/link/tx/queue/congestion_control/drop/max_wait_before_drop_fragments", "0")
 
 
