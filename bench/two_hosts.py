@@ -5,7 +5,7 @@
                               [--link none|lan|bad|lan100|lan100-qos|D/J/L]
                               [--emulator auto|netem|forwarder] [--out DIR] [--no-one-host]
                               [--flood BYTES@HZ[:PRIORITY]] [--stop SERVICE@T_S[:FOR_S]]
-                              [--outage T_S:FOR_S]
+                              [--outage T_S:FOR_S] [--trace] [--link-rt]
 
 Two hosts are two network namespaces that this bench creates (root, `ip netns`): "vehicle"
 (10.77.0.1/24) and "ground" (10.77.0.2/24), loopback up in each, nothing else: no route out, so
@@ -89,6 +89,14 @@ vehicle's own record across the outage (its probe writes <out>/vehicle/witness.m
 deploy.metrics reads: the ground's recorder sees nothing of the vehicle while cut), with its
 metrics: crashed or not, failsafes, altitudes.
 
+`--trace` (real time): where the control keys' time goes. bench/support/wiretap.py on each host's
+end of the link notes when each EF-marked frame left or came in (the kernel's timestamps), matched
+to the probes' rows by header: each message's latency split into the sender's host, the link and
+the receiver's host (bench/support/trace.py), the stalls (moments when messages of several keys
+were all held on the sender's host: a router that routes nothing), and the CPU of every process
+and thread of the machine over the flight. `--link-rt`: the forwarder at SCHED_FIFO above every
+service, so that the link is not slowed by the hosts' load on the shared cores.
+
 The same mission is then flown on one host with `zenpilot fly` (same stack, seed and mode) into
 <out>/one-host/, its per-key losses beside; in lockstep the two logs are compared message for
 message. Namespaces, the link and every process in them are removed at the end, also on an error
@@ -114,6 +122,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench.support.flooder import flood_spec  # noqa: E402
+from bench.support.trace import CpuWatch  # noqa: E402
+from bench.support.trace import split as trace_split  # noqa: E402
+from bench.support.trace import stalls as trace_stalls  # noqa: E402
 from deploy.metrics import compute_metrics  # noqa: E402
 from flight.control.mission import MissionError  # noqa: E402
 from schemas.flightlog import LOG_NAME, read_log  # noqa: E402
@@ -234,6 +245,9 @@ def secure_stacks(placement: str, out: Path, link: str = "tls+quic") -> dict[str
     return stacks
 
 
+# --link-rt: the forwarder's real-time priority, above every service's (the simulator's 90): a
+# link is hardware of its own, never slowed by the hosts' CPUs (here two cores shared by both)
+LINK_FIFO = 95
 RESTART_GRACE_S = 10.0   # a supervisor's back-off (at most 8 s, deploy/supervisor.py) and a start
 WALL_CLOCK_FIELDS = ("solve_ms", "overrun_solves")   # the wall clock's, even in lockstep (planner/plan)
 SCOUTING_GROUP = "224.0.0.224"  # Zenoh's multicast scouting group (port 7446)
@@ -273,7 +287,7 @@ class TwoHosts:
     loss. Either way both hosts keep their addresses on one /24 and nothing leaves the namespaces."""
 
     def __init__(self, tag: str, profile: LinkProfile, emulator: str = "auto", link_seed: int = 0,
-                 out: Path | None = None, cuttable: bool = False):
+                 out: Path | None = None, cuttable: bool = False, link_rt: bool = False):
         self.ns = {"vehicle": f"zp{tag}-vehicle", "ground": f"zp{tag}-ground"}
         self.dev = {"vehicle": f"zp{tag}v", "ground": f"zp{tag}g"}  # interface names: 15 characters at most
         self.link_dev = {"vehicle": f"zp{tag}lv", "ground": f"zp{tag}lg"}   # the forwarder's ends
@@ -285,6 +299,7 @@ class TwoHosts:
         self.forwarder: subprocess.Popen | None = None
         self.forwarder_stats: dict | None = None
         self.cuttable = cuttable        # --outage: the link namespace's ends are what is cut
+        self.link_rt = link_rt          # --link-rt: the forwarder above every service (SCHED_FIFO)
 
     def open(self) -> None:
         for host in ("vehicle", "ground"):
@@ -355,7 +370,8 @@ class TwoHosts:
         (self.out / "link").mkdir(parents=True, exist_ok=True)
         log = open(self.out / "link" / "linkemu.log", "w")
         self.forwarder = subprocess.Popen(
-            self.argv("link", [sys.executable, "-m", "bench.support.linkemu", self.link_dev["vehicle"],
+            self.argv("link", [*(["chrt", "-f", str(LINK_FIFO)] if self.link_rt else []),
+                               sys.executable, "-m", "bench.support.linkemu", self.link_dev["vehicle"],
                                self.link_dev["ground"], "--delay-ms", str(p.delay_ms), "--jitter-ms", str(p.jitter_ms),
                                "--loss-pct", str(p.loss_pct), "--seed", str(self.link_seed),
                                "--stats", str(self.out / "link" / "linkemu.json"),
@@ -609,6 +625,53 @@ def stop_flood(procs: dict) -> dict:
     return got
 
 
+def stop_trace(taps: dict, cpu, arrivals: dict, out: Path) -> dict:
+    """--trace: the wiretaps' frames matched to the probes' rows (bench.support.trace.split), and
+    the CPU each process and thread took over the flight."""
+    wire = {}
+    for host, proc in taps.items():
+        proc.terminate()
+        try:
+            proc.communicate(timeout=60)
+            wire[host] = json.loads((out / host / "wiretap.json").read_text())
+        except (subprocess.TimeoutExpired, OSError, ValueError) as exc:
+            print(f"two_hosts: the {host} wiretap gave nothing: {exc}", file=sys.stderr)
+            proc.kill()
+            proc.wait()
+    other = {"ground": "vehicle", "vehicle": "ground"}
+    result = {"cpu": cpu.stop(), "wiretap": {h: {"frames": w["frames"], "dropped_by_kernel": w["dropped_by_kernel"]}
+                                             for h, w in wire.items()}, "split": {}}
+    result["stalls"] = {}
+    for host, rows in arrivals.items():   # the receiving host's probe: sent from the other host's end
+        if host in wire and other[host] in wire:
+            result["split"].update(trace_split(rows, wire[other[host]]["out"], wire[host]["in"]))
+            result["stalls"][other[host]] = trace_stalls(rows, wire[other[host]]["out"])
+    return result
+
+
+def trace_text(trace: dict, keys: list[str]) -> str:
+    lines = ["trace: each control message's latency split at the link's ends (kernel timestamps), ms "
+             "p50 / p99 [mean over the end-to-end top 1 %]:"]
+    for key in keys:
+        r = trace["split"].get(key)
+        if r:
+            lines.append(f"  {key}: " + "; ".join(f"{n} {r[n]['p50']} / {r[n]['p99']} [{r['tail_1pct_mean'][n]}]"
+                                                  for n in ("end_to_end", "sender_host", "link", "receiver_host"))
+                         + f" ({r['matched']} of {r['of']} matched)")
+    for host, st in trace.get("stalls", {}).items():
+        lines.append(f"  stalls on the {host}'s host: {st['windows']} ({st['per_s']}/s) moments when messages of 3 keys "
+                     f"or more were all held over {st['over_ms']:g} ms before the link, held p50 {st['held_ms']['p50']} / "
+                     f"max {st['held_ms']['max']} ms ({st['late']} of {st['messages']} messages over {st['over_ms']:g} ms)")
+    c = trace["cpu"]
+    lines.append(f"CPU over {c['wall_s']} s, % of one core: the machine busy {c['machine_busy_pct']} of "
+                 f"{100 * c['machine_cores']}: the hosts " + ", ".join(f"{k} {v}" for k, v in c["hosts_pct"].items())
+                 + f"; the kernel's interrupts {c['interrupts_pct']}; processes outside the hosts {c['outside_pct']} ("
+                 + ", ".join(f"{k} {v}" for k, v in c["outside_top"].items()) + ")")
+    lines.append("  " + ", ".join(f"{k} {v}" for k, v in c["processes_pct"].items()
+                                  if v >= 1.0 and not k.startswith("outside: ")))
+    return "\n".join(lines)
+
+
 def _q(xs: list[float], f: float) -> float | None:
     return xs[min(len(xs) - 1, int(f * len(xs)))] if xs else None
 
@@ -701,6 +764,17 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
         probes.start("vehicle", router, incoming_keys(split, {"vehicle", "vehicle-router"}),
                      stacks["vehicle"] if args.secure else None,
                      [f"zp/{split.vehicle_id}/{k}" for k in WITNESS_KEYS] if args.outage else None)
+    taps, cpu = {}, None
+    if args.trace and not args.lockstep:   # --trace: the control frames at each end of the link, CPU per thread
+        for host in ("vehicle", "ground"):
+            (out / host / "wiretap.json").unlink(missing_ok=True)
+            taps[host] = subprocess.Popen(hosts.argv(host, [sys.executable, "-m", "bench.support.wiretap",
+                                                            hosts.dev[host], "--out", str(out / host / "wiretap.json")]),
+                                          cwd=ROOT, stdout=subprocess.PIPE, text=True)
+            if not taps[host].stdout.readline().startswith("wiretap:"):
+                raise BenchError(f"{host}: the wiretap did not start")
+        cpu = CpuWatch({h: ns for h, ns in hosts.ns.items()})
+        cpu.start()
     cap = 0.0 if args.rogue else split.machines[split.service("sim").machine].bulk_max_hz   # the camera's machine
     flood = start_flood(hosts, out, args.flood, router, cap) if args.flood else {}
     t_fly = time.monotonic()
@@ -798,6 +872,7 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
     time.sleep(0.3)
     arrivals = probes.stop()
     flooded = stop_flood(flood)
+    trace = stop_trace(taps, cpu, arrivals, out) if cpu is not None else None
     # as `zenpilot fly` stops them: the vehicle's services first (stopped later, the recorder would
     # log the motors re-sending their last command after the simulator ended), then the ground,
     # whose recorder writes the flight log when stopped
@@ -827,7 +902,7 @@ def fly_two_hosts(hosts: TwoHosts, mission, args, out: Path) -> dict:
     if outage is not None:
         outage.update(outage_report(out, outage, arrivals, info, split.vehicle_id))
     metrics["two_hosts"] = {"link": link, "sockets": sampled, "timing": timing, "status": status, "fault": fault,
-                            "supervisor": supervised, "flood": flooded, "outage": outage,
+                            "supervisor": supervised, "flood": flooded, "outage": outage, "trace": trace,
                             "placement": args.placement, "stack": stack_path.name, "lockstep": args.lockstep,
                             "secure": args.secure,
                             "profile": dataclasses.asdict(p), "emulator": hosts.method, "forwarder": forwarder,
@@ -1125,6 +1200,9 @@ def parser() -> argparse.ArgumentParser:
                    help="what impairs the link: tc netem where the kernel has it (auto), else the forwarder "
                         "(bench/support/linkemu.py in a third namespace)")
     p.add_argument("--link-seed", type=int, default=0, help="the forwarder's random seed (delays, losses)")
+    p.add_argument("--link-rt", action="store_true",
+                   help=f"the forwarder at real-time priority (SCHED_FIFO {LINK_FIFO}, above every service): a link "
+                        f"that the hosts' CPU load does not slow, as hardware of its own")
     p.add_argument("--placement", choices=tuple(STACKS), default="vehicle",
                    help="vehicle: one router on the vehicle, only the recorder on the ground (two-hosts.toml); "
                         "ground: a router per host, planner, recorder and MAVLink on the ground (two-hosts-ground.toml); "
@@ -1145,6 +1223,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--outage", type=outage_spec, metavar="T_S:FOR_S",
                    help="real time: cut the link both ways T_S after the simulator's first tick, restore it FOR_S "
                         "later; reports when each key crossed again")
+    p.add_argument("--trace", action="store_true",
+                   help="real time: where the control keys' time goes (wiretaps at the link's two ends, kernel "
+                        "timestamps) and the CPU per process and thread over the flight")
     p.add_argument("--rogue", action="store_true",
                    help="the flood from outside the stack: its session not capped as the vehicle's services' are")
     return p
@@ -1184,7 +1265,8 @@ def main(argv=None) -> int:
     if args.outage and args.lockstep:
         print("two_hosts: error: --outage is real time (in lockstep a cut link stops the clock)", file=sys.stderr)
         return 2
-    hosts = TwoHosts(str(os.getpid()), profile, args.emulator, args.link_seed, out, cuttable=bool(args.outage))
+    hosts = TwoHosts(str(os.getpid()), profile, args.emulator, args.link_seed, out, cuttable=bool(args.outage),
+                     link_rt=args.link_rt)
     signal.signal(signal.SIGTERM, _stop)
     two = one = None
     code = 0
@@ -1255,6 +1337,8 @@ def main(argv=None) -> int:
                            for h, v in f.get("seen_s", {}).items()) or "no supervisor"))
     if th.get("outage"):
         print(outage_text(th["outage"]))
+    if th.get("trace"):
+        print(trace_text(th["trace"], sorted(th["trace"]["split"])))
     t = th["timing"]
     if th["status"]:
         print("`zenpilot status` on the ground, mid-flight (the recorder does not log its own health):")

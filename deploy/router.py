@@ -39,7 +39,7 @@ import time
 import zenoh
 
 from services import security
-from services.runtime import bulk_downsampling, on_stop_signals, tie_to_parent
+from services.runtime import bound_drop_wait, bulk_downsampling, on_stop_signals, tie_to_parent
 from services.stack import StackError, load_stack
 
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
@@ -97,6 +97,13 @@ def _base_config(conf: zenoh.Config) -> None:
     # through /dev/shm, not their link, as two real hosts never can
     conf.insert_json5("transport/shared_memory/enabled", "false")
     conf.insert_json5("transport/link/tx/queue/size/real_time", "16")
+    # a bulk message that does not fit a saturated link's queue is dropped at once: the thread
+    # that would wait for room routes every other link's messages too ...
+    bound_drop_wait(conf)
+    # ... and the bulk queue holds about a whole one (16 batches of 64 KB, Zenoh's most: a 1 MB image),
+    # so that an image the link has room for goes whole, not cut after its first fragments (with
+    # Zenoh's default 2 batches few of a flood's 1 MB images reached the ground: docs/reliability.md)
+    conf.insert_json5("transport/link/tx/queue/size/background", "16")
 
 
 def router_config(listen: list[str], stack_file: str | None = None, machine: str | None = None,

@@ -158,12 +158,25 @@ def zenoh_config(args: argparse.Namespace, stack: Stack | None = None, machine: 
     # ~11 ms inside that put with the session's receiving thread blocked (measured in a real-time
     # flip); over the TCP link a plan's put takes 0.1-0.3 ms.
     conf.insert_json5("transport/shared_memory/enabled", "false")
+    bound_drop_wait(conf)   # a service's put of a droppable image never holds its loop for 50 ms
     for item in args.cfg:
         key, _, value = item.partition(":")
         if not value:
             raise StackError(f"--cfg {item!r}: expected KEY:VALUE")
         conf.insert_json5(key, value)
     return conf
+
+
+def bound_drop_wait(conf: zenoh.Config) -> None:
+    """A droppable message (real time's streams and images) that finds its link's queue full waits
+    Zenoh's wait_before_drop (1 ms) and is dropped, a fragmented one too. Zenoh's default gives a
+    message it has begun to fragment up to 50 ms more for its other fragments, and the thread that
+    pushes it waits: in a router, the thread that routes every other link's messages. A 1 MB image
+    on a saturated link held the control keys crossing the vehicle's router for ~50 ms
+    (docs/reliability.md, "A link that honours DSCP"). The cost: an image larger than the link's
+    queue (a router's bulk queue holds about 1 MB, deploy/router.py) crosses a saturated link only
+    when it has room for it whole. Lockstep blocks, never drops: untouched."""
+    conf.insert_json5("transport/link/tx/queue/congestion_control/drop/max_wait_before_drop_fragments", "0")
 
 
 def bulk_downsampling(vehicle_id: int, max_hz: float) -> list[dict]:

@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import zenoh  # noqa: E402
 
 import schemas  # noqa: E402
-from services.runtime import bulk_downsampling, zenoh_priority  # noqa: E402
+from services.runtime import bound_drop_wait, bulk_downsampling, zenoh_priority  # noqa: E402
 
 WIDTH_PX = 1024
 
@@ -72,8 +72,9 @@ def main(argv=None) -> None:
         conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("transport/shared_memory/enabled", "false")
-    if args.max_hz > 0 and not args.sink:
+    if args.max_hz > 0 and not args.sink:   # configured as a stack service's session is (services.runtime)
         conf.insert_json5("downsampling", json.dumps(bulk_downsampling(int(args.vehicle), args.max_hz)))
+        bound_drop_wait(conf)
     stop = []
     signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
     if args.sink:

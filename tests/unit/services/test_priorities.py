@@ -11,7 +11,7 @@ import zenoh
 
 import schemas
 from deploy.launcher import free_port
-from deploy.router import MAX_LINKS, router_config
+from deploy.router import MAX_LINKS, link_config, router_config
 from services.runtime import (ZENOH_PRIORITIES, bulk_downsampling, publisher_reliability, service_parser,
                               zenoh_config)
 from services.stack import load_stack
@@ -44,6 +44,28 @@ def test_services_cap_bulk_keys_in_real_time_only():
     assert _session_rules([]) == [{"key_expr": "zp/0/sim/@image", "freq": 40.0}]   # default stack: vehicle 40 Hz
     assert _session_rules(["--lockstep"]) == []   # a wall-clock cap would stall lockstep
     assert _session_rules([], machine="ground") == []   # its machine sets none
+
+
+def _drop_waits(conf: zenoh.Config) -> dict:
+    return json.loads(str(conf))["transport"]["link"]["tx"]["queue"]["congestion_control"]["drop"]
+
+
+def test_a_droppable_message_waits_for_room_no_longer_for_being_fragmented():
+    """Every router and session of the stack drops a droppable message that finds its link's queue
+    full after the 1 ms any droppable message gets, fragmented or not: Zenoh's default 50 ms more for
+    a fragmented one blocked a router's routing of every link behind a 1 MB image on a saturated link
+    (docs/reliability.md, "A link that honours DSCP"); a router's bulk queue takes a whole image."""
+    assert _drop_waits(zenoh.Config()) == {"wait_before_drop": 1000, "max_wait_before_drop_fragments": 50000}
+    ground = load_stack(str(STACKS / "two-hosts-ground.toml"))
+    confs = [router_config([], str(STACKS / "two-hosts-ground.toml"), "vehicle-router")[0],
+             router_config(["tcp/127.0.0.1:7447"])[0],
+             link_config(ground, "ground", "tcp/127.0.0.1:7999"),
+             zenoh_config(service_parser("sim", "").parse_args([]), load_stack(), "vehicle"),
+             zenoh_config(service_parser("sim", "").parse_args(["--lockstep"]), load_stack(), "vehicle")]
+    for conf in confs:
+        assert _drop_waits(conf) == {"wait_before_drop": 1000, "max_wait_before_drop_fragments": 0}
+    for conf in confs[:3]:   # a router's bulk queue holds about a 1 MB image (Zenoh's most: 16 batches of 64 KB)
+        assert json.loads(str(conf))["transport"]["link"]["tx"]["queue"]["size"]["background"] == 16
 
 
 def _open(conf_items: dict) -> zenoh.Session:
