@@ -239,6 +239,13 @@ class PositionLoop:
                 self.io.problem(f"started with the rotors carrying the vehicle at t={t:.3f}: the EKF starts "
                                 "at the first camera fix (the attitude level flies meanwhile)")
         if not self.in_flight_at_start:
+            # no state before the attitude level's first estimate (PX4's pre-arm "estimator not
+            # ready"): the planner arms on the first state, and in real time this level starts
+            # before the simulator and the attitude level run (it had armed and asked for the
+            # take-off 0.15 s before the first IMU sample, the first command then 5-12 ms late)
+            att = self.attitude.latest()
+            if att is None or t - att["header"]["t_s"] > p["attitude_timeout_s"]:
+                return False
             ekf.initialize(t, np.asarray(p["home_position_m"], dtype=float))
             self.ekf_started = True
             return True

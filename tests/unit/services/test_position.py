@@ -135,6 +135,14 @@ def _pose(position):
             "attitude_var_rad2": [1e-4, 1e-4, 1e-4], "markers": 6, "reprojection_rms_px": 0.5}
 
 
+def _attitude_runs(io, t):
+    """The attitude level's estimate at `t`, level: what the position level waits for before its first state."""
+    io.received(schemas.ATTITUDE_STATE, "attitude").push(t, {
+        "quaternion_wxyz": [1.0, 0.0, 0.0, 0.0], "euler_rad": [0.0, 0.0, 0.0], "rate_rad_s": [0.0, 0.0, 0.0],
+        "euler_ref_rad": [0.0, 0.0, 0.0], "euler_var_rad2": [1e-4] * 3, "rate_var_rad2_s2": [1e-4] * 3,
+        "state_source": "estimate"})
+
+
 def test_only_gated_fixes_restart_the_ekf():
     """Fixes too old for the EKF's history are refused and counted, but say nothing of a lost
     vehicle: six in a row restart nothing; five gated in a row restart it at the fix."""
@@ -142,6 +150,7 @@ def test_only_gated_fixes_restart_the_ekf():
     loop = PositionLoop(io)
     poses = io.received(schemas.VISION_POSE, "vision")
     io.received(schemas.PLANNER_SETPOINT, "planner").push(0.0, setpoint([0.0, 0.0, 0.0], armed=False))
+    _attitude_runs(io, 0.0)
     n = 0
     for n in range(1, 101):   # 1 s at rest, a fix every 5th run
         if n % 5 == 0:
@@ -167,7 +176,7 @@ def _pwm(armed, thrust_each_n):
 def test_restarted_in_flight_the_ekf_starts_at_the_first_camera_fix_not_at_home():
     """A position level started while the rotors carry the vehicle (a supervised restart, the
     attitude level's failsafe flying it) publishes nothing until a fresh camera fix, then starts
-    the EKF there; one started with the motors idle starts at home at once, as before."""
+    the EKF there; one started with the motors idle starts at home at its first attitude estimate."""
     hover = X250.mass_kg * X250.gravity_m_s2 / 4
     for armed, thrust, in_flight in ((True, hover, True), (False, 0.0, False)):
         io = FakeIO("position", PARAMS, {}, rate_hz=100.0)
@@ -175,6 +184,7 @@ def test_restarted_in_flight_the_ekf_starts_at_the_first_camera_fix_not_at_home(
         motors, poses = io.received(schemas.MOTOR_PWM, "motors"), io.received(schemas.VISION_POSE, "vision")
         io.received(schemas.PLANNER_SETPOINT, "planner").push(10.0, setpoint([0.0, 0.0, 1.0]))
         motors.push(10.0, _pwm(armed, thrust))
+        _attitude_runs(io, 10.0)
         loop.step(10.01)
         assert bool(io.sent(schemas.POSITION_STATE)) is not in_flight
         if not in_flight:
@@ -197,6 +207,7 @@ def test_estimate_fuses_camera_fixes_and_counts_stale_ones():
     loop = PositionLoop(io)
     poses = io.received(schemas.VISION_POSE, "vision")
     io.received(schemas.PLANNER_SETPOINT, "planner").push(0.0, setpoint([0.0, 0.0, 0.0], armed=False))
+    _attitude_runs(io, 0.0)
     for n in range(1, 201):   # 2 s on the ground, a fix every 5th run at (0.2, -0.1, 0)
         t = n / 100
         if n % 5 == 0:
@@ -270,3 +281,20 @@ def test_the_camera_delay_fit_waits_for_the_thrust_scale_to_settle():
     held = {round(1.05 + n * 0.05, 2): loop.thrust_scale_settled(1.05 + n * 0.05, 0.98) for n in range(1, 30)}
     assert not any(ok for t, ok in held.items() if t <= 2.0)   # the scale before the step still within the last second
     assert all(ok for t, ok in held.items() if t >= 2.05)      # then settled at the learnt scale
+
+
+def test_no_state_and_so_no_mission_before_the_attitude_level_estimates():
+    """As PX4's pre-arm "estimator not ready": the planner arms at the first state, and in real
+    time this level starts before the simulator and the attitude level run."""
+    io = FakeIO("position", PARAMS, {}, rate_hz=100.0)
+    loop = PositionLoop(io)
+    io.received(schemas.PLANNER_SETPOINT, "planner").push(0.0, setpoint([0.0, 0.0, 1.0]))
+    for n in range(1, 11):
+        loop.step(n / 100)
+    assert not io.sent(schemas.POSITION_STATE) and not io.sent(schemas.POSITION_SETPOINT)
+    _attitude_runs(io, 0.05)   # older than attitude_timeout_s at the next run: not yet
+    loop.step(0.11)
+    assert not io.sent(schemas.POSITION_STATE)
+    _attitude_runs(io, 0.115)
+    loop.step(0.12)
+    assert io.sent(schemas.POSITION_STATE)[-1][1]["position_m"] == pytest.approx([0.0, 0.0, 0.0], abs=1e-6)
