@@ -14,11 +14,11 @@ Failsafes (the vehicle's own, never waiting on the ground): the planner's setpoi
 than `setpoint_timeout_s` -> hold the position we had; after `planner_loss_land_after_s` of
 it, land there (the height reference sinking at `land_speed_m_s`; on the ground -> idle,
 "planner_lost_landed", and down until the planner disarms: "planner_back_landed"); in the air a
-fresh setpoint takes over again, its position reached from where the
-vehicle is at `land_speed_m_s` ("planner_back"), not as a step: the planner's mission went on
-while it was lost (a landing's reference 0.9 m below, after a 2 s link outage, saturated the
-tilt and the mixer's collective with it: the vehicle climbed to 3 m, once 83 m; docs/reliability.md). No camera fix fused for
-`vision_timeout_s` while flying on the estimate -> the EKF coasts (its covariance grows) and
+fresh setpoint takes over again, its position reached from where the vehicle is at
+`land_speed_m_s` ("planner_back"), not as a step: the planner's mission went on while it was
+lost (a landing's reference 0.9 m below, after a 2 s link outage, saturated the tilt and the
+mixer's collective with it: the vehicle climbed to 3 m, once 83 m; docs/reliability.md). No
+camera fix fused for `vision_timeout_s` while flying on the estimate -> the EKF coasts (its covariance grows) and
 the position level withholds its setpoint, so that the attitude level's own descent lands the
 vehicle ("vision_lost"); a fix fused again resumes it. A camera fix older than
 `pose_timeout_s` at arrival is not fused ("stale_pose"), an attitude estimate older than
