@@ -25,7 +25,7 @@ from services import security
 from services.runtime import PARENT_ENV
 from services.stack import SERVICE_MODULES, Stack, StackError, service_of
 
-ROUTER_START_TIMEOUT_S = 10.0
+ROUTER_START_TIMEOUT_S = 20.0   # a machine's router opens once its link echoed: up to deploy.router.GATE_S
 STOP_GRACE_S = 5.0        # a service's time to finish after SIGTERM before SIGKILL
 # The recorder's: it writes what arrived last and the log's summary (the log is then complete),
 # and in lockstep rewrites the log in sample-time order (~1.2 s per MB on 2 busy cores,

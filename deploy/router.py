@@ -47,7 +47,9 @@ MAX_LINKS = 8   # links per router pair: at most one per Zenoh priority
 CLOSE_S = 3.0
 CHECK_S = 2.0   # no echo for this long: the link to the other host is opened again (linked: ~1 s)
 PING_S = 0.25
-GATE_S = 8.0   # the longest the machine's router waits for its link's first echo (the launcher: 10 s)
+# the longest the machine's router waits for its link's first echo: three whole checks (2 + 4 + 8 s,
+# each open ~0.3 s), so a link slow to carry gets its third try (the launcher waits 20 s)
+GATE_S = 15.0
 # no echo and nothing from the other machines' services for this long: the link and the machine's
 # router open again. Past Zenoh's 10 s lease and the ~2 s its links took to come back by themselves
 # after a 15 s outage (docs/reliability.md, "The link lost mid-flight")
