@@ -95,7 +95,8 @@ to the probes' rows by header: each message's latency split into the sender's ho
 the receiver's host (bench/support/trace.py), the stalls (moments when messages of several keys
 were all held on the sender's host: a router that routes nothing), and the CPU of every process
 and thread of the machine over the flight. `--link-rt`: the forwarder at SCHED_FIFO above every
-service, so that the link is not slowed by the hosts' load on the shared cores.
+service, so that the link is not slowed by the hosts' load on the shared cores. `--pin`: each
+host's processes on a core of its own (the vehicle's CPU 0, the ground's CPU 1).
 
 The same mission is then flown on one host with `zenpilot fly` (same stack, seed and mode) into
 <out>/one-host/, its per-key losses beside; in lockstep the two logs are compared message for
@@ -287,7 +288,7 @@ class TwoHosts:
     loss. Either way both hosts keep their addresses on one /24 and nothing leaves the namespaces."""
 
     def __init__(self, tag: str, profile: LinkProfile, emulator: str = "auto", link_seed: int = 0,
-                 out: Path | None = None, cuttable: bool = False, link_rt: bool = False):
+                 out: Path | None = None, cuttable: bool = False, link_rt: bool = False, pin: bool = False):
         self.ns = {"vehicle": f"zp{tag}-vehicle", "ground": f"zp{tag}-ground"}
         self.dev = {"vehicle": f"zp{tag}v", "ground": f"zp{tag}g"}  # interface names: 15 characters at most
         self.link_dev = {"vehicle": f"zp{tag}lv", "ground": f"zp{tag}lg"}   # the forwarder's ends
@@ -300,6 +301,8 @@ class TwoHosts:
         self.forwarder_stats: dict | None = None
         self.cuttable = cuttable        # --outage: the link namespace's ends are what is cut
         self.link_rt = link_rt          # --link-rt: the forwarder above every service (SCHED_FIFO)
+        # --pin: every process of a host on a core of its own (inherited by what it starts)
+        self.cpu = {"vehicle": "0", "ground": "1"} if pin else {}
 
     def open(self) -> None:
         for host in ("vehicle", "ground"):
@@ -408,7 +411,8 @@ class TwoHosts:
         return self.forwarder_stats
 
     def argv(self, host: str, cmd: list[str]) -> list[str]:
-        return ["ip", "netns", "exec", self.ns[host], *cmd]
+        pin = ["taskset", "-c", self.cpu[host]] if host in self.cpu else []
+        return ["ip", "netns", "exec", self.ns[host], *pin, *cmd]
 
     def pids(self, host: str) -> list[int]:
         proc = run(["ip", "netns", "pids", self.ns[host]], check=False)
@@ -1203,6 +1207,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--link-rt", action="store_true",
                    help=f"the forwarder at real-time priority (SCHED_FIFO {LINK_FIFO}, above every service): a link "
                         f"that the hosts' CPU load does not slow, as hardware of its own")
+    p.add_argument("--pin", action="store_true",
+                   help="each host's processes on a core of its own (vehicle CPU 0, ground CPU 1; the forwarder "
+                        "unpinned), as two machines would not share their CPUs")
     p.add_argument("--placement", choices=tuple(STACKS), default="vehicle",
                    help="vehicle: one router on the vehicle, only the recorder on the ground (two-hosts.toml); "
                         "ground: a router per host, planner, recorder and MAVLink on the ground (two-hosts-ground.toml); "
@@ -1266,7 +1273,7 @@ def main(argv=None) -> int:
         print("two_hosts: error: --outage is real time (in lockstep a cut link stops the clock)", file=sys.stderr)
         return 2
     hosts = TwoHosts(str(os.getpid()), profile, args.emulator, args.link_seed, out, cuttable=bool(args.outage),
-                     link_rt=args.link_rt)
+                     link_rt=args.link_rt, pin=args.pin)
     signal.signal(signal.SIGTERM, _stop)
     two = one = None
     code = 0
