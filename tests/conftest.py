@@ -18,6 +18,14 @@ import warnings
 
 import pytest
 
+from deploy.launcher import SERVICE_THREADS
+
+# One BLAS thread in every process of the suite, as the launcher gives the services: set before a
+# test module loads numpy, and inherited by the commands the tests run (`zenpilot ...`, benches).
+# OpenBLAS otherwise starts a thread per core in each of them, ~0.1 s of CPU per process.
+for _key, _value in SERVICE_THREADS.items():
+    os.environ.setdefault(_key, _value)
+
 REALTIME = "realtime"
 UNDER_XDIST = "PYTEST_XDIST_TESTRUNUID" in os.environ
 
