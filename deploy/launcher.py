@@ -20,12 +20,13 @@ from pathlib import Path
 
 import zenoh
 
+from deploy.router import GATE_S
 from schemas.flightlog import LOG_NAME
 from services import security
 from services.runtime import PARENT_ENV
 from services.stack import SERVICE_MODULES, Stack, StackError, service_of
 
-ROUTER_START_TIMEOUT_S = 20.0   # a machine's router opens once its link echoed: up to deploy.router.GATE_S
+ROUTER_START_TIMEOUT_S = GATE_S + 5.0   # a machine's router opens once its link echoed, or after GATE_S
 STOP_GRACE_S = 5.0        # a service's time to finish after SIGTERM before SIGKILL
 # The recorder's: it writes what arrived last and the log's summary (the log is then complete),
 # and in lockstep rewrites the log in sample-time order (~1.2 s per MB on 2 busy cores,

@@ -48,7 +48,7 @@ CLOSE_S = 3.0
 CHECK_S = 2.0   # no echo for this long: the link to the other host is opened again (linked: ~1 s)
 PING_S = 0.25
 # the longest the machine's router waits for its link's first echo: three whole checks (2 + 4 + 8 s,
-# each open ~0.3 s), so a link slow to carry gets its third try (the launcher waits 20 s)
+# each open ~0.3 s), so a link slow to carry gets its third try (deploy/launcher.py waits 5 s more)
 GATE_S = 15.0
 # no echo and nothing from the other machines' services for this long: the link and the machine's
 # router open again. Past Zenoh's 10 s lease and the ~2 s its links took to come back by themselves

@@ -240,9 +240,7 @@ class PositionLoop:
                                 "at the first camera fix (the attitude level flies meanwhile)")
         if not self.in_flight_at_start:
             # no state before the attitude level's first estimate (PX4's pre-arm "estimator not
-            # ready"): the planner arms on the first state, and in real time this level starts
-            # before the simulator and the attitude level run (it had armed and asked for the
-            # take-off 0.15 s before the first IMU sample, the first command then 5-12 ms late)
+            # ready"): the planner arms on the first state, and in real time this level starts first
             att = self.attitude.latest()
             if att is None or t - att["header"]["t_s"] > p["attitude_timeout_s"]:
                 return False
