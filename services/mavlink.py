@@ -159,6 +159,19 @@ def run(args) -> None:
             if (msg := sensors[name].latest()) is not None:
                 bridge.inputs[name] = msg
 
+    def incoming():
+        """The messages waiting on the socket, at most max_messages_per_step (bounded work)."""
+        for _ in range(p["max_messages_per_step"]):
+            try:
+                msg = conn.recv_msg()
+            except Exception as exc:  # a socket error must not end the bridge
+                rt.rejected["mavlink_recv_error"] = rt.rejected.get("mavlink_recv_error", 0) + 1
+                rt.problem(f"receive failed: {type(exc).__name__}: {exc}")
+                return
+            if msg is None:
+                return
+            yield msg
+
     def step(now_wall: float) -> None:
         follow_sensors()
         for name, box in boxes.items():
@@ -167,17 +180,7 @@ def run(args) -> None:
                 bridge.inputs[name] = msg
         # the stack's clock: wall time, or in lockstep the newest simulated sample time
         now = max((m["header"]["t_s"] for m in bridge.inputs.values()), default=0.0) if lockstep else now_wall
-        act(bridge.tick(now, now_wall))
-        for _ in range(p["max_messages_per_step"]):
-            try:
-                msg = conn.recv_msg()
-            except Exception as exc:  # a socket error must not end the bridge
-                rt.rejected["mavlink_recv_error"] = rt.rejected.get("mavlink_recv_error", 0) + 1
-                rt.problem(f"receive failed: {type(exc).__name__}: {exc}")
-                break
-            if msg is None:
-                break
-            act(bridge.handle(msg, now, now_wall))
+        act(bridge.cycle(now, now_wall, incoming()))
         if signing:  # pymavlink counts signature failures itself (bad or replayed: badsig)
             s = conn.mav.signing
             for reason, value in (("mavlink_unsigned", s.reject_count - s.badsig_count),

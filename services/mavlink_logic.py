@@ -385,6 +385,16 @@ class Bridge:
                 and math.hypot(*pos["velocity_m_s"]) < 0.1
                 and ("vision" not in self.services or self.healthy("vision", wall)))
 
+    # ------------------------------------------------------------------ one loop
+    def cycle(self, now_stack: float, now_wall: float, incoming) -> list[tuple[str, dict]]:
+        """One loop of the bridge: every message waiting (`incoming`), then the streams and the
+        timers. Messages first: a bridge that ran late (a busy machine) judges a ground station's
+        streams (offboard setpoints, heartbeats) by what reached its socket, not by its own delay."""
+        actions = []
+        for msg in incoming:
+            actions += self.handle(msg, now_stack, now_wall)
+        return actions + self.tick(now_stack, now_wall)
+
     # ------------------------------------------------------------------ outgoing
     def tick(self, now_stack: float, now_wall: float) -> list[tuple[str, dict]]:
         """Send the streams that are due; follow the mission, offboard and the failsafe. Returns actions."""
@@ -1237,7 +1247,7 @@ class Bridge:
             return []
         if wall - off["wall"] > self.params.own("offboard_timeout_s"):
             self.statustext("offboard: setpoints lost, hold", mavlink.MAV_SEVERITY_CRITICAL)
-            self.problem("offboard setpoints lost: hold")
+            self.problem(f"offboard setpoints lost (none for {wall - off['wall']:.2f} s): hold")
             self.mode, self.offboard = "hold", None
             return [("command", self.command_fields("hold", origin="offboard-timeout"))]
         if off["target"] is None:

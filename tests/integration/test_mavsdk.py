@@ -94,8 +94,16 @@ async def connect(udp: int):
     return sdk, system
 
 
-def run(coro):
-    return asyncio.run(asyncio.wait_for(coro, 400.0))
+def run(coro, run_dir=None):
+    """Run a MAVSDK flow; a failure carries what the bridge and the planner said (their logs)."""
+    try:
+        return asyncio.run(asyncio.wait_for(coro, 400.0))
+    except AssertionError as exc:
+        if run_dir is None:
+            raise
+        said = "".join(f"\n--- {name}.log\n" + (run_dir / "logs" / f"{name}.log").read_text()[-2000:]
+                       for name in ("mavlink", "planner") if (run_dir / "logs" / f"{name}.log").exists())
+        raise AssertionError(f"{exc}{said}") from None
 
 
 def test_qgc_messages_at_their_rates(stack):
@@ -176,7 +184,7 @@ async def telemetry_and_parameters(udp: int):
 
 def test_telemetry_health_and_parameters(stack):
     udp, run_dir = stack
-    unknown_s = run(telemetry_and_parameters(udp))
+    unknown_s = run(telemetry_and_parameters(udp), run_dir)
     assert unknown_s < 2.0, f"an unknown parameter took {unknown_s:.1f} s to be refused"
     time.sleep(0.5)
     log = (run_dir / "logs" / "position.log").read_text()
@@ -216,8 +224,8 @@ async def takeoff_offboard_land(udp: int):
 
 
 def test_takeoff_offboard_land(stack):
-    udp, _ = stack
-    run(takeoff_offboard_land(udp))
+    udp, run_dir = stack
+    run(takeoff_offboard_land(udp), run_dir)
 
 
 async def after_the_example(udp: int):
@@ -254,6 +262,6 @@ def test_readme_mission_example_flies_four_waypoints_and_returns(stack):
                 if line.startswith("mission progress")]
     assert progress[-1] == (4, 4) and [c for c, _ in progress] == sorted(c for c, _ in progress), progress
     assert done.stdout.rstrip().endswith("landed and disarmed")
-    run(after_the_example(udp))
+    run(after_the_example(udp), run_dir)
     planner = (run_dir / "logs" / "planner.log").read_text()
     assert "mission of 9 items" in planner and "mission of 2 items" in planner  # the square, then RTL

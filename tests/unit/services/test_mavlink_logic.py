@@ -325,6 +325,31 @@ def test_offboard_position_and_velocity_targets_with_timeout(link):
     assert send(nan) == [] and counts["mavlink_bad_value"] == 1
 
 
+def test_a_bridge_that_ran_late_judges_the_streams_by_its_socket(link):
+    """The bridge's loop stalled past COM_OF_LOSS_T and the GCS timeout (a busy machine) while
+    MAVSDK kept streaming: the setpoint and heartbeat waiting on the socket are read before the
+    timers judge, so neither offboard nor the link failsafe fires. A stream that really stopped does."""
+    bridge, gcs, send, received, counts = link
+    parser = mavlink.MAVLink(None)
+    bridge.inputs["setpoint"] = setpoint(armed=True, phase="hold", z=2.0)
+    bridge.inputs["pos"]["position_m"] = [0.0, 0.0, 2.0]
+    position = 0b110111111000
+    target = gcs.set_position_target_local_ned_encode(0, 1, 1, mavlink.MAV_FRAME_LOCAL_NED, position,
+                                                      1.0, 0.0, -2.0, 0, 0, 0, 0, 0, 0, 0, 0)
+    heartbeat = gcs.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+    send(heartbeat)
+    send(target)
+    send(long(gcs, mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 6))
+    assert bridge.cycle(NOW, NOW, [])[0][1]["command"] == "goto"
+    late = NOW + 2.5   # past COM_OF_LOSS_T (1 s) and the GCS timeout (2 s)
+    waiting = parser.parse_buffer(heartbeat.pack(gcs) + target.pack(gcs))
+    actions = bridge.cycle(late, late, iter(waiting))
+    assert all(a[1]["command"] not in ("hold", "land") for a in actions), actions
+    assert bridge.mode_name() == "offboard" and bridge.failsafe.state == "ok"
+    actions = bridge.cycle(late + 1.5, late + 1.5, iter([]))   # nothing came: lost
+    assert [a[1]["command"] for a in actions] == ["hold"] and bridge.mode_name() == "hold"
+
+
 def upload(send, received, gcs, items):
     """The GCS side of a mission upload; returns the final MISSION_ACK."""
     send(gcs.mission_count_encode(1, 1, len(items), 0))
