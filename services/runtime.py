@@ -597,6 +597,7 @@ class Runtime(ParamAccess):
         self.cpu_inline_s = 0.0   # one process: CPU of this service's runs on another thread (less, of others' on this)
         self.dropped: dict[str, int] = {}
         self._lateness: list[float] = []   # wake-up lateness (s) since the last health message
+        self.late_max_ms = 0.0             # the worst of the run, for the log line at exit
         self.scheduling = "normal"
         self.state = "starting"
         self._run_times: deque[float] = deque()
@@ -850,6 +851,7 @@ class Runtime(ParamAccess):
         self._lateness.clear()
         p50, p99, worst = (1e3 * late[len(late) // 2], 1e3 * late[min(len(late) - 1, int(0.99 * len(late)))],
                            1e3 * late[-1]) if late else (0.0, 0.0, 0.0)
+        self.late_max_ms = max(self.late_max_ms, worst)
         self._health.put({
             "state": self.state, "rate_hz": float(len(self._run_times)) / HEALTH_PERIOD_S,
             "target_rate_hz": float(self.rate_hz), "overruns": self.overruns,
@@ -979,8 +981,11 @@ class Runtime(ParamAccess):
         if self.state != "stopping":
             cpu = os.times()   # one process of several threads: this service's thread and its inline runs
             used = cpu.user + cpu.system if LOCAL_BUS is None else time.thread_time() + self.cpu_inline_s
+            # the worst lateness of the run: a service stalled on a busy machine shows in its log
+            late_max = max(self.late_max_ms, 1e3 * max(self._lateness, default=0.0))
             print(f"zenpilot-{self.instance}: stopping; cpu {used:.2f} s; {self.cycles} runs, "
-                  f"step {self.step_s:.3f} s, waited {self.wait_s:.3f} s", flush=True)
+                  f"step {self.step_s:.3f} s, waited {self.wait_s:.3f} s"
+                  f"{'' if self.lockstep else f'; late at most {late_max:.1f} ms'}", flush=True)
         self.state = "stopping"
         try:
             self.publish_health(force=True)
