@@ -14,6 +14,7 @@ on, then MAVSDK binds the same port.
 """
 
 import asyncio
+import contextlib
 import math
 import os
 import socket
@@ -192,35 +193,46 @@ def test_telemetry_health_and_parameters(stack):
 
 
 async def takeoff_offboard_land(udp: int):
-    """MAVSDK's takeoff_and_land and offboard_position_ned examples in one flight."""
+    """MAVSDK's takeoff_and_land and offboard_position_ned examples in one flight; a flight that
+    fails is landed, so the next test of the stack starts on the ground."""
     sdk, drone = await connect(udp)
     async with sdk:
-        telemetry, action, offboard = TelemetryAsync(drone), ActionAsync(drone), OffboardAsync(drone)
-        await until(telemetry.subscribe_health(), lambda h: h.is_armable, 60.0, "armable vehicle")
-        await action.set_takeoff_altitude(2.0)
-        await action.arm()
-        await until(telemetry.subscribe_armed(), lambda a: a, 10.0, "armed")
-        await action.takeoff()
-        await until(telemetry.subscribe_position(), lambda p: p.relative_altitude_m > 1.9, 60.0, "2 m up")
-        await until(telemetry.subscribe_in_air(), lambda a: a, 10.0, "in air")
-        await action.hold()
-        assert await until(telemetry.subscribe_flight_mode(), lambda m: m == FlightMode.HOLD, 10.0,
-                           "hold mode") == FlightMode.HOLD
-        # offboard: a setpoint first, then start; steps north and east, as the example does
-        await offboard.set_position_ned(PositionNedYaw(0.0, 0.0, -2.0, 0.0))
-        await offboard.start()
-        await until(telemetry.subscribe_flight_mode(), lambda m: m == FlightMode.OFFBOARD, 10.0, "offboard")
-        for north, east in ((1.5, 0.0), (1.5, 1.5), (0.0, 0.0)):
-            await offboard.set_position_ned(PositionNedYaw(north, east, -2.0, 0.0))
-            await until(telemetry.subscribe_position_velocity_ned(),
-                        lambda p: math.dist((p.position.north_m, p.position.east_m, p.position.down_m),
-                                            (north, east, -2.0)) < 0.2,
-                        90.0, f"offboard position ({north}, {east}, -2)")
-        await offboard.stop()
-        await action.land()
-        await until(telemetry.subscribe_flight_mode(), lambda m: m == FlightMode.LAND, 10.0, "land mode")
-        await until(telemetry.subscribe_armed(), lambda a: not a, 90.0, "disarmed after landing")
-        assert await until(telemetry.subscribe_landed_state(), lambda s: True, 10.0, "") == LandedState.ON_GROUND
+        telemetry, action = TelemetryAsync(drone), ActionAsync(drone)
+        try:
+            await fly_takeoff_offboard_land(telemetry, action, OffboardAsync(drone))
+        except Exception:
+            with contextlib.suppress(Exception):   # the flight's own failure is what the test reports
+                await action.land()
+                await until(telemetry.subscribe_armed(), lambda a: not a, 90.0, "disarmed after the failure")
+            raise
+
+
+async def fly_takeoff_offboard_land(telemetry, action, offboard):
+    await until(telemetry.subscribe_health(), lambda h: h.is_armable, 60.0, "armable vehicle")
+    await action.set_takeoff_altitude(2.0)
+    await action.arm()
+    await until(telemetry.subscribe_armed(), lambda a: a, 10.0, "armed")
+    await action.takeoff()
+    await until(telemetry.subscribe_position(), lambda p: p.relative_altitude_m > 1.9, 60.0, "2 m up")
+    await until(telemetry.subscribe_in_air(), lambda a: a, 10.0, "in air")
+    await action.hold()
+    assert await until(telemetry.subscribe_flight_mode(), lambda m: m == FlightMode.HOLD, 10.0,
+                       "hold mode") == FlightMode.HOLD
+    # offboard: a setpoint first, then start; steps north and east, as the example does
+    await offboard.set_position_ned(PositionNedYaw(0.0, 0.0, -2.0, 0.0))
+    await offboard.start()
+    await until(telemetry.subscribe_flight_mode(), lambda m: m == FlightMode.OFFBOARD, 10.0, "offboard")
+    for north, east in ((1.5, 0.0), (1.5, 1.5), (0.0, 0.0)):
+        await offboard.set_position_ned(PositionNedYaw(north, east, -2.0, 0.0))
+        await until(telemetry.subscribe_position_velocity_ned(),
+                    lambda p: math.dist((p.position.north_m, p.position.east_m, p.position.down_m),
+                                        (north, east, -2.0)) < 0.2,
+                    90.0, f"offboard position ({north}, {east}, -2)")
+    await offboard.stop()
+    await action.land()
+    await until(telemetry.subscribe_flight_mode(), lambda m: m == FlightMode.LAND, 10.0, "land mode")
+    await until(telemetry.subscribe_armed(), lambda a: not a, 90.0, "disarmed after landing")
+    assert await until(telemetry.subscribe_landed_state(), lambda s: True, 10.0, "") == LandedState.ON_GROUND
 
 
 def test_takeoff_offboard_land(stack):
