@@ -120,6 +120,7 @@ class PositionLoop:
         self.landed = False
         self.landed_for = 0.0
         self.vision_lost = False
+        self.camera_due_t = -math.inf   # since when a camera fix is due: the vehicle last left the ground
         self.integral = np.zeros(2)  # hold_ki's integral of the position error
         self.bias = None
         self.ekf_disturbance = None   # (x, y) of the EKF, m/s^2: read_state
@@ -339,10 +340,17 @@ class PositionLoop:
                 self.count("planner_back")
             self.hold_position = None
         flying = sp is not None and sp["armed"] and sp["mode"] != "idle"
+        # near the ground the camera sees too little of the marker map to solve (take-off, landing):
+        # its silence there is no loss, and counts only from the last time the vehicle was there
+        # (a second take-off must not find the fix of the last landing stale)
+        low = pos[2] <= p["home_position_m"][2] + VISION_MIN_HEIGHT_M
+        if not flying:
+            self.vision_lost = False
+        if not flying or (low and not self.vision_lost):
+            self.camera_due_t = t
         if self.estimate and flying and self.fused_t is not None:
-            # near the ground the camera sees too little of the marker map to solve (take-off, landing)
-            lost = (t - self.fused_t > p["vision_timeout_s"]
-                    and (self.vision_lost or pos[2] > p["home_position_m"][2] + VISION_MIN_HEIGHT_M))
+            lost = (t - max(self.fused_t, self.camera_due_t) > p["vision_timeout_s"]
+                    and (self.vision_lost or not low))
             if lost != self.vision_lost:
                 self.vision_lost = lost
                 self.count("vision_lost" if lost else "vision_back")
