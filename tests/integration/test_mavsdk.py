@@ -17,6 +17,7 @@ import asyncio
 import contextlib
 import math
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -77,18 +78,19 @@ def stack(request, tmp_path_factory):
 
 async def until(agen, cond, timeout_s: float, what: str):
     """The first value of a telemetry stream that satisfies cond, within timeout_s; a timeout says
-    the last value the stream gave."""
+    the last value the stream gave and when (a stream that stopped, or a vehicle elsewhere)."""
     seen = []
 
     async def first():
         async for value in agen:
-            seen[:] = [value]
+            seen[:] = [value, time.monotonic()]
             if cond(value):
                 return value
     try:
         return await asyncio.wait_for(first(), timeout_s)
     except asyncio.TimeoutError:
-        raise AssertionError(f"no {what} within {timeout_s} s; last: {seen[0] if seen else 'nothing'}") from None
+        last = f"{time.monotonic() - seen[1]:.1f} s before: {seen[0]}" if seen else "nothing"
+        raise AssertionError(f"no {what} within {timeout_s} s; the last value came {last}") from None
 
 
 async def connect(udp: int):
@@ -109,6 +111,14 @@ def run(coro, run_dir=None):
         said = "".join(f"\n--- {name}.log\n" + (run_dir / "logs" / f"{name}.log").read_text()[-2000:]
                        for name in ("mavlink", "planner") if (run_dir / "logs" / f"{name}.log").exists())
         raise AssertionError(f"{exc}{said}") from None
+
+
+def udp_sockets(port: int) -> str:
+    """The sockets on this UDP port, with their processes: where the bridge's messages go."""
+    if not shutil.which("ss"):
+        return ""
+    lines = subprocess.run(["ss", "-uanp"], capture_output=True, text=True).stdout.splitlines()
+    return f"\n--- UDP sockets on port {port}\n" + "\n".join(line for line in lines if f":{port} " in line)
 
 
 def test_qgc_messages_at_their_rates(stack):
@@ -204,10 +214,13 @@ async def takeoff_offboard_land(udp: int):
         telemetry, action = TelemetryAsync(drone), ActionAsync(drone)
         try:
             await fly_takeoff_offboard_land(telemetry, action, OffboardAsync(drone))
-        except Exception:
+        except Exception as exc:
+            held = udp_sockets(udp)   # while this ground station still holds its port
             with contextlib.suppress(Exception):   # the flight's own failure is what the test reports
                 await action.land()
                 await until(telemetry.subscribe_armed(), lambda a: not a, 90.0, "disarmed after the failure")
+            if isinstance(exc, AssertionError):
+                raise AssertionError(f"{exc}{held}") from None
             raise
 
 
