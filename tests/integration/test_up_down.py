@@ -24,6 +24,14 @@ def zp(*args, env):
                           capture_output=True, text=True, timeout=120)
 
 
+def _cmdline(pid: int) -> str:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            return f.read().replace(b"\0", b" ").decode(errors="replace")[:160]
+    except OSError:
+        return "(gone)"
+
+
 @pytest.mark.realtime
 def test_up_two_machines_status_down(tmp_path):
     """`down` stops its own stack only (another one beside it keeps running), services first and
@@ -61,7 +69,8 @@ def test_up_two_machines_status_down(tmp_path):
         assert down.returncode == 0 and "stopped" in down.stdout, down.stdout + down.stderr
         assert processes_mentioning(router) == []
         assert not os.path.exists(f"/proc/{restarted}")   # the restarted service was stopped too
-        assert len(processes_mentioning(other)) == 3   # the other stack's router, recorder and its `up`
+        beside_procs = {pid: _cmdline(pid) for pid in processes_mentioning(other)}
+        assert len(beside_procs) == 3, beside_procs   # the other stack's router, recorder and its `up`
     finally:
         zp("down", "--all", env=env)
     assert processes_mentioning(other) == []
