@@ -73,6 +73,15 @@ def hover_real_time(tmp_path_factory):
     return out, fly(out, "hover", *TRUTH_STATE, lockstep=False)
 
 
+def command_line(pid: int) -> str:
+    """A process's command line, for a failure message ("(gone)" once it has ended)."""
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            return f.read().replace(b"\0", b" ").decode(errors="replace")[:160]
+    except OSError:
+        return "(gone)"
+
+
 def processes_mentioning(text: str) -> list[int]:
     """The processes whose command line contains `text` (a run's router endpoint or folder)."""
     pids = []

@@ -12,7 +12,7 @@ from mcap.reader import make_reader
 
 from deploy.launcher import free_port
 
-from .conftest import ROOT, processes_mentioning
+from .conftest import ROOT, command_line, processes_mentioning
 
 OTHER_STACK = ROOT / "tests" / "integration" / "stacks" / "recorder-only.toml"
 
@@ -22,14 +22,6 @@ pytestmark = pytest.mark.integration
 def zp(*args, env):
     return subprocess.run([sys.executable, "-m", "deploy.cli", *args], cwd=ROOT, env=env,
                           capture_output=True, text=True, timeout=120)
-
-
-def _cmdline(pid: int) -> str:
-    try:
-        with open(f"/proc/{pid}/cmdline", "rb") as f:
-            return f.read().replace(b"\0", b" ").decode(errors="replace")[:160]
-    except OSError:
-        return "(gone)"
 
 
 @pytest.mark.realtime
@@ -69,7 +61,7 @@ def test_up_two_machines_status_down(tmp_path):
         assert down.returncode == 0 and "stopped" in down.stdout, down.stdout + down.stderr
         assert processes_mentioning(router) == []
         assert not os.path.exists(f"/proc/{restarted}")   # the restarted service was stopped too
-        beside_procs = {pid: _cmdline(pid) for pid in processes_mentioning(other)}
+        beside_procs = {pid: command_line(pid) for pid in processes_mentioning(other)}
         assert len(beside_procs) == 3, beside_procs   # the other stack's router, recorder and its `up`
     finally:
         zp("down", "--all", env=env)
